@@ -1,0 +1,1 @@
+//! Crate root; its contents arrive with the issue that builds this crate.

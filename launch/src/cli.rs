@@ -1,0 +1,129 @@
+//! The `bcal` command line: every subcommand and flag, with the help text users read.
+
+use bcal_common::dataset::Experiment;
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use std::path::PathBuf;
+
+/// bcal keeps a Li-ion battery model true to the battery it describes: it simulates the NASA
+/// electrochemistry model, generates the paper's calibration experiments, and trains and evaluates
+/// calibrators.
+#[derive(Parser, Debug)]
+#[command(name = "bcal", version, about, long_about = None)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Simulate one discharge from a new cell's initial state until the voltage falls below VEOD (3.0 V).
+    Simulate(SimulateArgs),
+    /// Generate (and cache) or inspect the paper's experiment data sets.
+    Dataset(DatasetArgs),
+}
+
+#[derive(Args, Debug)]
+#[command(group(clap::ArgGroup::new("load").required(true).args(["load_w", "current_a"])))]
+pub struct SimulateArgs {
+    /// Mobile lithium charge qMobile, C (new cell: 7600).
+    #[arg(long, default_value_t = 7600.0, value_parser = positive_f64, allow_hyphen_values = true)]
+    pub q_mobile: f64,
+    /// Internal (ohmic) resistance Ro, ohm (new cell: 0.117215).
+    #[arg(long, default_value_t = 0.117215, value_parser = non_negative_f64, allow_hyphen_values = true)]
+    pub ro: f64,
+    /// Constant power load, W (the paper's input: current = P / V each step).
+    #[arg(long, value_parser = positive_f64, allow_hyphen_values = true)]
+    pub load_w: Option<f64>,
+    /// Constant discharge current, A (positive while discharging).
+    #[arg(long, value_parser = positive_f64, allow_hyphen_values = true)]
+    pub current_a: Option<f64>,
+    /// Turn on the thermal state (bulk temperature tb with self-heating); adds a `tb_k` column.
+    #[arg(long)]
+    pub thermal: bool,
+    /// Euler time step, s.
+    #[arg(long, default_value_t = 1.0, value_parser = positive_f64)]
+    pub dt: f64,
+    /// Stop after this many steps if VEOD is never reached.
+    #[arg(long, default_value_t = 200_000)]
+    pub max_steps: usize,
+    /// Write every step as CSV: t_s,voltage_v,qpS,qpB,qnB,qnS,Vo,Vsn,Vsp, the input (load_w or current_a),
+    /// and tb_k when --thermal.
+    #[arg(long, value_name = "FILE.csv")]
+    pub out: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct DatasetArgs {
+    #[command(subcommand)]
+    pub action: DatasetAction,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum DatasetAction {
+    /// Generate an experiment's trajectories on all cores and cache them (reads the cache when valid).
+    Generate(DatasetSelect),
+    /// Summarise a cached experiment: trajectories, train/test split by load, steps, EOD range.
+    Info(DatasetSelect),
+}
+
+#[derive(Args, Debug)]
+pub struct DatasetSelect {
+    /// Which experiment (paper Appendix A).
+    #[arg(long, value_enum, default_value_t = ExperimentArg::All)]
+    pub experiment: ExperimentArg,
+    /// Cache folder (default: $BCAL_CACHE/datasets or ~/.cache/bcal/datasets).
+    #[arg(long)]
+    pub cache_dir: Option<PathBuf>,
+    /// Regenerate even when a valid cache file exists.
+    #[arg(long)]
+    pub force: bool,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum, PartialEq, Eq)]
+pub enum ExperimentArg {
+    /// qMobile 4000..7000 C (501 values), Ro fixed, 11 loads 8..16 W.
+    SingleQ,
+    /// Ro 0.1..0.2 ohm (501 values), qMobile fixed, 11 loads 8..16 W.
+    SingleR,
+    /// qMobile (101 values) x Ro (5 values), 9 loads 8..16 W.
+    Multi,
+    /// All three.
+    All,
+}
+
+impl ExperimentArg {
+    pub fn experiments(self) -> Vec<Experiment> {
+        match self {
+            ExperimentArg::SingleQ => vec![Experiment::SingleQ],
+            ExperimentArg::SingleR => vec![Experiment::SingleR],
+            ExperimentArg::Multi => vec![Experiment::Multi],
+            ExperimentArg::All => Experiment::ALL.to_vec(),
+        }
+    }
+}
+
+fn parse_finite(s: &str) -> Result<f64, String> {
+    let v: f64 = s.trim().parse().map_err(|_| format!("`{s}` is not a number"))?;
+    if !v.is_finite() {
+        return Err(format!("`{s}` is not a finite number"));
+    }
+    Ok(v)
+}
+
+/// A finite number > 0.
+pub fn positive_f64(s: &str) -> Result<f64, String> {
+    let v = parse_finite(s)?;
+    if v <= 0.0 {
+        return Err(format!("{v} must be greater than 0"));
+    }
+    Ok(v)
+}
+
+/// A finite number >= 0.
+pub fn non_negative_f64(s: &str) -> Result<f64, String> {
+    let v = parse_finite(s)?;
+    if v < 0.0 {
+        return Err(format!("{v} must not be negative"));
+    }
+    Ok(v)
+}

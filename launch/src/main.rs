@@ -1,0 +1,20 @@
+//! `bcal`: the command-line entry point. `main` only parses and dispatches; each subcommand lives in its
+//! own module with a `run` function returning `anyhow::Result`.
+
+mod cli;
+mod dataset_cmd;
+mod simulate;
+
+use clap::Parser;
+
+fn main() {
+    let args = cli::Cli::parse();
+    let result = match args.command {
+        cli::Command::Simulate(a) => simulate::run(a),
+        cli::Command::Dataset(a) => dataset_cmd::run(a),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}

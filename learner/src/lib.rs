@@ -1,0 +1,1 @@
+//! LAC learner (tch). Contents arrive with the training issue.
