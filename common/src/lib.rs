@@ -1,6 +1,12 @@
 //! bcal-common: what every bcal process shares. The battery model ([`battery`]), the paper's experiments
-//! ([`dataset`]) and the math vocabulary ([`math`]). It never prints and never exits: errors are typed.
+//! ([`dataset`]), the calibration MDP ([`mdp`]), the pure-Rust policy forward pass ([`policy`]), the run
+//! configuration ([`config`]), the wire types ([`wire`]) and the math vocabulary ([`math`]). It never
+//! prints and never exits: errors are typed.
 
 pub mod battery;
+pub mod config;
 pub mod dataset;
 pub mod math;
+pub mod mdp;
+pub mod policy;
+pub mod wire;

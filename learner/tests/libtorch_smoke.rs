@@ -34,6 +34,9 @@ fn batch(device: Device) -> (Tensor, Tensor) {
 fn mlp_trains_on_cpu() -> anyhow::Result<()> {
     let started = std::time::Instant::now();
     let device = Device::Cpu;
+    // One intra-op thread: the net is tiny, and test runners start several test
+    // processes at once on 2 cores, where OpenMP's spinning threads would fight.
+    tch::set_num_threads(1);
     tch::manual_seed(20_240_601);
     let (x, y) = batch(device);
 

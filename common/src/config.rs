@@ -1,0 +1,422 @@
+//! The one configuration of a training run, shared by every process (TOML, serde). Every hyperparameter
+//! sits here with its paper default and a doc line; [`TrainConfig::validate`] turns it into a checked
+//! [`Validated`] config once, before any process starts, naming the key of anything wrong.
+//!
+//! Unknown keys are refused (`deny_unknown_fields`) so a typo never silently falls back to a default.
+
+use crate::dataset::{Dataset, Experiment, ExperimentDef};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// A whole run's configuration. `bcal train --config FILE` reads it; absent keys take the defaults below.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    /// Which paper experiment to train on.
+    pub experiment: Experiment,
+    /// Seed of every random stream (each process derives its own from it).
+    pub seed: u64,
+    pub env: EnvConfig,
+    pub lac: LacConfig,
+    pub replay: ReplayConfig,
+    pub learner: LearnerConfig,
+    pub actors: ActorConfig,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            experiment: Experiment::Multi,
+            seed: 1,
+            env: EnvConfig::default(),
+            lac: LacConfig::default(),
+            replay: ReplayConfig::default(),
+            learner: LearnerConfig::default(),
+            actors: ActorConfig::default(),
+        }
+    }
+}
+
+/// The calibration MDP (paper Section 3.2).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EnvConfig {
+    /// Steps per episode window; x_hat is reset to the real state at the window start (paper code: 16).
+    pub window_steps: usize,
+    /// Range the qMobile action in [-1, 1] maps onto, C; must contain the data's range.
+    pub q_mobile_range_c: [f64; 2],
+    /// Range the Ro action in [-1, 1] maps onto, ohm; must contain the data's range.
+    pub r_o_range_ohm: [f64; 2],
+}
+
+impl Default for EnvConfig {
+    fn default() -> Self {
+        Self { window_steps: 16, q_mobile_range_c: [3500.0, 7500.0], r_o_range_ohm: [0.08, 0.22] }
+    }
+}
+
+/// Lyapunov actor-critic (paper Section 3.3, Han et al. 2020).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LacConfig {
+    /// Hidden layer widths of actor and Lyapunov critic (paper 4.2: three layers of 256, LeakyReLU).
+    pub hidden: Vec<usize>,
+    /// Adam learning rate of actor and critic (paper: 5e-4).
+    pub lr: f64,
+    /// Adam learning rate of the Lagrange multipliers lambda and beta; 0 means lr / 10.
+    pub lr_multipliers: f64,
+    /// Weight of the cost in the Lyapunov decrease condition, Eq. (3) (paper: 1).
+    pub alpha3: f64,
+    /// Discount of the Lyapunov critic target, Eq. (5).
+    pub gamma: f64,
+    /// Polyak rate of the target networks.
+    pub tau: f64,
+    /// Minibatch size (paper: 256).
+    pub batch_size: usize,
+    /// Initial lambda (Lyapunov multiplier), clipped to [0, 1].
+    pub init_lambda: f64,
+    /// Initial beta (entropy temperature).
+    pub init_beta: f64,
+    /// Target entropy H_t; `None` means -dim(a).
+    pub target_entropy: Option<f64>,
+}
+
+impl Default for LacConfig {
+    fn default() -> Self {
+        Self {
+            hidden: vec![256, 256, 256],
+            lr: 5e-4,
+            lr_multipliers: 0.0,
+            alpha3: 1.0,
+            gamma: 0.995,
+            tau: 5e-3,
+            batch_size: 256,
+            init_lambda: 1.0,
+            init_beta: 1.0,
+            target_entropy: None,
+        }
+    }
+}
+
+/// The replay process.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ReplayConfig {
+    /// Ring-buffer capacity in transitions (paper: 1e6).
+    pub capacity: usize,
+    /// Transitions inserted before the first batch is served (paper: 10,000).
+    pub learning_starts: usize,
+    /// Target samples drawn per transition inserted (Reverb's SampleToInsertRatio); bounds actor work.
+    pub samples_per_insert: f64,
+    /// Allowed deviation from the target ratio, in samples, before inserts or samples block.
+    pub ratio_error_buffer: f64,
+    /// Seconds between buffer snapshots to the run folder; 0 disables snapshots.
+    pub snapshot_every_s: f64,
+}
+
+impl Default for ReplayConfig {
+    fn default() -> Self {
+        Self {
+            capacity: 1_000_000,
+            learning_starts: 10_000,
+            samples_per_insert: 16.0,
+            ratio_error_buffer: 100_000.0,
+            snapshot_every_s: 0.0,
+        }
+    }
+}
+
+/// The learner process.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LearnerConfig {
+    /// Publish the actor's weights every this many updates.
+    pub weights_every: u64,
+    /// Checkpoint every this many updates (and on SIGTERM).
+    pub checkpoint_every: u64,
+    /// Stop after this many updates (0 = no limit).
+    pub max_updates: u64,
+    /// Stop after this many seconds of training (0 = no limit).
+    pub time_budget_s: f64,
+    /// Run the held-out validation every this many updates (0 = never).
+    pub validate_every: u64,
+    /// Test trajectories used by the periodic validation (spread evenly over the test set).
+    pub validate_trajectories: usize,
+    /// libtorch intra-op threads of the learner (0 = libtorch's default).
+    pub torch_threads: usize,
+}
+
+impl Default for LearnerConfig {
+    fn default() -> Self {
+        Self {
+            weights_every: 50,
+            checkpoint_every: 2_000,
+            max_updates: 0,
+            time_budget_s: 900.0,
+            validate_every: 2_000,
+            validate_trajectories: 24,
+            torch_threads: 1,
+        }
+    }
+}
+
+/// The actor processes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ActorConfig {
+    /// Number of actor processes (0 = one per core).
+    pub count: usize,
+    /// Environments each actor steps in lockstep (one batched policy forward per step).
+    pub envs_per_actor: usize,
+    /// Transitions per published message.
+    pub publish_batch: usize,
+    /// Restarts of a crashed actor before the run is stopped.
+    pub max_restarts: u32,
+}
+
+impl Default for ActorConfig {
+    fn default() -> Self {
+        Self { count: 0, envs_per_actor: 32, publish_batch: 64, max_restarts: 5 }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config {path}: {source}")]
+    Read { path: String, source: std::io::Error },
+    #[error("config {path}: {message}")]
+    Parse { path: String, message: String },
+    #[error("config key `{key}` = {value}: {why}")]
+    Invalid { key: &'static str, value: String, why: String },
+}
+
+impl TrainConfig {
+    /// Reads a TOML file; unknown keys and wrong types are errors naming the key (and line).
+    pub fn from_file(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| ConfigError::Read { path: path.display().to_string(), source })?;
+        Self::from_toml(&text).map_err(|e| match e {
+            ConfigError::Parse { message, .. } => ConfigError::Parse { path: path.display().to_string(), message },
+            other => other,
+        })
+    }
+
+    pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
+        toml::from_str(text).map_err(|e| ConfigError::Parse { path: "<text>".into(), message: e.to_string() })
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("configs always serialise")
+    }
+
+    /// Checks every value before anything starts. `def` is the experiment's definition (action ranges must
+    /// contain its parameter range).
+    pub fn validate(&self) -> Result<Validated, ConfigError> {
+        let bad = |key: &'static str, value: &dyn std::fmt::Display, why: &str| ConfigError::Invalid {
+            key,
+            value: value.to_string(),
+            why: why.to_string(),
+        };
+        let positive = |key: &'static str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(bad(key, &v, "must be a finite number > 0"))
+            }
+        };
+        let e = &self.env;
+        let l = &self.lac;
+        if e.window_steps == 0 {
+            return Err(bad("env.window_steps", &0, "must be at least 1"));
+        }
+        let def = self.experiment.definition();
+        // Only a calibrated parameter's range matters; the other stays at the experiment's fixed value.
+        if self.experiment != Experiment::SingleR {
+            check_range("env.q_mobile_range_c", e.q_mobile_range_c, def.q_mobile_c.start, def.q_mobile_c.end)?;
+        }
+        if self.experiment != Experiment::SingleQ {
+            check_range("env.r_o_range_ohm", e.r_o_range_ohm, def.r_o_ohm.start, def.r_o_ohm.end)?;
+        }
+        if l.hidden.is_empty() || l.hidden.iter().any(|h| *h == 0 || *h > 4096) {
+            return Err(bad("lac.hidden", &format!("{:?}", l.hidden), "needs 1.. layers of width 1..4096"));
+        }
+        positive("lac.lr", l.lr)?;
+        if !(l.lr_multipliers.is_finite() && l.lr_multipliers >= 0.0) {
+            return Err(bad("lac.lr_multipliers", &l.lr_multipliers, "must be >= 0 (0 means lr / 10)"));
+        }
+        positive("lac.alpha3", l.alpha3)?;
+        if !(l.gamma > 0.0 && l.gamma < 1.0) {
+            return Err(bad("lac.gamma", &l.gamma, "must be in (0, 1)"));
+        }
+        if !(l.tau > 0.0 && l.tau <= 1.0) {
+            return Err(bad("lac.tau", &l.tau, "must be in (0, 1]"));
+        }
+        if l.batch_size == 0 || l.batch_size > crate::wire::MAX_BATCH {
+            return Err(bad("lac.batch_size", &l.batch_size, &format!("must be in 1..={}", crate::wire::MAX_BATCH)));
+        }
+        if !(l.init_lambda > 0.0 && l.init_lambda <= 1.0) {
+            return Err(bad("lac.init_lambda", &l.init_lambda, "must be in (0, 1]"));
+        }
+        positive("lac.init_beta", l.init_beta)?;
+        if let Some(h) = l.target_entropy {
+            if !h.is_finite() {
+                return Err(bad("lac.target_entropy", &h, "must be finite"));
+            }
+        }
+        let r = &self.replay;
+        if r.capacity < l.batch_size {
+            return Err(bad("replay.capacity", &r.capacity, "must hold at least one batch"));
+        }
+        if r.learning_starts < l.batch_size || r.learning_starts > r.capacity {
+            return Err(bad(
+                "replay.learning_starts",
+                &r.learning_starts,
+                "must be between lac.batch_size and replay.capacity",
+            ));
+        }
+        positive("replay.samples_per_insert", r.samples_per_insert)?;
+        positive("replay.ratio_error_buffer", r.ratio_error_buffer)?;
+        if !(r.snapshot_every_s.is_finite() && r.snapshot_every_s >= 0.0) {
+            return Err(bad("replay.snapshot_every_s", &r.snapshot_every_s, "must be >= 0 (0 disables)"));
+        }
+        let n = &self.learner;
+        if n.weights_every == 0 {
+            return Err(bad("learner.weights_every", &0, "must be at least 1"));
+        }
+        if n.checkpoint_every == 0 {
+            return Err(bad("learner.checkpoint_every", &0, "must be at least 1"));
+        }
+        if !(n.time_budget_s.is_finite() && n.time_budget_s >= 0.0) {
+            return Err(bad("learner.time_budget_s", &n.time_budget_s, "must be >= 0 (0 = no limit)"));
+        }
+        if n.max_updates == 0 && n.time_budget_s == 0.0 {
+            return Err(bad("learner.max_updates", &0, "set max_updates or time_budget_s, or training never ends"));
+        }
+        let a = &self.actors;
+        if a.envs_per_actor == 0 {
+            return Err(bad("actors.envs_per_actor", &0, "must be at least 1"));
+        }
+        if a.publish_batch == 0 || a.publish_batch > crate::wire::MAX_PUBLISH_BATCH {
+            return Err(bad(
+                "actors.publish_batch",
+                &a.publish_batch,
+                &format!("must be in 1..={}", crate::wire::MAX_PUBLISH_BATCH),
+            ));
+        }
+        let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+        let actor_count = if a.count == 0 { cores } else { a.count };
+        if actor_count > crate::wire::MAX_ACTORS {
+            return Err(bad("actors.count", &actor_count, &format!("must be at most {}", crate::wire::MAX_ACTORS)));
+        }
+        let act_dim = crate::mdp::ActionMap::from_config(self.experiment, e).dim();
+        Ok(Validated {
+            lr_multipliers: if l.lr_multipliers == 0.0 { l.lr / 10.0 } else { l.lr_multipliers },
+            target_entropy: l.target_entropy.unwrap_or(-(act_dim as f64)),
+            actor_count,
+            def,
+            config: self.clone(),
+        })
+    }
+}
+
+fn check_range(key: &'static str, range: [f64; 2], data_lo: f64, data_hi: f64) -> Result<(), ConfigError> {
+    let [lo, hi] = range;
+    if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+        return Err(ConfigError::Invalid {
+            key,
+            value: format!("{range:?}"),
+            why: "needs finite [low, high] with low < high".into(),
+        });
+    }
+    if lo > data_lo || hi < data_hi {
+        return Err(ConfigError::Invalid {
+            key,
+            value: format!("{range:?}"),
+            why: format!("must contain the data's range [{data_lo}, {data_hi}]"),
+        });
+    }
+    if lo <= 0.0 {
+        return Err(ConfigError::Invalid { key, value: format!("{range:?}"), why: "parameters must stay > 0".into() });
+    }
+    Ok(())
+}
+
+/// A config that passed [`TrainConfig::validate`], with its derived values.
+#[derive(Clone, Debug)]
+pub struct Validated {
+    pub config: TrainConfig,
+    pub def: ExperimentDef,
+    /// lr of lambda and beta (lr / 10 unless set).
+    pub lr_multipliers: f64,
+    /// -dim(a) unless set.
+    pub target_entropy: f64,
+    /// Actor processes to start.
+    pub actor_count: usize,
+}
+
+impl Validated {
+    /// Checks that the dataset is the one this config expects (a stale or foreign file is refused).
+    pub fn check_dataset(&self, ds: &Dataset) -> Result<(), ConfigError> {
+        if ds.def != self.def {
+            return Err(ConfigError::Invalid {
+                key: "experiment",
+                value: self.config.experiment.to_string(),
+                why: "the dataset's definition differs from the experiment's; regenerate it".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_the_papers_and_validate() {
+        let c = TrainConfig::default();
+        assert_eq!(c.lac.lr, 5e-4);
+        assert_eq!(c.lac.alpha3, 1.0);
+        assert_eq!(c.lac.batch_size, 256);
+        assert_eq!(c.lac.gamma, 0.995);
+        assert_eq!(c.lac.tau, 5e-3);
+        assert_eq!(c.lac.hidden, vec![256, 256, 256]);
+        assert_eq!(c.replay.capacity, 1_000_000);
+        assert_eq!(c.replay.learning_starts, 10_000);
+        assert_eq!(c.env.window_steps, 16);
+        let v = c.validate().unwrap();
+        assert_eq!(v.lr_multipliers, 5e-5);
+        assert_eq!(v.target_entropy, -2.0);
+        // TOML round trip.
+        assert_eq!(TrainConfig::from_toml(&c.to_toml()).unwrap(), c);
+    }
+
+    #[test]
+    fn unknown_keys_and_wrong_types_name_the_key() {
+        let e = TrainConfig::from_toml("[lac]\nlearning_rate = 1e-3\n").unwrap_err().to_string();
+        assert!(e.contains("learning_rate"), "{e}");
+        let e = TrainConfig::from_toml("[lac]\nlr = \"fast\"\n").unwrap_err().to_string();
+        assert!(e.contains("lr"), "{e}");
+        let e = TrainConfig::from_toml("experiment = \"quadruple\"\n").unwrap_err().to_string();
+        assert!(e.contains("experiment") || e.contains("quadruple"), "{e}");
+    }
+
+    #[test]
+    fn impossible_values_are_refused_naming_the_key() {
+        let cases: Vec<(&str, &str)> = vec![
+            ("[lac]\nlr = -1e-3\n", "lac.lr"),
+            ("[lac]\ngamma = 1.5\n", "lac.gamma"),
+            ("[actors]\nenvs_per_actor = 0\n", "actors.envs_per_actor"),
+            ("[env]\nq_mobile_range_c = [4500.0, 7500.0]\n", "env.q_mobile_range_c"),
+            ("experiment = \"single-r\"\n[env]\nr_o_range_ohm = [0.12, 0.3]\n", "env.r_o_range_ohm"),
+            ("[replay]\nlearning_starts = 10\n", "replay.learning_starts"),
+            ("[learner]\nmax_updates = 0\ntime_budget_s = 0.0\n", "learner.max_updates"),
+            ("[actors]\ncount = 1000\n", "actors.count"),
+        ];
+        for (text, key) in cases {
+            let c = TrainConfig::from_toml(text).unwrap();
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains(key), "{text}: {e}");
+        }
+    }
+}

@@ -1,0 +1,47 @@
+//! The doctor's typed errors. Each message says what was wrong, where (file and line when a file is
+//! involved), and what to do about it.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong in the doctor.
+#[derive(Debug, thiserror::Error)]
+pub enum DoctorError {
+    #[error("cannot read {path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: CSV error: {source}")]
+    Csv { path: PathBuf, source: csv::Error },
+    #[error("{path}: missing column `{column}` (found: {found}); {hint}")]
+    MissingColumn { path: PathBuf, column: String, found: String, hint: &'static str },
+    #[error("{path}, line {line}: field `{column}` = `{value}` is not a finite number; fix or remove that row")]
+    BadField { path: PathBuf, line: u64, column: String, value: String },
+    #[error("{path}, line {line}: time {time_s} s does not increase (previous {previous_s} s); samples must be in time order")]
+    TimeNotIncreasing { path: PathBuf, line: u64, time_s: f64, previous_s: f64 },
+    #[error(
+        "{path}: voltage median {median_v:.1} looks like millivolts (a Li-ion cell reads 2.0-4.5 V); \
+         convert the column to volts (divide by 1000) before running the doctor"
+    )]
+    VoltageInMillivolts { path: PathBuf, median_v: f64 },
+    #[error("{path}: voltage median {median_v} V is outside a Li-ion cell's range (0.5-5 V); check the column and its unit")]
+    VoltageOutOfRange { path: PathBuf, median_v: f64 },
+    #[error(
+        "{path}: no sample carries a discharge current above {threshold_a} A; the generic CSV expects \
+         current_a POSITIVE while discharging (NASA files use negative and are read through metadata.csv)"
+    )]
+    NoLoad { path: PathBuf, threshold_a: f64 },
+    #[error("{path}: only {rows} usable samples; a discharge needs at least {min}")]
+    TooFewSamples { path: PathBuf, rows: usize, min: usize },
+    #[error("no discharge records selected: {why}")]
+    NothingSelected { why: String },
+    #[error("cycle range `{text}` is not A..B (inclusive, e.g. 1..40)")]
+    BadRange { text: String },
+    #[error("configuration: {0}")]
+    BadConfig(String),
+    #[error("battery model: {0}")]
+    Model(#[from] bcal_common::battery::ModelError),
+    #[error("plot {path}: {message}")]
+    Plot { path: PathBuf, message: String },
+    #[error("cannot write {path}: {source}")]
+    Write { path: PathBuf, source: std::io::Error },
+    #[error("JSON: {0}")]
+    Json(#[from] serde_json::Error),
+}
