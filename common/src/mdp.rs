@@ -373,6 +373,63 @@ impl CalibrationEnv {
     }
 }
 
+/// Runs a calibrator along a whole trajectory (paper Fig. 1, part 2) and reports its estimate and the
+/// one-step tracking cost at every step t = 0 .. len - 2.
+///
+/// x_hat at evaluation time is the measured state x_t, re-synced every step: a deployed calibrator observes
+/// the real battery at every step, and this is the distribution the policy was trained on (every window
+/// starts from a measured state). Letting x_hat drift open-loop for thousands of steps would test a
+/// situation training never showed, and would mix state-estimation error into the parameter error.
+pub fn rollout_calibrator(
+    spec: &MdpSpec,
+    model: &BatteryModel,
+    traj: &Trajectory,
+    mut policy: impl FnMut(&[f32], &mut [f32]),
+    mut on_step: impl FnMut(usize, &Degradation, f64),
+) {
+    let mut obs = [0f32; crate::wire::MAX_OBS];
+    let mut action = [0f32; crate::wire::MAX_ACT];
+    let (od, ad) = (spec.obs_dim(), spec.act_dim());
+    for t in 0..traj.len().saturating_sub(1) {
+        let x_hat = model_state_at(model, traj, t);
+        let x_next = state_at(traj, t + 1);
+        spec.observation.build(&spec.scales, &electro(&x_hat), &x_next, traj.load_w, &mut obs[..od]);
+        policy(&obs[..od], &mut action[..ad]);
+        let (_, cost) = spec.transition(model, &x_hat, &action[..ad], traj.load_w, &x_next);
+        on_step(t, &spec.actions.to_degradation(&action[..ad]), cost);
+    }
+}
+
+/// Normalised RMSE in % of the paper's Table 1: parameters scaled to [0, 1] by the data ranges
+/// (qMobile 4000..7000 C, Ro 0.1..0.2 ohm).
+pub const NRMSE_RANGE_Q_MOBILE_C: [f64; 2] = [4000.0, 7000.0];
+pub const NRMSE_RANGE_R_O_OHM: [f64; 2] = [0.1, 0.2];
+
+/// Accumulates squared normalised parameter errors over steps (Table 1's metric).
+#[derive(Clone, Debug, Default)]
+pub struct NrmseAccumulator {
+    pub n: u64,
+    pub sq_q_mobile: f64,
+    pub sq_r_o: f64,
+}
+
+impl NrmseAccumulator {
+    #[inline]
+    pub fn add(&mut self, estimate: &Degradation, truth: &Degradation) {
+        let eq = (estimate.q_mobile_c - truth.q_mobile_c) / (NRMSE_RANGE_Q_MOBILE_C[1] - NRMSE_RANGE_Q_MOBILE_C[0]);
+        let er = (estimate.r_o_ohm - truth.r_o_ohm) / (NRMSE_RANGE_R_O_OHM[1] - NRMSE_RANGE_R_O_OHM[0]);
+        self.n += 1;
+        self.sq_q_mobile += eq * eq;
+        self.sq_r_o += er * er;
+    }
+
+    /// (qMobile, Ro) normalised RMSE in %.
+    pub fn pct(&self) -> (f64, f64) {
+        let n = self.n.max(1) as f64;
+        (100.0 * (self.sq_q_mobile / n).sqrt(), 100.0 * (self.sq_r_o / n).sqrt())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -478,6 +535,34 @@ mod tests {
         }
         assert!(dones > 20_000 / 16 - 10, "{dones} windows");
         assert_eq!(max_window, 16);
+    }
+
+    #[test]
+    fn rollout_with_the_true_parameters_has_zero_error_and_near_zero_cost() {
+        let (ds, spec, model) = tiny();
+        let traj = ds.test().next().unwrap();
+        let truth = spec.actions.to_action(&traj.degradation);
+        let mut acc = NrmseAccumulator::default();
+        let mut max_cost: f64 = 0.0;
+        rollout_calibrator(
+            &spec,
+            &model,
+            traj,
+            |_, a| a.copy_from_slice(&truth[..a.len()]),
+            |_, est, c| {
+                acc.add(est, &traj.degradation);
+                max_cost = max_cost.max(c);
+            },
+        );
+        assert_eq!(acc.n as usize, traj.len() - 1);
+        let (q, r) = acc.pct();
+        assert!(q < 1e-3 && r < 1e-3, "{q} {r}");
+        assert!(max_cost < 1e-3, "{max_cost}");
+        // A constant wrong guess has the error the metric says: 300 C off is 10 % of the 3000 C range.
+        let mut wrong = NrmseAccumulator::default();
+        let guess = Degradation { q_mobile_c: traj.degradation.q_mobile_c + 300.0, ..traj.degradation };
+        wrong.add(&guess, &traj.degradation);
+        assert!((wrong.pct().0 - 10.0).abs() < 1e-9);
     }
 
     #[test]
