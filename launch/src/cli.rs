@@ -20,6 +20,8 @@ pub enum Command {
     Simulate(SimulateArgs),
     /// Generate (and cache) or inspect the paper's experiment data sets.
     Dataset(DatasetArgs),
+    /// Train the LAC calibrator: starts replay, learner and actor processes and supervises them.
+    Train(crate::train_cmd::TrainArgs),
 }
 
 #[derive(Args, Debug)]
@@ -98,6 +100,27 @@ impl ExperimentArg {
             ExperimentArg::SingleR => vec![Experiment::SingleR],
             ExperimentArg::Multi => vec![Experiment::Multi],
             ExperimentArg::All => Experiment::ALL.to_vec(),
+        }
+    }
+}
+
+/// One of the paper's three experiments.
+#[derive(Clone, Copy, Debug, ValueEnum, PartialEq, Eq)]
+pub enum ExperimentChoice {
+    /// qMobile 4000..7000 C (501 values), Ro fixed, 11 loads 8..16 W.
+    SingleQ,
+    /// Ro 0.1..0.2 ohm (501 values), qMobile fixed, 11 loads 8..16 W.
+    SingleR,
+    /// qMobile (101 values) x Ro (5 values), 9 loads 8..16 W.
+    Multi,
+}
+
+impl ExperimentChoice {
+    pub fn experiment(self) -> Experiment {
+        match self {
+            ExperimentChoice::SingleQ => Experiment::SingleQ,
+            ExperimentChoice::SingleR => Experiment::SingleR,
+            ExperimentChoice::Multi => Experiment::Multi,
         }
     }
 }

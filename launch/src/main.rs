@@ -4,6 +4,8 @@
 mod cli;
 mod dataset_cmd;
 mod simulate;
+mod supervisor;
+mod train_cmd;
 
 use clap::Parser;
 
@@ -12,6 +14,7 @@ fn main() {
     let result = match args.command {
         cli::Command::Simulate(a) => simulate::run(a),
         cli::Command::Dataset(a) => dataset_cmd::run(a),
+        cli::Command::Train(a) => train_cmd::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -1,0 +1,491 @@
+//! `bcal train`: prepare a run folder, start replay, learner and N actors as separate processes, watch
+//! them (restarting crashed ones by policy), show progress, and stop the tree cleanly at the end or on
+//! Ctrl-C (a second Ctrl-C kills at once).
+//!
+//! Run folder (`runs/<name>/` by default): config.toml (the effective config), mdp.json (observation scales
+//! and action map, shared by every process), metrics.jsonl (learner), checkpoints/, policy.bcalpol, logs/
+//! (one file per process plus supervisor.log), and later the evaluation report.
+
+use crate::cli::ExperimentChoice;
+use crate::supervisor::{self, decide, Decision, Exit, RestartPolicy, Role, Supervised};
+use anyhow::{bail, Context};
+use bcal_common::battery::BatteryModel;
+use bcal_common::config::TrainConfig;
+use bcal_common::dataset::{self, CacheStatus};
+use bcal_common::mdp::{MdpSpec, SplitMix64};
+use clap::Args;
+use std::io::{BufRead, IsTerminal, Seek, Write};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+#[derive(Args, Debug, Clone)]
+pub struct TrainArgs {
+    /// TOML config file; absent keys take the paper's defaults (see `bcal train --print-config`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Experiment to train on (overrides the config's `experiment`).
+    #[arg(long, value_enum)]
+    pub experiment: Option<ExperimentChoice>,
+    /// Run name: the run folder is runs/<name> (default: <experiment>-<UTC time>).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Run folder (overrides --name).
+    #[arg(long)]
+    pub run: Option<PathBuf>,
+    /// Training time budget in seconds (overrides learner.time_budget_s).
+    #[arg(long)]
+    pub budget_s: Option<f64>,
+    /// Stop after this many learner updates (overrides learner.max_updates).
+    #[arg(long)]
+    pub max_updates: Option<u64>,
+    /// Number of actor processes (overrides actors.count; 0 = one per core).
+    #[arg(long)]
+    pub actors: Option<usize>,
+    /// Seed of every random stream (overrides seed).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Continue the run in --run/--name from its last checkpoint (same update counter).
+    #[arg(long)]
+    pub resume: bool,
+    /// Print the effective config as TOML and exit.
+    #[arg(long)]
+    pub print_config: bool,
+    /// Seconds a process gets to exit after SIGTERM before it is killed.
+    #[arg(long, default_value_t = 20.0)]
+    pub grace_s: f64,
+}
+
+/// What `bcal train` finished with (the caller may go on to evaluate).
+pub struct TrainOutcome {
+    pub run_dir: PathBuf,
+}
+
+pub fn run(a: TrainArgs) -> anyhow::Result<()> {
+    let out = train(a)?;
+    println!("run folder: {}", out.run_dir.display());
+    println!("next: bcal eval --run {}", out.run_dir.display());
+    Ok(())
+}
+
+pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
+    let run_dir = resolve_run_dir(&a)?;
+    let mut cfg = if a.resume {
+        let p = run_dir.join("config.toml");
+        if !p.exists() {
+            bail!("--resume: {} has no config.toml; is this a bcal run folder?", run_dir.display());
+        }
+        TrainConfig::from_file(&p)?
+    } else {
+        match &a.config {
+            Some(p) => TrainConfig::from_file(p)?,
+            None => TrainConfig::default(),
+        }
+    };
+    if let Some(e) = a.experiment {
+        cfg.experiment = e.experiment();
+    }
+    if let Some(b) = a.budget_s {
+        cfg.learner.time_budget_s = b;
+    }
+    if let Some(m) = a.max_updates {
+        cfg.learner.max_updates = m;
+    }
+    if let Some(n) = a.actors {
+        cfg.actors.count = n;
+    }
+    if let Some(s) = a.seed {
+        cfg.seed = s;
+    }
+    let v = cfg.validate()?;
+    if a.print_config {
+        print!("{}", cfg.to_toml());
+        std::process::exit(0);
+    }
+    if !a.resume && run_dir.join("config.toml").exists() {
+        bail!("{} already holds a run; pass --resume to continue it or choose another --name", run_dir.display());
+    }
+    std::fs::create_dir_all(run_dir.join("logs"))
+        .with_context(|| format!("cannot create the run folder {}: check the path is writable", run_dir.display()))?;
+    write_atomic(&run_dir.join("config.toml"), cfg.to_toml().as_bytes())?;
+    // A finished marker from an earlier leg must not end a resumed run at once.
+    let _ = std::fs::remove_file(run_dir.join("learner.done"));
+
+    // Warm the dataset cache once so the processes only read it.
+    let model = BatteryModel::default();
+    let cache_dir = dataset::default_cache_dir();
+    let (ds, rep) = dataset::load_or_generate(&v.def, &model, &cache_dir)?;
+    match &rep.status {
+        CacheStatus::Hit => println!("dataset {}: cached ({:.1} s to read)", cfg.experiment, rep.seconds),
+        CacheStatus::Generated => println!("dataset {}: generated in {:.1} s", cfg.experiment, rep.seconds),
+        CacheStatus::Regenerated { reason } => {
+            println!("dataset {}: cache was corrupt ({reason}); regenerated in {:.1} s", cfg.experiment, rep.seconds)
+        }
+    }
+    v.check_dataset(&ds)?;
+    let mdp_path = run_dir.join("mdp.json");
+    if !(a.resume && mdp_path.exists()) {
+        let spec = MdpSpec::new(cfg.experiment, &cfg.env, &ds);
+        write_atomic(&mdp_path, serde_json::to_string_pretty(&spec)?.as_bytes())?;
+    }
+    drop(ds);
+
+    println!(
+        "training {} with {} actor(s) x {} envs, budget {} s / {} updates, run folder {}",
+        cfg.experiment,
+        v.actor_count,
+        cfg.actors.envs_per_actor,
+        cfg.learner.time_budget_s,
+        cfg.learner.max_updates,
+        run_dir.display()
+    );
+    let policy = RestartPolicy { max_restarts: cfg.actors.max_restarts, ..RestartPolicy::default() };
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
+    rt.block_on(watch(
+        run_dir.clone(),
+        v.actor_count,
+        a.resume,
+        policy,
+        Duration::from_secs_f64(a.grace_s),
+        cfg.learner.time_budget_s,
+    ))?;
+    Ok(TrainOutcome { run_dir })
+}
+
+fn resolve_run_dir(a: &TrainArgs) -> anyhow::Result<PathBuf> {
+    if let Some(r) = &a.run {
+        return Ok(r.clone());
+    }
+    let name = match &a.name {
+        Some(n) => {
+            if n.is_empty() || n.contains('/') || n.starts_with('.') {
+                bail!("--name `{n}` must be a plain folder name (no '/', not starting with '.')");
+            }
+            n.clone()
+        }
+        None => {
+            if a.resume {
+                bail!("--resume needs --run DIR or --name NAME of the run to continue");
+            }
+            let exp = a.experiment.map(|e| e.experiment().name().to_string()).unwrap_or_else(|| "run".into());
+            let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH)?.as_secs();
+            format!("{exp}-{}", utc_stamp(secs))
+        }
+    };
+    Ok(PathBuf::from("runs").join(name))
+}
+
+/// YYYYmmdd-HHMMSS in UTC, from seconds since the epoch (civil-from-days, Howard Hinnant's algorithm).
+fn utc_stamp(secs: u64) -> String {
+    let days = (secs / 86_400) as i64;
+    let rem = secs % 86_400;
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!("{y:04}{m:02}{d:02}-{:02}{:02}{:02}", rem / 3600, rem / 60 % 60, rem % 60)
+}
+
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+    let res = (|| -> std::io::Result<()> {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = res {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e).with_context(|| format!("cannot write {} (disk full or folder not writable?)", path.display()));
+    }
+    Ok(())
+}
+
+struct Program {
+    role: Role,
+    exe: PathBuf,
+    args: Vec<String>,
+}
+
+fn program(role: Role, bin: &Path, run_dir: &Path, resume: bool) -> Program {
+    let run = run_dir.display().to_string();
+    let (exe, mut args) = match role {
+        Role::Replay => ("bcal-replay", vec!["--run".to_string(), run]),
+        Role::Learner => ("bcal-learner", vec!["--run".to_string(), run]),
+        Role::Actor(k) => ("bcal-actor", vec!["--run".to_string(), run, "--actor-id".into(), k.to_string()]),
+    };
+    if role == Role::Learner && resume {
+        args.push("--resume".into());
+    }
+    Program { role, exe: bin.join(exe), args }
+}
+
+/// The supervision loop: start, watch, restart, report progress, stop.
+async fn watch(
+    run_dir: PathBuf,
+    actors: usize,
+    resume: bool,
+    policy: RestartPolicy,
+    grace: Duration,
+    budget_s: f64,
+) -> anyhow::Result<()> {
+    let bin = supervisor::bin_dir()?;
+    for exe in ["bcal-replay", "bcal-learner", "bcal-actor"] {
+        if !bin.join(exe).exists() {
+            bail!(
+                "{} not found in {}; build the workspace (cargo build --release) or set BCAL_BIN_DIR",
+                exe,
+                bin.display()
+            );
+        }
+    }
+    let logs = run_dir.join("logs");
+    let mut sup_log = std::fs::OpenOptions::new().create(true).append(true).open(logs.join("supervisor.log"))?;
+    let started = Instant::now();
+    let mut note = |msg: &str| {
+        let _ = writeln!(sup_log, "[{:8.1} s] {msg}", started.elapsed().as_secs_f64());
+    };
+
+    let mut roles = vec![Role::Replay, Role::Learner];
+    roles.extend((0..actors).map(Role::Actor));
+    let mut children: Vec<Supervised> = Vec::new();
+    for role in &roles {
+        let p = program(*role, &bin, &run_dir, resume);
+        let s = supervisor::spawn(p.role, &p.exe, &p.args, &logs.join(format!("{}.log", p.role.name())), &[])
+            .with_context(|| format!("cannot start {}", p.exe.display()))?;
+        note(&format!("started {} pid {}", role.name(), s.pid));
+        children.push(s);
+        if *role == Role::Replay {
+            // The replay creates the services; give it a head start so peers find them at once.
+            tokio::time::sleep(Duration::from_millis(300)).await;
+        }
+    }
+
+    let mut progress = Progress::new(&run_dir, budget_s);
+    let mut rng = SplitMix64(std::process::id() as u64);
+    let mut pending: Vec<(Instant, Role, u32)> = Vec::new();
+    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let mut outcome: Option<anyhow::Result<()>> = None;
+    let ctrl_c = tokio::signal::ctrl_c();
+    tokio::pin!(ctrl_c);
+    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+
+    while outcome.is_none() {
+        tokio::select! {
+            _ = &mut ctrl_c => {
+                note("Ctrl-C: stopping");
+                eprintln!("\nstopping (Ctrl-C again to kill at once)...");
+                outcome = Some(Ok(()));
+            }
+            _ = sigterm.recv() => {
+                note("SIGTERM: stopping");
+                outcome = Some(Ok(()));
+            }
+            _ = tick.tick() => {
+                progress.update();
+                // Restarts that are due.
+                let now = Instant::now();
+                let due: Vec<_> = pending.iter().filter(|(t, _, _)| *t <= now).cloned().collect();
+                pending.retain(|(t, _, _)| *t > now);
+                for (_, role, restarts) in due {
+                    let p = program(role, &bin, &run_dir, role == Role::Learner);
+                    match supervisor::spawn(role, &p.exe, &p.args, &logs.join(format!("{}.log", role.name())), &[]) {
+                        Ok(mut s) => {
+                            s.restarts = restarts;
+                            note(&format!("restarted {} (restart {restarts}) pid {}", role.name(), s.pid));
+                            children.push(s);
+                        }
+                        Err(e) => outcome = Some(Err(anyhow::anyhow!("cannot restart {}: {e}", role.name()))),
+                    }
+                }
+                // Exits.
+                let mut k = 0;
+                while k < children.len() {
+                    let st = children[k].child.try_wait()?;
+                    let Some(st) = st else { k += 1; continue };
+                    let s = children.remove(k);
+                    let exit = Exit::from_status(st);
+                    let done = run_dir.join("learner.done").exists();
+                    let d = decide(s.role, exit, done, s.restarts, &policy);
+                    note(&format!("{} exited: {exit:?} -> {d:?}", s.role.name()));
+                    match d {
+                        Decision::Finish => outcome = Some(Ok(())),
+                        Decision::Abort => {
+                            outcome = Some(Err(anyhow::anyhow!(
+                                "{} failed {} times ({exit:?}); see {}",
+                                s.role.name(),
+                                s.restarts + 1,
+                                logs.join(format!("{}.log", s.role.name())).display()
+                            )))
+                        }
+                        Decision::Restart => {
+                            let n = s.restarts + 1;
+                            let delay = policy.delay(n, rng.unit_f64()).unwrap_or(Duration::ZERO);
+                            eprintln!("{} exited ({exit:?}); restarting in {:.1} s", s.role.name(), delay.as_secs_f64());
+                            pending.push((Instant::now() + delay, s.role, n));
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    // Stop order: actors (producers), then the learner (it checkpoints on SIGTERM), then the replay.
+    let stop_all = async {
+        for phase in [0, 1, 2] {
+            for s in children.iter_mut() {
+                let in_phase = matches!((phase, s.role), (0, Role::Actor(_)) | (1, Role::Learner) | (2, Role::Replay));
+                if in_phase {
+                    let e = supervisor::stop(s, grace).await;
+                    let _ = writeln!(
+                        std::fs::OpenOptions::new().append(true).open(logs.join("supervisor.log")).expect("log open"),
+                        "stopped {}: {e:?}",
+                        s.role.name()
+                    );
+                }
+            }
+        }
+    };
+    tokio::select! {
+        _ = stop_all => {}
+        _ = tokio::signal::ctrl_c() => {
+            eprintln!("killing every process now");
+            for s in children.iter_mut() {
+                supervisor::signal_group(s.pid, libc::SIGKILL);
+                let _ = s.child.wait().await;
+            }
+        }
+    }
+    progress.update();
+    progress.finish();
+    outcome.unwrap_or(Ok(()))
+}
+
+/// Follows metrics.jsonl and shows a progress bar (or log lines when stdout is not a terminal).
+struct Progress {
+    path: PathBuf,
+    offset: u64,
+    bar: Option<indicatif::ProgressBar>,
+    last_line: Instant,
+    started: Instant,
+    budget_s: f64,
+    last_train: Option<serde_json::Value>,
+    last_val: Option<serde_json::Value>,
+}
+
+impl Progress {
+    fn new(run_dir: &Path, budget_s: f64) -> Self {
+        let bar = std::io::stdout().is_terminal().then(|| {
+            let b = indicatif::ProgressBar::new(budget_s.max(1.0) as u64);
+            b.set_style(
+                indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} s  {msg}")
+                    .expect("static template")
+                    .progress_chars("=> "),
+            );
+            b
+        });
+        Self {
+            path: run_dir.join("metrics.jsonl"),
+            offset: 0,
+            bar,
+            last_line: Instant::now(),
+            started: Instant::now(),
+            budget_s,
+            last_train: None,
+            last_val: None,
+        }
+    }
+
+    fn update(&mut self) {
+        if let Ok(mut f) = std::fs::File::open(&self.path) {
+            if f.seek(std::io::SeekFrom::Start(self.offset)).is_ok() {
+                let mut r = std::io::BufReader::new(f);
+                let mut line = String::new();
+                while let Ok(n) = r.read_line(&mut line) {
+                    if n == 0 || !line.ends_with('\n') {
+                        break; // a half-written last line is read again next time
+                    }
+                    self.offset += n as u64;
+                    if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) {
+                        match v.get("kind").and_then(|k| k.as_str()) {
+                            Some("validation") => self.last_val = Some(v),
+                            Some("train") => self.last_train = Some(v),
+                            _ => {}
+                        }
+                    }
+                    line.clear();
+                }
+            }
+        }
+        let msg = self.message();
+        let elapsed = self.started.elapsed().as_secs_f64();
+        match &self.bar {
+            Some(b) => {
+                b.set_position(elapsed.min(self.budget_s) as u64);
+                b.set_message(msg);
+            }
+            None => {
+                if self.last_line.elapsed() >= Duration::from_secs(10) {
+                    println!("[{elapsed:7.0} s] {msg}");
+                    self.last_line = Instant::now();
+                }
+            }
+        }
+    }
+
+    fn message(&self) -> String {
+        let f = |v: &Option<serde_json::Value>, k: &str| v.as_ref().and_then(|v| v.get(k)).and_then(|x| x.as_f64());
+        let mut s = match f(&self.last_train, "update") {
+            Some(u) => format!(
+                "upd {u:.0} | {:.0} upd/s | {:.0} tr/s | cost {:.4}",
+                f(&self.last_train, "updates_per_s").unwrap_or(0.0),
+                f(&self.last_train, "transitions_per_s").unwrap_or(0.0),
+                f(&self.last_train, "mean_cost").unwrap_or(f64::NAN)
+            ),
+            None => "waiting for the learner (filling the replay buffer)".to_string(),
+        };
+        if let Some(c) = f(&self.last_val, "val_cost") {
+            s += &format!(" | val cost {c:.4}");
+            if let Some(q) = f(&self.last_val, "val_nrmse_q_pct") {
+                s += &format!(" q {q:.2}%");
+            }
+            if let Some(r) = f(&self.last_val, "val_nrmse_r_pct") {
+                s += &format!(" r {r:.2}%");
+            }
+        }
+        s
+    }
+
+    fn finish(&self) {
+        if let Some(b) = &self.bar {
+            b.finish_with_message(self.message());
+        } else {
+            println!("{}", self.message());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn utc_stamp_is_civil_time() {
+        assert_eq!(utc_stamp(0), "19700101-000000");
+        // 2026-11-22 01:50:44 UTC.
+        assert_eq!(utc_stamp(1_795_312_244), "20261122-015044");
+    }
+
+    #[test]
+    fn program_lines_match_the_process_contract() {
+        let p = program(Role::Actor(3), Path::new("/b"), Path::new("runs/x"), false);
+        assert_eq!(p.exe, PathBuf::from("/b/bcal-actor"));
+        assert_eq!(p.args, vec!["--run", "runs/x", "--actor-id", "3"]);
+        let l = program(Role::Learner, Path::new("/b"), Path::new("runs/x"), true);
+        assert_eq!(l.args, vec!["--run", "runs/x", "--resume"]);
+    }
+}

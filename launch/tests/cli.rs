@@ -1,0 +1,91 @@
+//! The `bcal` binary as a user meets it: outputs, files and error messages of `simulate` and `dataset`.
+
+use std::process::{Command, Output};
+
+fn bcal(args: &[&str], cache: &std::path::Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_bcal")).args(args).env("BCAL_CACHE", cache).output().expect("bcal runs")
+}
+
+fn text(o: &Output) -> (String, String) {
+    (String::from_utf8_lossy(&o.stdout).into_owned(), String::from_utf8_lossy(&o.stderr).into_owned())
+}
+
+#[test]
+fn simulate_prints_the_reference_eod() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = bcal(&["simulate", "--q-mobile", "7600", "--ro", "0.117215", "--load-w", "8"], dir.path());
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(out.contains("EOD 3102 s"), "{out}");
+}
+
+#[test]
+fn simulate_writes_every_step_as_csv_through_the_eod_row() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("d.csv");
+    let o = bcal(&["simulate", "--load-w", "16", "--out", csv.to_str().unwrap()], dir.path());
+    assert!(o.status.success(), "{}", text(&o).1);
+    let body = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = body.lines();
+    assert_eq!(lines.next().unwrap(), "t_s,voltage_v,qpS,qpB,qnB,qnS,Vo,Vsn,Vsp,load_w");
+    let rows: Vec<Vec<f64>> = lines.map(|l| l.split(',').map(|v| v.parse().unwrap()).collect()).collect();
+    assert_eq!(rows.len(), 1164, "t = 0 through the EOD row at 1163 s");
+    assert_eq!(rows[0][0], 0.0);
+    assert!((rows[1][1] - 4.1120644120).abs() < 1e-9);
+    assert_eq!(rows.last().unwrap()[0], 1163.0);
+    assert!(rows.last().unwrap()[1] < 3.0 && rows[rows.len() - 2][1] >= 3.0);
+    assert!(rows.iter().all(|r| r.len() == 10 && r[9] == 16.0));
+}
+
+#[test]
+fn thermal_current_run_adds_temperature_column() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("t.csv");
+    let o =
+        bcal(&["simulate", "--current-a", "2", "--thermal", "--dt", "2", "--out", csv.to_str().unwrap()], dir.path());
+    assert!(o.status.success(), "{}", text(&o).1);
+    let body = std::fs::read_to_string(&csv).unwrap();
+    assert!(body.starts_with("t_s,voltage_v,qpS,qpB,qnB,qnS,Vo,Vsn,Vsp,current_a,tb_k\n"));
+    let last: Vec<f64> = body.lines().last().unwrap().split(',').map(|v| v.parse().unwrap()).collect();
+    assert!(last[10] > 292.1, "the cell heats: {}", last[10]);
+    assert_eq!(body.lines().nth(2).unwrap().split(',').next().unwrap(), "2", "dt = 2 s steps");
+}
+
+#[test]
+fn bad_values_get_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases: &[(&[&str], &str)] = &[
+        (&["simulate", "--load-w", "-3"], "must be greater than 0"),
+        (&["simulate", "--load-w", "abc"], "is not a number"),
+        (&["simulate", "--load-w", "NaN"], "not a finite number"),
+        (&["simulate", "--load-w", "8", "--current-a", "2"], "cannot be used with"),
+        (&["simulate"], "--load-w"),
+        (&["simulate", "--load-w", "8", "--dt", "0"], "must be greater than 0"),
+        (&["simulate", "--load-w", "8", "--ro", "-0.1"], "must not be negative"),
+        (&["simulate", "--load-w", "8", "--out", "/nonexistent-dir/x.csv"], "cannot create /nonexistent-dir/x.csv"),
+        (&["simulate", "--load-w", "8", "--max-steps", "10"], "stayed above VEOD"),
+        (&["dataset", "info", "--experiment", "multi"], "bcal dataset generate"),
+        (&["dataset", "generate", "--experiment", "quadruple"], "invalid value"),
+    ];
+    for (args, want) in cases {
+        let o = bcal(args, dir.path());
+        let (out, err) = text(&o);
+        assert!(!o.status.success(), "{args:?} should fail: {out}");
+        assert!(err.contains(want), "{args:?}: stderr lacks `{want}`:\n{err}");
+    }
+}
+
+#[test]
+fn every_subcommand_documents_its_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = bcal(&["simulate", "--help"], dir.path());
+    let (out, _) = text(&o);
+    for flag in ["--q-mobile", "--ro", "--load-w", "--current-a", "--thermal", "--dt", "--out"] {
+        assert!(out.contains(flag), "simulate --help lacks {flag}");
+    }
+    let o = bcal(&["--help"], dir.path());
+    let (out, _) = text(&o);
+    for sub in ["simulate", "dataset", "train"] {
+        assert!(out.contains(sub), "--help lacks {sub}");
+    }
+}
