@@ -6,6 +6,7 @@
 pub mod battery;
 pub mod config;
 pub mod dataset;
+pub mod ipc;
 pub mod math;
 pub mod mdp;
 pub mod policy;

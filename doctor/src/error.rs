@@ -21,7 +21,9 @@ pub enum DoctorError {
          convert the column to volts (divide by 1000) before running the doctor"
     )]
     VoltageInMillivolts { path: PathBuf, median_v: f64 },
-    #[error("{path}: voltage median {median_v} V is outside a Li-ion cell's range (0.5-5 V); check the column and its unit")]
+    #[error(
+        "{path}: voltage median {median_v} V is outside a Li-ion cell's range (0.5-5 V); check the column and its unit"
+    )]
     VoltageOutOfRange { path: PathBuf, median_v: f64 },
     #[error(
         "{path}: no sample carries a discharge current above {threshold_a} A; the generic CSV expects \

@@ -20,8 +20,12 @@ pub enum Command {
     Simulate(SimulateArgs),
     /// Generate (and cache) or inspect the paper's experiment data sets.
     Dataset(DatasetArgs),
+    /// Diagnose measured discharges: fit the model, find what it gets wrong, name the cause, extend it.
+    Diagnose(crate::diagnose_cmd::DiagnoseArgs),
     /// Train the LAC calibrator: starts replay, learner and actor processes and supervises them.
     Train(crate::train_cmd::TrainArgs),
+    /// Evaluate RL-LAC against the UKF and the direct mapping on the held-out (high-load) trajectories; writes report.json, report.md and plots into the run folder.
+    Eval(crate::eval_cmd::EvalArgs),
 }
 
 #[derive(Args, Debug)]

@@ -3,6 +3,8 @@
 
 mod cli;
 mod dataset_cmd;
+mod diagnose_cmd;
+mod eval_cmd;
 mod simulate;
 mod supervisor;
 mod train_cmd;
@@ -14,7 +16,9 @@ fn main() {
     let result = match args.command {
         cli::Command::Simulate(a) => simulate::run(a),
         cli::Command::Dataset(a) => dataset_cmd::run(a),
+        cli::Command::Diagnose(a) => diagnose_cmd::run(a),
         cli::Command::Train(a) => train_cmd::run(a),
+        cli::Command::Eval(a) => eval_cmd::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

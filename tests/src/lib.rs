@@ -1,1 +1,241 @@
-//! Shared harness for end-to-end tests across real bcal processes.
+//! Shared harness for end-to-end tests across real bcal processes: a temporary run folder with a config
+//! and an MDP, a command wrapper that starts a bcal binary with its log in the run folder, sends it
+//! signals and reaps it (never leaving a stray process), and a dump of every log when a test fails.
+//!
+//! Finding the binaries: `CARGO_BIN_EXE_*` only exists for a package's own binaries, so the harness
+//! derives the target folder from the test executable (`target/<profile>/deps/<test>` -> `target/<profile>`)
+//! and, once per test process, runs `cargo build -p <package> --bin <name>` with that profile and target
+//! folder so the binary is never stale (a no-op when it is up to date; cargo has released its lock
+//! while tests run). Set `BCAL_TEST_NO_BUILD=1` to skip the build and use what is there (CI that built
+//! everything first), or `BCAL_BIN_DIR` to take binaries from another folder.
+
+use bcal_common::battery::BatteryModel;
+use bcal_common::config::{TrainConfig, Validated};
+use bcal_common::dataset::{default_cache_dir, load_or_generate, Dataset};
+use bcal_common::mdp::MdpSpec;
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// A temporary run folder with `config.toml` and `mdp.json` as the supervisor would write them.
+pub struct RunFolder {
+    dir: tempfile::TempDir,
+    pub config: TrainConfig,
+    pub validated: Validated,
+    pub mdp: MdpSpec,
+    pub dataset: Dataset,
+}
+
+impl RunFolder {
+    /// Writes `config` (validated first) and the MDP of its experiment; the dataset comes from the cache.
+    pub fn new(config: TrainConfig) -> Self {
+        let validated = config.validate().expect("test config validates");
+        let dir = tempfile::Builder::new().prefix("bcal-test-").tempdir().expect("temp run folder");
+        std::fs::write(dir.path().join("config.toml"), config.to_toml()).expect("write config.toml");
+        let (dataset, _) =
+            load_or_generate(&validated.def, &BatteryModel::default(), &default_cache_dir()).expect("dataset");
+        let mdp = MdpSpec::new(config.experiment, &config.env, &dataset);
+        std::fs::write(dir.path().join("mdp.json"), serde_json::to_string_pretty(&mdp).unwrap()).unwrap();
+        std::fs::create_dir_all(dir.path().join("logs")).unwrap();
+        Self { dir, config, validated, mdp, dataset }
+    }
+
+    pub fn path(&self) -> &Path {
+        self.dir.path()
+    }
+
+    /// Reads a JSON file of the run folder (None while it does not exist or is being replaced).
+    pub fn json(&self, rel: &str) -> Option<serde_json::Value> {
+        let text = std::fs::read_to_string(self.path().join(rel)).ok()?;
+        serde_json::from_str(&text).ok()
+    }
+
+    /// Every process log of the run, for a failure message.
+    pub fn logs(&self) -> String {
+        let mut out = String::new();
+        if let Ok(rd) = std::fs::read_dir(self.path().join("logs")) {
+            let mut paths: Vec<PathBuf> = rd.flatten().map(|e| e.path()).collect();
+            paths.sort();
+            for p in paths {
+                let text = std::fs::read_to_string(&p).unwrap_or_default();
+                let tail: String =
+                    text.lines().rev().take(40).collect::<Vec<_>>().into_iter().rev().collect::<Vec<_>>().join("\n");
+                out.push_str(&format!("----- {} (last 40 lines)\n{tail}\n", p.display()));
+            }
+        }
+        out
+    }
+
+    /// Keeps the folder after the test (for debugging a failure); returns its path.
+    pub fn keep(self) -> PathBuf {
+        self.dir.keep()
+    }
+}
+
+/// Workspace root (this crate lives in `<root>/tests`).
+pub fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_path_buf()
+}
+
+/// `target/<profile>` of the running test executable.
+fn profile_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    let deps = exe.parent().expect("deps folder");
+    deps.parent().expect("profile folder").to_path_buf()
+}
+
+static BUILT: Mutex<Option<HashSet<String>>> = Mutex::new(None);
+
+/// Path of a workspace binary (`bcal-replay`, `bcal-actor`, `bcal-learner`, `bcal`), built on first use.
+pub fn bin(name: &str) -> PathBuf {
+    if let Some(dir) = std::env::var_os("BCAL_BIN_DIR") {
+        return PathBuf::from(dir).join(name);
+    }
+    let profile_dir = profile_dir();
+    let path = profile_dir.join(name);
+    if std::env::var_os("BCAL_TEST_NO_BUILD").is_some() {
+        assert!(path.exists(), "{} missing and BCAL_TEST_NO_BUILD is set", path.display());
+        return path;
+    }
+    let mut built = BUILT.lock().unwrap_or_else(|e| e.into_inner());
+    let set = built.get_or_insert_with(HashSet::new);
+    if set.insert(name.to_string()) {
+        let profile = profile_dir.file_name().and_then(|s| s.to_str()).unwrap_or("debug").to_string();
+        let target_dir = profile_dir.parent().expect("target folder");
+        let package = if name == "bcal" { "bcal".to_string() } else { name.to_string() };
+        let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+        let mut cmd = Command::new(cargo);
+        cmd.current_dir(workspace_root())
+            .args(["build", "--quiet", "-p", &package, "--bin", name, "--target-dir"])
+            .arg(target_dir);
+        match profile.as_str() {
+            "debug" => {}
+            "release" => {
+                cmd.arg("--release");
+            }
+            other => {
+                cmd.args(["--profile", other]);
+            }
+        }
+        let status = cmd.status().expect("run cargo build");
+        assert!(status.success(), "cargo build of {name} failed");
+    }
+    assert!(path.exists(), "{} was not built", path.display());
+    path
+}
+
+/// A started bcal process; killed (SIGKILL) and reaped on drop if the test did not stop it.
+pub struct Proc {
+    pub name: String,
+    child: Child,
+    status: Option<ExitStatus>,
+}
+
+impl Proc {
+    /// Starts `bin(exe)` with `args`; stdout and stderr go to `<run>/logs/<name>.log`.
+    pub fn start(run: &RunFolder, name: &str, exe: &str, args: &[&str]) -> Self {
+        let log = std::fs::File::create(run.path().join("logs").join(format!("{name}.log"))).expect("log file");
+        let child = Command::new(bin(exe))
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(log.try_clone().unwrap())
+            .stderr(log)
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {exe}: {e}"));
+        Self { name: name.to_string(), child, status: None }
+    }
+
+    pub fn pid(&self) -> i32 {
+        self.child.id() as i32
+    }
+
+    pub fn signal(&self, sig: i32) {
+        if self.status.is_none() {
+            // SAFETY: kill(2) on our own child's pid; it is not reaped yet, so the pid is still ours.
+            unsafe {
+                libc::kill(self.pid(), sig);
+            }
+        }
+    }
+
+    /// The exit status if the process has ended.
+    pub fn try_status(&mut self) -> Option<ExitStatus> {
+        if self.status.is_none() {
+            self.status = self.child.try_wait().expect("try_wait");
+        }
+        self.status
+    }
+
+    /// Waits up to `timeout` for the exit; None if still running.
+    pub fn wait_timeout(&mut self, timeout: Duration) -> Option<ExitStatus> {
+        let start = Instant::now();
+        while start.elapsed() < timeout {
+            if let Some(s) = self.try_status() {
+                return Some(s);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        self.try_status()
+    }
+
+    /// SIGTERM, then wait up to `grace`; returns the exit status (None = still running, then killed).
+    pub fn terminate(&mut self, grace: Duration) -> Option<ExitStatus> {
+        self.signal(libc::SIGTERM);
+        let s = self.wait_timeout(grace);
+        if s.is_none() {
+            self.signal(libc::SIGKILL);
+            let _ = self.child.wait();
+        }
+        s
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if self.try_status().is_none() {
+            self.signal(libc::SIGKILL);
+            let _ = self.child.wait();
+        }
+    }
+}
+
+/// Polls `cond` every 50 ms until it holds or `timeout` passes; returns whether it held.
+pub fn wait_until(timeout: Duration, mut cond: impl FnMut() -> bool) -> bool {
+    let start = Instant::now();
+    loop {
+        if cond() {
+            return true;
+        }
+        if start.elapsed() >= timeout {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// A u64 field of a JSON value (0 when absent).
+pub fn field(v: &Option<serde_json::Value>, key: &str) -> u64 {
+    v.as_ref().and_then(|v| v.get(key)).and_then(|x| x.as_u64()).unwrap_or(0)
+}
+
+/// A small, fast config on the `multi` experiment: tiny networks, small batches, limits that a short test
+/// reaches.
+pub fn tiny_config(actors: usize) -> TrainConfig {
+    let mut c = TrainConfig { seed: 7, ..TrainConfig::default() };
+    c.lac.hidden = vec![16, 16];
+    c.lac.batch_size = 32;
+    c.replay.capacity = 100_000;
+    c.replay.learning_starts = 256;
+    c.actors.count = actors;
+    c.actors.envs_per_actor = 8;
+    c.actors.publish_batch = 32;
+    c.learner.weights_every = 10;
+    c.learner.checkpoint_every = 200;
+    c.learner.validate_every = 200;
+    c.learner.validate_trajectories = 2;
+    c.learner.max_updates = 0;
+    c.learner.time_budget_s = 60.0;
+    c
+}

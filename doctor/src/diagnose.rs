@@ -1,0 +1,428 @@
+//! The diagnosis, top to bottom: calibrate the base model per cycle, analyse its residual, fit every
+//! candidate cause on the training cycles (shared cause parameters, per-cycle qMobile and Ro), judge each
+//! on held-out cycles (cause parameters frozen, only qMobile and Ro re-fitted per cycle), rank by held-out
+//! RMSE with a per-parameter penalty, name the winner or `none`, then grow the extended model greedily
+//! while each added cause still buys held-out accuracy.
+//!
+//! Records that end under load (truncated) are kept out of every fit: their capacity is a lower bound and
+//! qMobile is a capacity. The diagnosis sees only the records; it never prints.
+
+use crate::analysis::{record_residual, structure, RecordResidual, Structure};
+use crate::error::DoctorError;
+use crate::fit::{fit, refit_cycles, simulate_record, CycleStart, FitConfig, FitRecord, Fitted};
+use crate::record::{Discharge, Windows};
+use crate::sim::{Cause, ExtParams};
+use bcal_common::battery::Degradation;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Every knob of the diagnosis, with its default.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DiagnoseConfig {
+    /// Fitting settings (simulator step, load threshold, fit floor, patience).
+    pub fit: FitConfig,
+    /// Held-out RMSE gain a cause needs to be named, %. Default 10.
+    pub min_gain_pct: f64,
+    /// Further held-out gain each cause added to the extended model must bring, %. Default 5.
+    pub min_step_gain_pct: f64,
+    /// Complexity penalty: the ranking score is held-out RMSE * (1 + this * added parameters). Default 0.02.
+    pub penalty_per_param: f64,
+    /// The base fit is called noise when its held-out RMSE is within this factor of the noise estimate.
+    /// Default 1.15.
+    pub noise_factor: f64,
+    /// Most causes the extended model combines. Default 3.
+    pub max_causes: usize,
+    /// The candidates to test. Default all.
+    pub causes: Vec<Cause>,
+}
+
+impl Default for DiagnoseConfig {
+    fn default() -> Self {
+        Self {
+            fit: FitConfig::default(),
+            min_gain_pct: 10.0,
+            min_step_gain_pct: 5.0,
+            penalty_per_param: 0.02,
+            noise_factor: 1.15,
+            max_causes: 3,
+            causes: Cause::ALL.to_vec(),
+        }
+    }
+}
+
+/// Per-cycle fit result.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct CycleFit {
+    pub cycle: u32,
+    pub q_mobile_c: f64,
+    pub r_o_ohm: f64,
+    /// The per-cycle extension parameters calibrated on this cycle (empty for the base model and for
+    /// causes with shared parameters only).
+    pub extra: BTreeMap<&'static str, f64>,
+    pub rmse_mv: f64,
+    /// The cycle's full extension (shared and per-cycle values).
+    #[serde(skip)]
+    pub ext: ExtParams,
+}
+
+impl CycleFit {
+    /// The fitted degradation pair.
+    pub fn degradation(&self) -> Degradation {
+        Degradation { q_mobile_c: self.q_mobile_c, r_o_ohm: self.r_o_ohm }
+    }
+
+    /// This cycle's fit as the start of another.
+    pub fn start(&self) -> CycleStart {
+        CycleStart { d: self.degradation(), ext: self.ext }
+    }
+}
+
+/// A model (base, a candidate, or the extended one) on training and held-out cycles.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ModelResult {
+    pub causes: Vec<&'static str>,
+    /// Shared parameters (fitted on the training cycles, frozen on held-out ones).
+    pub params: BTreeMap<&'static str, f64>,
+    /// Number of shared parameters.
+    pub n_params: usize,
+    /// Per-cycle parameters beyond qMobile and Ro (calibrated on every cycle, held-out ones included).
+    pub cycle_params: Vec<&'static str>,
+    pub train_rmse_mv: f64,
+    pub heldout_rmse_mv: f64,
+    /// Held-out gain over the base model, %.
+    pub gain_pct: f64,
+    /// Held-out RMSE with the complexity penalty, mV (the ranking key).
+    pub score_mv: f64,
+    pub train_cycles: Vec<CycleFit>,
+    pub heldout_cycles: Vec<CycleFit>,
+    /// Residual structure on the held-out cycles.
+    pub heldout_structure: Structure,
+    /// The discharge part whose RMSE this model lowers most against the base, and by how many mV.
+    pub removes: Option<Evidence>,
+    #[serde(skip)]
+    pub ext: ExtParams,
+    #[serde(skip)]
+    pub heldout_residuals: Vec<RecordResidual>,
+}
+
+/// Which residual feature a candidate removes.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Evidence {
+    pub part: &'static str,
+    pub base_rmse_mv: f64,
+    pub rmse_mv: f64,
+    /// Correlations of the residual that fell most in magnitude (name, base, candidate).
+    pub correlation: (&'static str, f64, f64),
+}
+
+/// A candidate's line in the report (the issue's schema plus evidence).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Candidate {
+    pub cause: &'static str,
+    pub params: BTreeMap<&'static str, f64>,
+    /// Per-cycle parameters beyond qMobile and Ro.
+    pub cycle_params: Vec<&'static str>,
+    pub train_rmse_mv: f64,
+    pub heldout_rmse_mv: f64,
+    pub gain_pct: f64,
+    pub score_mv: f64,
+    pub removes: Option<Evidence>,
+}
+
+/// One input record and what became of it.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct RecordInfo {
+    pub cycle: u32,
+    pub file: String,
+    /// `train`, `heldout`, or `excluded`.
+    pub role: &'static str,
+    pub truncated: bool,
+    /// Charge drawn under load, Ah; `None` for truncated records (a lower bound only).
+    pub capacity_ah: Option<f64>,
+    pub samples: usize,
+    pub note: Option<String>,
+}
+
+/// The whole diagnosis (serialised as `diagnosis.json`).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Diagnosis {
+    pub cell: String,
+    /// The named cause: the best candidate, or `none`.
+    pub cause: &'static str,
+    /// Every candidate's name, best first.
+    pub ranking: Vec<&'static str>,
+    pub candidates: Vec<Candidate>,
+    pub base: ModelResult,
+    pub extended: ModelResult,
+    /// Held-out gain of the extended model over the base, %.
+    pub gain_pct: f64,
+    /// Sensor-noise estimate from the base residual, mV.
+    pub noise_mv: f64,
+    /// Residual structure of the base model on the training cycles.
+    pub base_train_structure: Structure,
+    pub records: Vec<RecordInfo>,
+    /// Truncated records kept out of the fits.
+    pub truncated_count: usize,
+    pub settings: Settings,
+}
+
+/// The settings the diagnosis ran with.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Settings {
+    pub dt_max_s: f64,
+    pub load_threshold_a: f64,
+    pub v_floor_v: f64,
+    pub min_gain_pct: f64,
+    pub min_step_gain_pct: f64,
+    pub penalty_per_param: f64,
+    pub noise_factor: f64,
+    pub max_causes: usize,
+}
+
+struct Prepared<'a> {
+    train: Vec<FitRecord<'a>>,
+    heldout: Vec<FitRecord<'a>>,
+    records: Vec<RecordInfo>,
+    truncated: usize,
+}
+
+fn prepare<'a>(cfg: &FitConfig, train: &'a [Discharge], heldout: &'a [Discharge]) -> Prepared<'a> {
+    let mut p = Prepared { train: Vec::new(), heldout: Vec::new(), records: Vec::new(), truncated: 0 };
+    for (set, role) in [(train, "train"), (heldout, "heldout")] {
+        for d in set {
+            let w: Option<Windows> = d.windows(cfg.load_threshold_a, cfg.v_floor_v);
+            let (role, note) = match w {
+                None => ("excluded", Some(format!("no sample above {} A", cfg.load_threshold_a))),
+                Some(w) if w.truncated => ("excluded", Some("ends under load (no cut-off): truncated".into())),
+                Some(w) if w.fit_len() < 5 => ("excluded", Some("fewer than 5 loaded samples above the floor".into())),
+                Some(_) => (role, None),
+            };
+            let truncated = w.is_some_and(|w| w.truncated);
+            p.truncated += usize::from(truncated);
+            p.records.push(RecordInfo {
+                cycle: d.cycle,
+                file: d.source.file_name().map_or_else(String::new, |f| f.to_string_lossy().into_owned()),
+                role,
+                truncated,
+                capacity_ah: w.filter(|w| !w.truncated).map(|w| d.charge_ah(w.load_on, w.load_end)),
+                samples: d.len(),
+                note,
+            });
+            if let (Some(w), "train") = (w, role) {
+                p.train.push(FitRecord::new(d, w, cfg.step_threshold_a));
+            } else if let (Some(w), "heldout") = (w, role) {
+                p.heldout.push(FitRecord::new(d, w, cfg.step_threshold_a));
+            }
+        }
+    }
+    p
+}
+
+/// Runs the diagnosis: `train` calibrates, `heldout` judges.
+pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]) -> Result<Diagnosis, DoctorError> {
+    if !(cfg.fit.dt_max_s > 0.0 && cfg.fit.dt_max_s.is_finite()) {
+        return Err(DoctorError::BadConfig(format!("dt_max_s = {} must be > 0", cfg.fit.dt_max_s)));
+    }
+    let p = prepare(&cfg.fit, train, heldout);
+    if p.train.is_empty() || p.heldout.is_empty() {
+        return Err(DoctorError::NothingSelected {
+            why: format!(
+                "{} usable training and {} usable held-out records (truncated or unloaded records are excluded); \
+                 widen --cycles or --holdout",
+                p.train.len(),
+                p.heldout.len()
+            ),
+        });
+    }
+    let cell = p.train[0].d.cell.clone();
+
+    // 1. Base model: per-cycle qMobile and Ro.
+    let base_fit = fit(&cfg.fit, &p.train, &[], &ExtParams::default(), None)?;
+    let base_train_starts = base_fit.starts();
+    let base_train_structure = train_structure(&cfg.fit, &p.train, &base_fit)?;
+    let base = judge(cfg, &p, &[], base_fit, None, None)?;
+    let base_held_starts: Vec<CycleStart> = base.heldout_cycles.iter().map(CycleFit::start).collect();
+    let base_rmse = base.heldout_rmse_mv;
+    let noise_mv = base_train_structure.noise_mv;
+
+    // 2. Each candidate alone.
+    let mut results: Vec<(Cause, ModelResult)> = Vec::new();
+    for &c in &cfg.causes {
+        let f = fit(&cfg.fit, &p.train, &[c], &ExtParams::default(), Some(&base_train_starts))?;
+        results.push((c, judge(cfg, &p, &[c], f, Some(&base), Some(&base_held_starts))?));
+    }
+    results.sort_by(|a, b| a.1.score_mv.total_cmp(&b.1.score_mv));
+    let ranking: Vec<&'static str> = results.iter().map(|(c, _)| c.name()).collect();
+    let best_gain = results.first().map_or(0.0, |r| r.1.gain_pct);
+    let is_noise = base_rmse <= cfg.noise_factor * noise_mv || best_gain < cfg.min_gain_pct;
+    let cause = if is_noise { "none" } else { results[0].0.name() };
+
+    // 3. Extended model: add causes while each buys held-out accuracy.
+    let mut extended = base.clone();
+    if !is_noise {
+        let mut chosen = vec![results[0].0];
+        extended = results[0].1.clone();
+        while chosen.len() < cfg.max_causes {
+            let mut best_next: Option<(Cause, ModelResult)> = None;
+            for (c, r) in &results {
+                if chosen.contains(c) || r.gain_pct < cfg.min_step_gain_pct {
+                    continue;
+                }
+                let mut causes = chosen.clone();
+                causes.push(*c);
+                let starts: Vec<CycleStart> = extended.train_cycles.iter().map(CycleFit::start).collect();
+                let held: Vec<CycleStart> = extended.heldout_cycles.iter().map(CycleFit::start).collect();
+                let f = fit(&cfg.fit, &p.train, &causes, &extended.ext, Some(&starts))?;
+                let m = judge(cfg, &p, &causes, f, Some(&base), Some(&held))?;
+                if best_next.as_ref().is_none_or(|(_, b)| m.score_mv < b.score_mv) {
+                    best_next = Some((*c, m));
+                }
+            }
+            match best_next {
+                Some((c, m))
+                    if 100.0 * (extended.heldout_rmse_mv - m.heldout_rmse_mv) / extended.heldout_rmse_mv
+                        >= cfg.min_step_gain_pct =>
+                {
+                    chosen.push(c);
+                    extended = m;
+                }
+                _ => break,
+            }
+        }
+    }
+    let gain_pct = extended.gain_pct;
+    let candidates = results
+        .iter()
+        .map(|(c, r)| Candidate {
+            cause: c.name(),
+            params: r.params.clone(),
+            cycle_params: r.cycle_params.clone(),
+            train_rmse_mv: r.train_rmse_mv,
+            heldout_rmse_mv: r.heldout_rmse_mv,
+            gain_pct: r.gain_pct,
+            score_mv: r.score_mv,
+            removes: r.removes.clone(),
+        })
+        .collect();
+    Ok(Diagnosis {
+        cell,
+        cause,
+        ranking,
+        candidates,
+        base,
+        extended,
+        gain_pct,
+        noise_mv,
+        base_train_structure,
+        records: p.records,
+        truncated_count: p.truncated,
+        settings: Settings {
+            dt_max_s: cfg.fit.dt_max_s,
+            load_threshold_a: cfg.fit.load_threshold_a,
+            v_floor_v: cfg.fit.v_floor_v,
+            min_gain_pct: cfg.min_gain_pct,
+            min_step_gain_pct: cfg.min_step_gain_pct,
+            penalty_per_param: cfg.penalty_per_param,
+            noise_factor: cfg.noise_factor,
+            max_causes: cfg.max_causes,
+        },
+    })
+}
+
+fn residuals_of(cfg: &FitConfig, recs: &[FitRecord<'_>], f: &Fitted) -> Result<Vec<RecordResidual>, DoctorError> {
+    recs.iter()
+        .zip(f.per_cycle.iter().zip(&f.cycle_ext))
+        .map(|(r, (deg, ext))| Ok(record_residual(r.d, r.w, &r.used, &simulate_record(cfg, r.d, *deg, ext)?)))
+        .collect()
+}
+
+fn train_structure(cfg: &FitConfig, recs: &[FitRecord<'_>], f: &Fitted) -> Result<Structure, DoctorError> {
+    let res = residuals_of(cfg, recs, f)?;
+    let ds: Vec<&Discharge> = recs.iter().map(|r| r.d).collect();
+    Ok(structure(&ds, &res))
+}
+
+fn cycle_fits(recs: &[FitRecord<'_>], f: &Fitted) -> Vec<CycleFit> {
+    recs.iter()
+        .enumerate()
+        .map(|(c, r)| CycleFit {
+            cycle: r.d.cycle,
+            q_mobile_c: f.per_cycle[c].q_mobile_c,
+            r_o_ohm: f.per_cycle[c].r_o_ohm,
+            extra: f
+                .cycle_specs
+                .iter()
+                .map(|s| (s.name, crate::fit::ext_value(&f.cycle_ext[c], s.name).unwrap_or(s.start)))
+                .collect(),
+            rmse_mv: 1000.0 * f.rmse_v[c],
+            ext: f.cycle_ext[c],
+        })
+        .collect()
+}
+
+/// Freezes the fitted cause parameters, re-fits qMobile and Ro on each held-out cycle, and scores.
+fn judge(
+    cfg: &DiagnoseConfig,
+    p: &Prepared<'_>,
+    causes: &[Cause],
+    train_fit: Fitted,
+    base: Option<&ModelResult>,
+    heldout_starts: Option<&[CycleStart]>,
+) -> Result<ModelResult, DoctorError> {
+    let held = refit_cycles(&cfg.fit, &p.heldout, causes, &train_fit.ext, heldout_starts)?;
+    let heldout_residuals = residuals_of(&cfg.fit, &p.heldout, &held)?;
+    let ds: Vec<&Discharge> = p.heldout.iter().map(|r| r.d).collect();
+    let heldout_structure = structure(&ds, &heldout_residuals);
+    let n_params = train_fit.shared.len();
+    let cycle_params: Vec<&'static str> = held.cycle_specs.iter().map(|s| s.name).collect();
+    let heldout_rmse_mv = 1000.0 * held.rmse_all_v();
+    let gain_pct = base.map_or(0.0, |b| 100.0 * (b.heldout_rmse_mv - heldout_rmse_mv) / b.heldout_rmse_mv);
+    let removes = base.map(|b| evidence(&b.heldout_structure, &heldout_structure));
+    Ok(ModelResult {
+        causes: causes.iter().map(|c| c.name()).collect(),
+        params: train_fit.shared.iter().copied().collect(),
+        n_params,
+        score_mv: score(cfg, heldout_rmse_mv, n_params, cycle_params.len(), &held),
+        cycle_params,
+        train_rmse_mv: 1000.0 * train_fit.rmse_all_v(),
+        heldout_rmse_mv,
+        gain_pct,
+        train_cycles: cycle_fits(&p.train, &train_fit),
+        heldout_cycles: cycle_fits(&p.heldout, &held),
+        heldout_structure,
+        removes,
+        ext: train_fit.ext,
+        heldout_residuals,
+    })
+}
+
+/// The ranking score, mV: the held-out RMSE with a complexity penalty. Each shared parameter costs
+/// `penalty_per_param`; per-cycle parameters are re-calibrated on every held-out cycle, so they are counted
+/// as the Bayesian information criterion counts free parameters: m per cycle over C held-out cycles and N
+/// held-out samples multiply the RMSE by exp(m C ln(N) / (2 N)) (BIC = N ln(RSS/N) + k ln(N) on the RMSE
+/// scale). qMobile and Ro are per-cycle in every model, base included, so they cancel and are not counted.
+fn score(cfg: &DiagnoseConfig, rmse_mv: f64, n_shared: usize, n_cycle: usize, held: &Fitted) -> f64 {
+    let n = held.samples.iter().sum::<usize>().max(2) as f64;
+    let k = (n_cycle * held.per_cycle.len()) as f64;
+    rmse_mv * (1.0 + cfg.penalty_per_param * n_shared as f64) * (k * n.ln() / (2.0 * n)).exp()
+}
+
+fn evidence(base: &Structure, cand: &Structure) -> Evidence {
+    let (mut part, mut drop, mut b_rmse, mut c_rmse) = ("under_load", f64::NEG_INFINITY, 0.0, 0.0);
+    for ((name, b), (_, c)) in base.parts().iter().zip(cand.parts().iter()) {
+        if b.samples > 0 && b.rmse_mv - c.rmse_mv > drop {
+            (part, drop, b_rmse, c_rmse) = (name, b.rmse_mv - c.rmse_mv, b.rmse_mv, c.rmse_mv);
+        }
+    }
+    let corrs = [
+        ("soc", base.corr_soc, cand.corr_soc),
+        ("current", base.corr_current, cand.corr_current),
+        ("time", base.corr_time, cand.corr_time),
+        ("temperature", base.corr_temperature, cand.corr_temperature),
+    ];
+    let correlation = corrs
+        .into_iter()
+        .max_by(|a, b| (a.1.abs() - a.2.abs()).total_cmp(&(b.1.abs() - b.2.abs())))
+        .expect("four correlations");
+    Evidence { part, base_rmse_mv: b_rmse, rmse_mv: c_rmse, correlation }
+}

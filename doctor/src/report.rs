@@ -1,0 +1,139 @@
+//! Writes a [`Diagnosis`] as `diagnosis.json` (machine-readable, the issue's schema and more) and
+//! `diagnosis.md` (the human summary: verdict, candidate table, residual structure, per-cycle fits).
+
+use crate::analysis::Structure;
+use crate::diagnose::{Diagnosis, ModelResult};
+use crate::error::DoctorError;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// Writes `diagnosis.json` and `diagnosis.md` into `out_dir` (created if needed); returns their paths.
+pub fn write_reports(diag: &Diagnosis, out_dir: &Path) -> Result<Vec<PathBuf>, DoctorError> {
+    std::fs::create_dir_all(out_dir).map_err(|e| DoctorError::Write { path: out_dir.to_path_buf(), source: e })?;
+    let json_path = out_dir.join("diagnosis.json");
+    let json = serde_json::to_string_pretty(diag)?;
+    std::fs::write(&json_path, json).map_err(|e| DoctorError::Write { path: json_path.clone(), source: e })?;
+    let md_path = out_dir.join("diagnosis.md");
+    std::fs::write(&md_path, markdown(diag)).map_err(|e| DoctorError::Write { path: md_path.clone(), source: e })?;
+    Ok(vec![json_path, md_path])
+}
+
+fn structure_rows(out: &mut String, name: &str, s: &Structure) {
+    let _ = writeln!(
+        out,
+        "| {name} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} / {:.1} / {:.1} | {:+.2} | {:+.2} | {:+.2} | {:+.2} |",
+        s.under_load.rmse_mv,
+        s.rest_before.rmse_mv,
+        s.load_on.rmse_mv,
+        s.plateau.rmse_mv,
+        s.knee.rmse_mv,
+        s.relaxation.rmse_mv,
+        s.thirds[0].rmse_mv,
+        s.thirds[1].rmse_mv,
+        s.thirds[2].rmse_mv,
+        s.corr_soc,
+        s.corr_current,
+        s.corr_time,
+        s.corr_temperature,
+    );
+}
+
+fn params_text(m: &ModelResult) -> String {
+    if m.params.is_empty() {
+        return "-".into();
+    }
+    m.params.iter().map(|(k, v)| format!("{k} = {v:.4}")).collect::<Vec<_>>().join(", ")
+}
+
+/// The Markdown summary.
+pub fn markdown(d: &Diagnosis) -> String {
+    let mut o = String::new();
+    let _ = writeln!(o, "# Diagnosis of {}\n", d.cell);
+    let _ = writeln!(
+        o,
+        "**Cause: `{}`.** Base model held-out RMSE {:.1} mV; extended model ({}) {:.1} mV: gain {:.1} %. \
+         Noise estimate {:.1} mV.\n",
+        d.cause,
+        d.base.heldout_rmse_mv,
+        if d.extended.causes.is_empty() { "no extension".to_string() } else { d.extended.causes.join(" + ") },
+        d.extended.heldout_rmse_mv,
+        d.gain_pct,
+        d.noise_mv
+    );
+    let _ = writeln!(o, "Extended model parameters: {}\n", params_text(&d.extended));
+    let _ = writeln!(o, "## Candidates (fitted on training cycles, judged on held-out cycles)\n");
+    let _ = writeln!(o, "| rank | cause | params | train RMSE mV | held-out RMSE mV | gain % | score mV | removes |");
+    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- | --- |");
+    for (k, c) in d.candidates.iter().enumerate() {
+        let params = c.params.iter().map(|(k, v)| format!("{k} = {v:.4}")).collect::<Vec<_>>().join(", ");
+        let removes = c.removes.as_ref().map_or(String::new(), |e| {
+            format!(
+                "{}: {:.1} -> {:.1} mV; corr({}) {:+.2} -> {:+.2}",
+                e.part, e.base_rmse_mv, e.rmse_mv, e.correlation.0, e.correlation.1, e.correlation.2
+            )
+        });
+        let _ = writeln!(
+            o,
+            "| {} | `{}` | {} | {:.2} | {:.2} | {:.1} | {:.2} | {} |",
+            k + 1,
+            c.cause,
+            params,
+            c.train_rmse_mv,
+            c.heldout_rmse_mv,
+            c.gain_pct,
+            c.score_mv,
+            removes
+        );
+    }
+    let _ =
+        writeln!(o, "\n## Where the residual lives (measured - model, RMSE mV; correlations of the loaded residual)\n");
+    let _ = writeln!(
+        o,
+        "| model | under load | rest before | load-on | plateau | knee | relaxation | thirds | corr SOC | corr current | corr time | corr temperature |"
+    );
+    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    structure_rows(&mut o, "base, training", &d.base_train_structure);
+    structure_rows(&mut o, "base, held-out", &d.base.heldout_structure);
+    structure_rows(&mut o, "extended, held-out", &d.extended.heldout_structure);
+    let _ = writeln!(o, "\n## Per-cycle fits (held-out)\n");
+    let _ = writeln!(o, "| cycle | base qMobile C | base Ro ohm | base RMSE mV | extended qMobile C | extended Ro ohm | extended RMSE mV |");
+    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- |");
+    for (b, e) in d.base.heldout_cycles.iter().zip(&d.extended.heldout_cycles) {
+        let _ = writeln!(
+            o,
+            "| {} | {:.0} | {:.4} | {:.1} | {:.0} | {:.4} | {:.1} |",
+            b.cycle, b.q_mobile_c, b.r_o_ohm, b.rmse_mv, e.q_mobile_c, e.r_o_ohm, e.rmse_mv
+        );
+    }
+    let _ = writeln!(o, "\n## Records\n");
+    let excluded: Vec<String> = d
+        .records
+        .iter()
+        .filter(|r| r.role == "excluded")
+        .map(|r| format!("cycle {} ({}): {}", r.cycle, r.file, r.note.clone().unwrap_or_default()))
+        .collect();
+    let _ = writeln!(
+        o,
+        "{} training and {} held-out records; {} truncated; {} excluded{}",
+        d.records.iter().filter(|r| r.role == "train").count(),
+        d.records.iter().filter(|r| r.role == "heldout").count(),
+        d.truncated_count,
+        excluded.len(),
+        if excluded.is_empty() { ".".to_string() } else { format!(":\n\n- {}", excluded.join("\n- ")) }
+    );
+    let s = &d.settings;
+    let _ = writeln!(
+        o,
+        "\nSettings: simulator step <= {} s, load above {} A, fit floor {} V, naming gain >= {} %, step gain >= {} %, \
+         penalty {} per parameter, noise factor {}, at most {} causes.",
+        s.dt_max_s,
+        s.load_threshold_a,
+        s.v_floor_v,
+        s.min_gain_pct,
+        s.min_step_gain_pct,
+        s.penalty_per_param,
+        s.noise_factor,
+        s.max_causes
+    );
+    o
+}

@@ -1,0 +1,432 @@
+//! The extended simulator: the common battery model plus the candidate causes' extensions, driven by a
+//! measured current series and sampled exactly at the measured sample times.
+//!
+//! The base model is [`bcal_common::battery::BatteryModel`], isothermal at the record's ambient temperature.
+//! Every extension has a neutral value at which it changes nothing ([`ExtParams::default`]), so one
+//! simulator serves the base model, each candidate and their combinations. The simulator steps on its own
+//! grid (at most `dt_max_s`, landing on every sample time), holds the current linearly interpolated between
+//! samples, and never allocates per step. It does not fit and it never reads which cause is being tested.
+
+use bcal_common::battery::{BatteryModel, BatteryParams, Degradation, ModelError};
+use bcal_common::math::{idx, ModelState};
+use serde::Serialize;
+
+/// A candidate cause of model-data disagreement: each is one small extension of the model.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Cause {
+    /// Temperature dependence: the cell temperature (measured, else a thermal state) drives the model, and
+    /// the ohmic resistance follows Arrhenius, Ro(T) = Ro * exp(Ea/R * (1/T - 1/T_ambient)), Ea >= 0.
+    /// Bounds of every cause are physical ranges, so a cause cannot stand in for another by going wild.
+    Thermal,
+    /// The open-circuit-voltage curve differs from the Redlich-Kister one: an additive Legendre
+    /// correction (degrees 1..3) in the positive electrode's normalised surface mole fraction.
+    Ocv,
+    /// The bulk-surface diffusion time constant differs from the default 7e6 s.
+    Diffusion,
+    /// An unmodelled RC branch: a second polarisation with its own resistance and time constant.
+    ExtraPolarization,
+    /// A constant voltage-sensor bias.
+    VoltageOffset,
+    /// A current-sensor scale error: measured current = gain * true current.
+    CurrentGain,
+    /// The electrodes' balance shifts as the cell ages (loss of lithium inventory against loss of active
+    /// material): the positive electrode starts each discharge at a shifted mole fraction, so the discharge
+    /// runs over another window of its OCV curve. One parameter per cycle, calibrated like qMobile and Ro.
+    ElectrodeBalance,
+    /// Charge-transfer kinetics slow down as the cell ages (growing charge-transfer resistance, which
+    /// NASA's impedance records show as a rising Rct): one factor on both Butler-Volmer rate constants
+    /// kn and kp, calibrated per cycle like qMobile and Ro.
+    ChargeTransfer,
+}
+
+impl Cause {
+    /// Every candidate, in reporting order.
+    pub const ALL: [Cause; 8] = [
+        Cause::Thermal,
+        Cause::Ocv,
+        Cause::Diffusion,
+        Cause::ExtraPolarization,
+        Cause::VoltageOffset,
+        Cause::CurrentGain,
+        Cause::ElectrodeBalance,
+        Cause::ChargeTransfer,
+    ];
+
+    /// The vocabulary name (`thermal`, `ocv`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            Cause::Thermal => "thermal",
+            Cause::Ocv => "ocv",
+            Cause::Diffusion => "diffusion",
+            Cause::ExtraPolarization => "extra_polarization",
+            Cause::VoltageOffset => "voltage_offset",
+            Cause::CurrentGain => "current_gain",
+            Cause::ElectrodeBalance => "electrode_balance",
+            Cause::ChargeTransfer => "charge_transfer",
+        }
+    }
+
+    /// The free parameters this cause adds to every cycle (calibrated per cycle like qMobile and Ro, on
+    /// held-out cycles too), with bounds and neutral starting values.
+    pub fn cycle_params(self) -> Vec<ParamSpec> {
+        match self {
+            Cause::ElectrodeBalance => vec![ParamSpec::lin("xp_shift", -0.2, 0.3, 0.0)],
+            Cause::ChargeTransfer => vec![ParamSpec::log("kinetics_scale", 0.005, 20.0, 1.0)],
+            _ => Vec::new(),
+        }
+    }
+
+    /// The free parameters this cause adds, with bounds and starting values. `has_temperature` says
+    /// whether the records carry a measured temperature (else the thermal cause fits a thermal state).
+    pub fn params(self, has_temperature: bool) -> Vec<ParamSpec> {
+        match self {
+            Cause::Thermal if has_temperature => vec![
+                ParamSpec::lin("ro_activation_k", 0.0, 10000.0, 1000.0),
+                ParamSpec::lin("kinetics_activation_k", 0.0, 10000.0, 1000.0),
+            ],
+            Cause::Thermal => vec![
+                ParamSpec::lin("ro_activation_k", 0.0, 10000.0, 1000.0),
+                ParamSpec::lin("kinetics_activation_k", 0.0, 10000.0, 1000.0),
+                ParamSpec::log("tau_thermal_s", 50.0, 5000.0, 500.0),
+            ],
+            Cause::Ocv => vec![
+                ParamSpec::lin("ocv_p1_v", -0.3, 0.3, 0.0),
+                ParamSpec::lin("ocv_p2_v", -0.3, 0.3, 0.0),
+                ParamSpec::lin("ocv_p3_v", -0.3, 0.3, 0.0),
+            ],
+            Cause::Diffusion => vec![ParamSpec::log("t_diffusion_s", 1e5, 1e9, 7e6)],
+            Cause::ExtraPolarization => {
+                vec![ParamSpec::lin("rc_r_ohm", -0.02, 0.4, 0.02), ParamSpec::log("rc_tau_s", 20.0, 20000.0, 300.0)]
+            }
+            Cause::VoltageOffset => vec![ParamSpec::lin("voltage_offset_v", -0.1, 0.1, 0.0)],
+            Cause::CurrentGain => vec![ParamSpec::lin("current_gain", 0.85, 1.15, 1.0)],
+            Cause::ElectrodeBalance | Cause::ChargeTransfer => Vec::new(),
+        }
+    }
+}
+
+/// One free parameter: name, bounds, start, and whether it is searched on a log scale.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ParamSpec {
+    pub name: &'static str,
+    pub lo: f64,
+    pub hi: f64,
+    pub start: f64,
+    pub log: bool,
+}
+
+impl ParamSpec {
+    fn lin(name: &'static str, lo: f64, hi: f64, start: f64) -> Self {
+        Self { name, lo, hi, start, log: false }
+    }
+    fn log(name: &'static str, lo: f64, hi: f64, start: f64) -> Self {
+        Self { name, lo, hi, start, log: true }
+    }
+}
+
+/// Every extension's parameters. [`Default`] is the base model (each extension neutral).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct ExtParams {
+    /// When true the cell temperature drives the model: the measured temperature if the record has one,
+    /// else the model's thermal state. Default false (isothermal at ambient).
+    pub temperature_driven: bool,
+    /// Arrhenius activation temperature of Ro, Ea/R, K. Default 0 (no temperature dependence).
+    pub ro_activation_k: f64,
+    /// Arrhenius activation temperature of the Butler-Volmer rate constants kn and kp, Ea/R, K: the
+    /// exchange current grows as exp(-Ea/R (1/T - 1/T_ambient)). Default 0.
+    pub kinetics_activation_k: f64,
+    /// Heat-exchange time constant of the thermal state, s (used without measured temperature). Default 100.
+    pub tau_thermal_s: f64,
+    /// Legendre coefficients (degrees 1, 2, 3) of the additive OCV correction, V. Default 0.
+    pub ocv_legendre_v: [f64; 3],
+    /// Bulk-surface diffusion time constant, s. Default 7e6 (the base model's).
+    pub t_diffusion_s: f64,
+    /// Resistance of the extra RC branch, ohm. Default 0.
+    pub rc_r_ohm: f64,
+    /// Time constant of the extra RC branch, s. Default 300.
+    pub rc_tau_s: f64,
+    /// Voltage-sensor bias added to the model's terminal voltage, V. Default 0.
+    pub voltage_offset_v: f64,
+    /// Current-sensor gain: measured = gain * true. Default 1.
+    pub current_gain: f64,
+    /// Shift of the positive electrode's mole fraction at full charge (xp_min), added to the base value.
+    /// Default 0.
+    pub xp_shift: f64,
+    /// Factor on both Butler-Volmer rate constants kn and kp (below 1: slower charge transfer). Default 1.
+    pub kinetics_scale: f64,
+}
+
+impl Default for ExtParams {
+    fn default() -> Self {
+        Self {
+            temperature_driven: false,
+            ro_activation_k: 0.0,
+            kinetics_activation_k: 0.0,
+            tau_thermal_s: BatteryParams::default().tau_thermal_s,
+            ocv_legendre_v: [0.0; 3],
+            t_diffusion_s: BatteryParams::default().t_diffusion_s,
+            rc_r_ohm: 0.0,
+            rc_tau_s: 300.0,
+            voltage_offset_v: 0.0,
+            current_gain: 1.0,
+            xp_shift: 0.0,
+            kinetics_scale: 1.0,
+        }
+    }
+}
+
+impl ExtParams {
+    /// Sets the named parameter (a [`ParamSpec::name`]); also switches on what the parameter needs.
+    pub fn set(&mut self, name: &str, value: f64) {
+        match name {
+            "ro_activation_k" => {
+                self.ro_activation_k = value;
+                self.temperature_driven = true;
+            }
+            "kinetics_activation_k" => {
+                self.kinetics_activation_k = value;
+                self.temperature_driven = true;
+            }
+            "tau_thermal_s" => self.tau_thermal_s = value,
+            "ocv_p1_v" => self.ocv_legendre_v[0] = value,
+            "ocv_p2_v" => self.ocv_legendre_v[1] = value,
+            "ocv_p3_v" => self.ocv_legendre_v[2] = value,
+            "t_diffusion_s" => self.t_diffusion_s = value,
+            "rc_r_ohm" => self.rc_r_ohm = value,
+            "rc_tau_s" => self.rc_tau_s = value,
+            "voltage_offset_v" => self.voltage_offset_v = value,
+            "current_gain" => self.current_gain = value,
+            "xp_shift" => self.xp_shift = value,
+            "kinetics_scale" => self.kinetics_scale = value,
+            other => debug_assert!(false, "unknown extension parameter {other}"),
+        }
+    }
+
+    /// Turns on what a cause needs even before its parameters are set (the thermal cause's temperature).
+    pub fn enable(&mut self, cause: Cause) {
+        if cause == Cause::Thermal {
+            self.temperature_driven = true;
+        }
+    }
+}
+
+/// The cell as the doctor simulates it: base model state plus the extension states.
+#[derive(Clone, Debug)]
+pub struct ExtendedCell {
+    model: BatteryModel,
+    d: Degradation,
+    ext: ExtParams,
+    ambient_k: f64,
+    x: ModelState,
+    /// Voltage across the extra RC branch, V.
+    v_rc_v: f64,
+    /// Normalised positive-electrode span, for the OCV correction.
+    xp_min: f64,
+    xp_span: f64,
+    q_s_max_c: f64,
+    /// Rate constants at ambient temperature (the Arrhenius reference).
+    kn: f64,
+    kp: f64,
+}
+
+impl ExtendedCell {
+    /// A full cell at rest at `ambient_k`. `measured_temperature` says whether the caller will feed the
+    /// temperature each step (else, when temperature-driven, the model's thermal state evolves).
+    pub fn new(
+        base: &BatteryParams,
+        d: Degradation,
+        ext: ExtParams,
+        ambient_k: f64,
+        measured_temperature: bool,
+    ) -> Result<Self, ModelError> {
+        let params = BatteryParams {
+            tb0_k: ambient_k,
+            t_diffusion_s: ext.t_diffusion_s,
+            tau_thermal_s: ext.tau_thermal_s,
+            xp_min: base.xp_min + ext.xp_shift,
+            kn: base.kn * ext.kinetics_scale,
+            kp: base.kp * ext.kinetics_scale,
+            ..base.clone()
+        };
+        let thermal_state = ext.temperature_driven && !measured_temperature;
+        let model = BatteryModel::new(params, thermal_state)?;
+        model.check_degradation(&d)?;
+        let x = model.initial_state(&d);
+        let p = &model.params;
+        Ok(Self {
+            // The OCV correction is a property of the material: normalised on the base electrode window.
+            xp_min: base.xp_min,
+            xp_span: base.xp_max - base.xp_min,
+            q_s_max_c: model.q_max_c(&d) * p.vol_s_fraction,
+            kn: p.kn,
+            kp: p.kp,
+            model,
+            d,
+            ext,
+            ambient_k,
+            x,
+            v_rc_v: 0.0,
+        })
+    }
+
+    /// Feeds the measured cell temperature, K (used only when temperature-driven).
+    #[inline]
+    pub fn set_temperature_k(&mut self, t_k: f64) {
+        if self.ext.temperature_driven {
+            self.x[idx::T_B] = t_k;
+        }
+    }
+
+    /// The model's cell temperature, K.
+    #[inline]
+    pub fn temperature_k(&self) -> f64 {
+        self.x[idx::T_B]
+    }
+
+    /// One step of `dt_s` at measured current `measured_current_a` (positive discharging).
+    #[inline]
+    pub fn step(&mut self, measured_current_a: f64, dt_s: f64) {
+        let i_a = measured_current_a / self.ext.current_gain;
+        let mut d = self.d;
+        if self.ext.ro_activation_k != 0.0 {
+            d.r_o_ohm *= (self.ext.ro_activation_k * (1.0 / self.x[idx::T_B] - 1.0 / self.ambient_k)).exp();
+        }
+        if self.ext.kinetics_activation_k != 0.0 {
+            let f = (-self.ext.kinetics_activation_k * (1.0 / self.x[idx::T_B] - 1.0 / self.ambient_k)).exp();
+            self.model.params.kn = self.kn * f;
+            self.model.params.kp = self.kp * f;
+        }
+        self.x = self.model.step_current(&self.x, i_a, dt_s, &d);
+        if self.ext.rc_r_ohm != 0.0 {
+            // Exact update of the linear RC branch over the step (stable for any dt).
+            let target_v = i_a * self.ext.rc_r_ohm;
+            self.v_rc_v = target_v + (self.v_rc_v - target_v) * (-dt_s / self.ext.rc_tau_s).exp();
+        }
+    }
+
+    /// Terminal voltage the sensor reads, V.
+    #[inline]
+    pub fn voltage_v(&self) -> f64 {
+        let mut v = self.model.voltage_v(&self.x, &self.d) - self.v_rc_v + self.ext.voltage_offset_v;
+        let c = &self.ext.ocv_legendre_v;
+        if c.iter().any(|a| *a != 0.0) {
+            let z = ((self.x[idx::QP_S] / self.q_s_max_c - self.xp_min) / self.xp_span).clamp(0.0, 1.0);
+            let s = 2.0 * z - 1.0;
+            v += c[0] * s + c[1] * 0.5 * (3.0 * s * s - 1.0) + c[2] * 0.5 * (5.0 * s * s * s - 3.0 * s);
+        }
+        v
+    }
+}
+
+/// The measured inputs of one record, borrowed.
+#[derive(Clone, Copy, Debug)]
+pub struct Drive<'a> {
+    pub time_s: &'a [f64],
+    pub current_a: &'a [f64],
+    pub temperature_k: Option<&'a [f64]>,
+    pub ambient_k: f64,
+}
+
+/// Simulates the record's first `out.len()` samples and writes the model's voltage at each sample time.
+/// The current between samples is linearly interpolated (taken at each step's midpoint).
+pub fn simulate_voltage(
+    base: &BatteryParams,
+    d: Degradation,
+    ext: &ExtParams,
+    drive: Drive<'_>,
+    dt_max_s: f64,
+    out: &mut [f64],
+) -> Result<(), ModelError> {
+    let n = out.len().min(drive.time_s.len());
+    if n == 0 {
+        return Ok(());
+    }
+    let mut cell = ExtendedCell::new(base, d, *ext, drive.ambient_k, drive.temperature_k.is_some())?;
+    let (t, i) = (drive.time_s, drive.current_a);
+    if let Some(tk) = drive.temperature_k {
+        cell.set_temperature_k(tk[0]);
+    }
+    out[0] = cell.voltage_v();
+    for k in 1..n {
+        let span_s = t[k] - t[k - 1];
+        let steps = (span_s / dt_max_s).ceil().max(1.0);
+        let h_s = span_s / steps;
+        for j in 0..steps as usize {
+            let frac = (j as f64 + 0.5) / steps;
+            if let Some(tk) = drive.temperature_k {
+                cell.set_temperature_k(tk[k - 1] + (tk[k] - tk[k - 1]) * (j as f64 / steps));
+            }
+            cell.step(i[k - 1] + (i[k] - i[k - 1]) * frac, h_s);
+        }
+        if let Some(tk) = drive.temperature_k {
+            cell.set_temperature_k(tk[k]);
+        }
+        let v = cell.voltage_v();
+        if !v.is_finite() {
+            return Err(ModelError::NonFinite { t_s: t[k] });
+        }
+        out[k] = v;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bcal_common::battery::{Load, LoadProfile};
+
+    #[test]
+    fn neutral_extensions_reproduce_the_common_model() {
+        let base = BatteryParams::default();
+        let d = Degradation { q_mobile_c: 6500.0, r_o_ohm: 0.14 };
+        let model = BatteryModel::new(BatteryParams { tb0_k: 297.15, ..base.clone() }, false).unwrap();
+        let mut want = Vec::new();
+        model
+            .simulate_until_eod(
+                &model.initial_state(&d),
+                &d,
+                &LoadProfile::Constant(Load::CurrentA(2.0)),
+                1.0,
+                4000,
+                |r| want.push(r.voltage_v),
+            )
+            .unwrap();
+        let time_s: Vec<f64> = (0..want.len()).map(|k| k as f64).collect();
+        let current_a = vec![2.0; want.len()];
+        let mut got = vec![0.0; want.len()];
+        let drive = Drive { time_s: &time_s, current_a: &current_a, temperature_k: None, ambient_k: 297.15 };
+        simulate_voltage(&base, d, &ExtParams::default(), drive, 1.0, &mut got).unwrap();
+        for (k, (g, w)) in got.iter().zip(&want).enumerate() {
+            assert!((g - w).abs() < 1e-12, "sample {k}: {g} vs {w}");
+        }
+    }
+
+    #[test]
+    fn each_extension_moves_the_voltage_the_physical_way() {
+        let base = BatteryParams::default();
+        let d = Degradation { q_mobile_c: 6500.0, r_o_ohm: 0.14 };
+        let time_s: Vec<f64> = (0..200).map(|k| 10.0 * k as f64).collect();
+        let current_a = vec![2.0; 200];
+        let hot_k: Vec<f64> = (0..200).map(|k| 297.15 + 0.05 * k as f64).collect();
+        let run = |ext: ExtParams, temps: Option<&[f64]>| {
+            let mut v = vec![0.0; 200];
+            let drive = Drive { time_s: &time_s, current_a: &current_a, temperature_k: temps, ambient_k: 297.15 };
+            simulate_voltage(&base, d, &ext, drive, 2.0, &mut v).unwrap();
+            v[199]
+        };
+        let v0 = run(ExtParams::default(), None);
+        let offset = run(ExtParams { voltage_offset_v: 0.01, ..Default::default() }, None);
+        assert!((offset - v0 - 0.01).abs() < 1e-12);
+        // A warmer cell with Arrhenius resistance drops less voltage.
+        let warm =
+            run(ExtParams { temperature_driven: true, ro_activation_k: 3000.0, ..Default::default() }, Some(&hot_k));
+        assert!(warm > v0 + 0.01, "warm {warm} vs {v0}");
+        // An extra RC branch drops i * R after many time constants.
+        let rc = run(ExtParams { rc_r_ohm: 0.05, rc_tau_s: 50.0, ..Default::default() }, None);
+        assert!((v0 - rc - 0.1).abs() < 1e-6, "rc drop {}", v0 - rc);
+        // A sensor reading 10 % high means less true charge drawn: a higher voltage.
+        let gain = run(ExtParams { current_gain: 1.1, ..Default::default() }, None);
+        assert!(gain > v0);
+    }
+}

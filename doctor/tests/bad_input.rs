@@ -1,0 +1,156 @@
+//! Bad input never passes silently: missing files named in the metadata are skipped with a count,
+//! truncated records are flagged and kept out of the fits, non-finite or non-numeric fields are reported
+//! with file and line, a millivolt voltage column is refused with a hint, and a discharge current written
+//! negative (NASA's sign) in the generic CSV is refused with the sign convention.
+
+mod common;
+
+use bcal_doctor::read::{read_generic, read_nasa};
+use bcal_doctor::{diagnose, DoctorError};
+use common::{config, record, LoadKind, Truth};
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+use std::io::Write;
+use std::path::Path;
+
+fn write(path: &Path, text: &str) {
+    std::fs::File::create(path).unwrap().write_all(text.as_bytes()).unwrap();
+}
+
+/// A small NASA-layout discharge record (current negative while discharging).
+fn nasa_record(rows: usize) -> String {
+    let mut s = String::from("Voltage_measured,Current_measured,Temperature_measured,Current_load,Voltage_load,Time\n");
+    for k in 0..rows {
+        let i = if k == 0 || k + 3 >= rows { -0.001 } else { -2.0 };
+        s.push_str(&format!("{},{i},24.5,-2.0,3.0,{}\n", 4.2 - 0.01 * k as f64, 10.0 * k as f64));
+    }
+    s
+}
+
+#[test]
+fn missing_files_named_in_metadata_are_skipped_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("data")).unwrap();
+    write(
+        &dir.path().join("metadata.csv"),
+        "type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n\
+         charge,[2008 4 2 13 8 17],24,B0005,0,1,00001.csv,,,\n\
+         discharge,[2008 4 2 15 25 41],24,B0005,1,2,00002.csv,1.85,,\n\
+         discharge,[2008 4 2 19 43 48],24,B0005,3,3,00003.csv,[],,\n\
+         discharge,[2008 4 3 19 43 48],24,B0005,5,4,00004.csv,1.80,,\n\
+         discharge,[2010 7 21 15 0 35],4,B0047,0,5,00005.csv,1.67,,\n",
+    );
+    write(&dir.path().join("data/00002.csv"), &nasa_record(20));
+    write(&dir.path().join("data/00004.csv"), &nasa_record(20));
+    let (records, report) = read_nasa(dir.path(), "B0005", None).unwrap();
+    assert_eq!(report.missing_files, vec!["00003.csv".to_string()]);
+    assert_eq!(report.rows_selected, 3);
+    // Cycle numbers follow the metadata order, so the gap stays visible.
+    assert_eq!(records.iter().map(|d| d.cycle).collect::<Vec<_>>(), vec![1, 3]);
+    assert_eq!(records[0].stated_capacity_ah, Some(1.85));
+    assert!(records[0].current_a[5] > 0.0, "NASA discharge current is flipped to positive");
+    assert!((records[0].ambient_k - 297.15).abs() < 1e-9);
+    let (only, _) = read_nasa(dir.path(), "B0005", Some(&(3..=3))).unwrap();
+    assert_eq!(only.len(), 1);
+}
+
+#[test]
+fn non_numeric_and_nan_fields_are_reported_with_file_and_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bad.csv");
+    let mut text = String::from("time_s,voltage_v,current_a\n");
+    for k in 0..12 {
+        text.push_str(&format!("{},{},2.0\n", 10 * k, if k == 4 { "nan".to_string() } else { "3.9".to_string() }));
+    }
+    write(&path, &text);
+    let err = read_generic(&path, None).unwrap_err();
+    assert!(matches!(err, DoctorError::BadField { line: 6, .. }), "{err:?}");
+    let msg = err.to_string();
+    assert!(msg.contains("bad.csv") && msg.contains("line 6") && msg.contains("voltage_v"), "{msg}");
+
+    write(&path, &text.replace("nan", "3.9").replacen("2.0\n", "two\n", 3));
+    let msg = read_generic(&path, None).unwrap_err().to_string();
+    assert!(msg.contains("line 2") && msg.contains("current_a") && msg.contains("`two`"), "{msg}");
+
+    // The same check holds for NASA records.
+    let rec = dir.path().join("05122.csv");
+    write(&rec, &nasa_record(15).replacen("24.5", "abc", 2));
+    let msg = bcal_doctor::read::read_nasa_record(&rec, "B0005", 1, 297.15).unwrap_err().to_string();
+    assert!(msg.contains("05122.csv") && msg.contains("line 2") && msg.contains("Temperature_measured"), "{msg}");
+}
+
+#[test]
+fn voltage_in_millivolts_is_refused_with_a_hint() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("mv.csv");
+    let mut text = String::from("time_s,voltage_v,current_a\n");
+    for k in 0..12 {
+        text.push_str(&format!("{},{},2.0\n", 10 * k, 3900 - k));
+    }
+    write(&path, &text);
+    let err = read_generic(&path, None).unwrap_err();
+    assert!(matches!(err, DoctorError::VoltageInMillivolts { .. }), "{err:?}");
+    assert!(err.to_string().contains("divide by 1000"), "{err}");
+}
+
+#[test]
+fn negative_discharge_current_in_the_generic_csv_is_refused_with_the_sign_convention() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("neg.csv");
+    let mut text = String::from("time_s,voltage_v,current_a\n");
+    for k in 0..12 {
+        text.push_str(&format!("{},3.9,-2.0\n", 10 * k));
+    }
+    write(&path, &text);
+    let err = read_generic(&path, None).unwrap_err().to_string();
+    assert!(err.contains("POSITIVE while discharging"), "{err}");
+}
+
+#[test]
+fn time_going_backwards_is_an_error_with_the_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("t.csv");
+    write(&path, "time_s,voltage_v,current_a\n0,4.1,2\n10,4.0,2\n5,3.9,2\n");
+    let err = read_generic(&path, None).unwrap_err().to_string();
+    assert!(err.contains("line 4") && err.contains("does not increase"), "{err}");
+}
+
+#[test]
+fn truncated_records_are_flagged_and_kept_out_of_the_fits() {
+    let mut rng = StdRng::seed_from_u64(11);
+    let truth = Truth::aged(&mut rng);
+    let mut records: Vec<_> = (1..=3)
+        .map(|c| {
+            let rows = record(&truth, c, LoadKind::Cc, &mut rng);
+            to_discharge(c, &rows)
+        })
+        .collect();
+    // Cut cycle 2 while still under load: no cut-off, no relaxation.
+    let d = &mut records[1];
+    let keep = d.len() / 2;
+    d.time_s.truncate(keep);
+    d.voltage_v.truncate(keep);
+    d.current_a.truncate(keep);
+    d.temperature_k.as_mut().unwrap().truncate(keep);
+    let diag = diagnose(&config(), &records[..2], &records[2..]).unwrap();
+    let info = diag.records.iter().find(|r| r.cycle == 2).unwrap();
+    assert!(info.truncated && info.role == "excluded" && info.capacity_ah.is_none(), "{info:?}");
+    assert_eq!(diag.truncated_count, 1);
+    assert_eq!(diag.base.train_cycles.iter().map(|c| c.cycle).collect::<Vec<_>>(), vec![1]);
+    let full = diag.records.iter().find(|r| r.cycle == 1).unwrap();
+    assert!(full.capacity_ah.is_some_and(|c| c > 0.5), "{full:?}");
+}
+
+fn to_discharge(cycle: u32, rows: &[(f64, f64, f64, f64)]) -> bcal_doctor::Discharge {
+    bcal_doctor::Discharge {
+        cell: "synthetic".into(),
+        cycle,
+        source: format!("cycle{cycle}.csv").into(),
+        ambient_k: common::AMBIENT_C + 273.15,
+        time_s: rows.iter().map(|r| r.0).collect(),
+        voltage_v: rows.iter().map(|r| r.1).collect(),
+        current_a: rows.iter().map(|r| r.2).collect(),
+        temperature_k: Some(rows.iter().map(|r| r.3 + 273.15).collect()),
+        stated_capacity_ah: None,
+    }
+}

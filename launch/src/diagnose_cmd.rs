@@ -1,0 +1,162 @@
+//! `bcal diagnose`: reads measured discharges (NASA PCoE through metadata.csv, or the generic CSV),
+//! runs the doctor (base calibration, residual analysis, candidate causes, extended model) and writes
+//! `diagnosis.json`, `diagnosis.md` and residual plots into `--out`.
+
+use anyhow::Context;
+use bcal_doctor::read::{parse_cycle_range, read_generic, read_nasa};
+use bcal_doctor::{diagnose, Cause, DiagnoseConfig, Discharge};
+use clap::ValueEnum;
+use std::ops::RangeInclusive;
+use std::path::PathBuf;
+
+#[derive(clap::Args, Debug)]
+pub struct DiagnoseArgs {
+    /// Measured data: a NASA PCoE folder (holding metadata.csv and data/) or a generic CSV file with
+    /// columns time_s,voltage_v,current_a[,temperature_c][,cycle] (current positive while discharging).
+    #[arg(long, value_name = "PATH")]
+    pub data: PathBuf,
+    /// Cell to read from a NASA folder (battery_id in metadata.csv).
+    #[arg(long, default_value = "B0005")]
+    pub cell: String,
+    /// Training cycles A..B (inclusive, 1-based; NASA: order of the cell's discharges). Default: the first
+    /// third of the cycles present when --holdout is not given either, else every cycle before --holdout.
+    #[arg(long, value_name = "A..B")]
+    pub cycles: Option<String>,
+    /// Held-out cycles A..B used to judge every model. Default: the cycles after --cycles.
+    #[arg(long, value_name = "A..B")]
+    pub holdout: Option<String>,
+    /// Use every N-th cycle of the training and held-out ranges (a whole-life run stays quick).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    pub stride: u32,
+    /// Output folder for diagnosis.json, diagnosis.md and the plots.
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Longest simulator step, s (the simulator also lands on every sample time).
+    #[arg(long, default_value_t = 1.0, value_parser = crate::cli::positive_f64)]
+    pub dt: f64,
+    /// Fit window floor: samples under load count down to the first one below this voltage, V.
+    #[arg(long, default_value_t = 2.9, value_parser = crate::cli::positive_f64)]
+    pub v_floor: f64,
+    /// A sample is under load when its discharge current exceeds this, A.
+    #[arg(long, default_value_t = 0.05, value_parser = crate::cli::positive_f64)]
+    pub load_threshold: f64,
+    /// Ambient temperature for a generic CSV, deg C (default: each record's first temperature, else 25).
+    #[arg(long, allow_hyphen_values = true)]
+    pub ambient_c: Option<f64>,
+    /// Candidate causes to test (comma-separated). Default: all.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub causes: Vec<CauseArg>,
+    /// Most causes the extended model may combine.
+    #[arg(long, default_value_t = 3)]
+    pub max_causes: usize,
+    /// Held-out gain a cause needs to be named (else the verdict is `none`), %.
+    #[arg(long, default_value_t = 10.0, value_parser = crate::cli::non_negative_f64)]
+    pub min_gain_pct: f64,
+    /// Skip the PNG/SVG residual plots.
+    #[arg(long)]
+    pub no_plots: bool,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum, PartialEq, Eq)]
+pub enum CauseArg {
+    Thermal,
+    Ocv,
+    Diffusion,
+    ExtraPolarization,
+    VoltageOffset,
+    CurrentGain,
+    ElectrodeBalance,
+    ChargeTransfer,
+}
+
+impl From<CauseArg> for Cause {
+    fn from(c: CauseArg) -> Self {
+        match c {
+            CauseArg::Thermal => Cause::Thermal,
+            CauseArg::Ocv => Cause::Ocv,
+            CauseArg::Diffusion => Cause::Diffusion,
+            CauseArg::ExtraPolarization => Cause::ExtraPolarization,
+            CauseArg::VoltageOffset => Cause::VoltageOffset,
+            CauseArg::CurrentGain => Cause::CurrentGain,
+            CauseArg::ElectrodeBalance => Cause::ElectrodeBalance,
+            CauseArg::ChargeTransfer => Cause::ChargeTransfer,
+        }
+    }
+}
+
+/// Reads every record, then splits it into training and held-out sets.
+fn load(a: &DiagnoseArgs) -> anyhow::Result<(Vec<Discharge>, Vec<Discharge>)> {
+    let cycles = a.cycles.as_deref().map(parse_cycle_range).transpose()?;
+    let holdout = a.holdout.as_deref().map(parse_cycle_range).transpose()?;
+    let all: Vec<Discharge> = if a.data.is_dir() {
+        let (records, report) = read_nasa(&a.data, &a.cell, None)?;
+        if !report.missing_files.is_empty() {
+            eprintln!(
+                "diagnose: {} of {} discharge files named in metadata.csv for {} are missing and skipped (first: {})",
+                report.missing_files.len(),
+                report.rows_selected,
+                a.cell,
+                report.missing_files[0]
+            );
+        }
+        records
+    } else {
+        read_generic(&a.data, a.ambient_c)?
+    };
+    anyhow::ensure!(!all.is_empty(), "{} holds no discharge record", a.data.display());
+    let last = all.iter().map(|d| d.cycle).max().unwrap_or(1);
+    let first = all.iter().map(|d| d.cycle).min().unwrap_or(1);
+    let (train_r, held_r): (RangeInclusive<u32>, RangeInclusive<u32>) = match (cycles, holdout) {
+        (Some(c), Some(h)) => (c, h),
+        (Some(c), None) => (c.clone(), c.end() + 1..=last),
+        (None, Some(h)) => (first..=h.start().saturating_sub(1).max(first), h),
+        (None, None) => {
+            let split = first + (last - first) / 3;
+            (first..=split, split + 1..=last)
+        }
+    };
+    let pick = |r: &RangeInclusive<u32>| -> Vec<Discharge> {
+        let wanted: Vec<u32> = r.clone().step_by(a.stride as usize).collect();
+        all.iter().filter(|d| wanted.contains(&d.cycle)).cloned().collect()
+    };
+    let (train, held) = (pick(&train_r), pick(&held_r));
+    anyhow::ensure!(!train.is_empty(), "no training record in cycles {train_r:?}");
+    anyhow::ensure!(!held.is_empty(), "no held-out record in cycles {held_r:?}");
+    Ok((train, held))
+}
+
+pub fn run(a: DiagnoseArgs) -> anyhow::Result<()> {
+    let (train, held) = load(&a)?;
+    let mut cfg = DiagnoseConfig::default();
+    cfg.fit.dt_max_s = a.dt;
+    cfg.fit.v_floor_v = a.v_floor;
+    cfg.fit.load_threshold_a = a.load_threshold;
+    cfg.max_causes = a.max_causes;
+    cfg.min_gain_pct = a.min_gain_pct;
+    if !a.causes.is_empty() {
+        cfg.causes = a.causes.iter().map(|c| Cause::from(*c)).collect();
+    }
+    eprintln!("diagnose: {} training and {} held-out records", train.len(), held.len());
+    let started = std::time::Instant::now();
+    let diag = diagnose(&cfg, &train, &held).context("diagnosis failed")?;
+    let mut written = bcal_doctor::report::write_reports(&diag, &a.out)?;
+    if !a.no_plots {
+        match bcal_doctor::plot::write_plots(&diag, &a.out) {
+            Ok(paths) => written.extend(paths),
+            Err(e) => eprintln!("diagnose: plots skipped: {e}"),
+        }
+    }
+    println!(
+        "cause: {}  base held-out RMSE {:.2} mV  extended ({}) {:.2} mV  gain {:.1} %  [{:.0} s]",
+        diag.cause,
+        diag.base.heldout_rmse_mv,
+        if diag.extended.causes.is_empty() { "-".to_string() } else { diag.extended.causes.join("+") },
+        diag.extended.heldout_rmse_mv,
+        diag.gain_pct,
+        started.elapsed().as_secs_f64()
+    );
+    for p in written {
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}

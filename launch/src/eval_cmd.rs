@@ -1,0 +1,233 @@
+//! `bcal eval`: evaluate the run's RL-LAC policy against a tuned UKF and a supervised direct mapping on
+//! the held-out (high-load) test trajectories, and write report.json, report.md and the figures into the
+//! run folder. Reads from the run folder when present: policy.bcalpol (the policy and its MDP), config.toml
+//! (experiment and env settings), mdp.json (observation scales) and metrics.jsonl (training curve). Without a
+//! policy the baselines are still evaluated and the report says RL was not.
+
+use crate::cli::ExperimentChoice;
+use anyhow::{bail, Context};
+use bcal_common::battery::BatteryModel;
+use bcal_common::config::TrainConfig;
+use bcal_common::dataset::{self, CacheStatus, Experiment};
+use bcal_common::mdp::MdpSpec;
+use bcal_common::policy::PolicyFile;
+use bcal_eval::metrics::Param;
+use bcal_eval::plots::TrainingCurve;
+use bcal_eval::{EvalInput, EvalOptions, PolicyInput, Report};
+use clap::ValueEnum;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    /// Run folder: read policy.bcalpol, config.toml, mdp.json and metrics.jsonl from it when present, and
+    /// write report.json, report.md and the plots into it (created if missing).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Experiment to evaluate (default: the policy's, else the run's config.toml, else multi).
+    #[arg(long, value_enum)]
+    pub experiment: Option<ExperimentChoice>,
+    /// Quick run (well under a minute): 12 test trajectories per load, a small UKF tuning grid and a few
+    /// seconds of direct-mapping training.
+    #[arg(long)]
+    pub quick: bool,
+    /// Methods to evaluate, comma separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "rl,ukf,direct")]
+    pub methods: Vec<MethodArg>,
+    /// Evaluate the UKF alone (same as --methods ukf).
+    #[arg(long)]
+    pub ukf_only: bool,
+    /// Policy file (default: RUN/policy.bcalpol).
+    #[arg(long)]
+    pub policy: Option<PathBuf>,
+    /// Test trajectories per test load, spread over the parameter grid (default: all; --quick: 12).
+    #[arg(long)]
+    pub per_load: Option<usize>,
+    /// Seconds of direct-mapping training (default 75; --quick: 8).
+    #[arg(long, value_parser = crate::cli::positive_f64)]
+    pub dm_budget_s: Option<f64>,
+    /// Dataset cache folder (default: $BCAL_CACHE/datasets or ~/.cache/bcal/datasets).
+    #[arg(long)]
+    pub cache_dir: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum, PartialEq, Eq)]
+pub enum MethodArg {
+    /// The trained RL-LAC policy (needs a policy file).
+    Rl,
+    /// The unscented Kalman filter, tuned on training trajectories.
+    Ukf,
+    /// The supervised direct mapping (trained here, in tch).
+    Direct,
+}
+
+pub fn run(a: EvalArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let run_dir = &a.run;
+    std::fs::create_dir_all(run_dir)
+        .with_context(|| format!("cannot create the run folder {}: check the path", run_dir.display()))?;
+
+    // The policy, if there is one: a damaged file is an error, a missing one only skips RL.
+    let policy_path = a.policy.clone().unwrap_or_else(|| run_dir.join("policy.bcalpol"));
+    let policy = if policy_path.exists() {
+        Some(
+            PolicyFile::load(&policy_path)
+                .with_context(|| "the policy file cannot be used; retrain or pass --policy")?,
+        )
+    } else {
+        None
+    };
+    let config_path = run_dir.join("config.toml");
+    let config = if config_path.exists() { Some(TrainConfig::from_file(&config_path)?) } else { None };
+
+    let experiment = match (a.experiment.map(|e| e.experiment()), &policy, &config) {
+        (Some(e), Some(p), _) if p.experiment != e => bail!(
+            "the policy {} was trained on {}, not {e}; drop --experiment or pass --experiment {}",
+            policy_path.display(),
+            p.experiment,
+            p.experiment
+        ),
+        (Some(e), _, _) => e,
+        (None, Some(p), _) => p.experiment,
+        (None, None, Some(c)) => c.experiment,
+        (None, None, None) => Experiment::Multi,
+    };
+    println!("evaluating experiment {experiment} in {}", run_dir.display());
+
+    let model = BatteryModel::default();
+    let cache_dir = a.cache_dir.clone().unwrap_or_else(dataset::default_cache_dir);
+    let (ds, rep) = dataset::load_or_generate(&experiment.definition(), &model, &cache_dir)?;
+    match &rep.status {
+        CacheStatus::Hit => println!("dataset {experiment}: cached ({:.1} s to read)", rep.seconds),
+        CacheStatus::Generated => println!("dataset {experiment}: generated in {:.1} s", rep.seconds),
+        CacheStatus::Regenerated { reason } => {
+            println!("dataset {experiment}: cache was corrupt ({reason}); regenerated in {:.1} s", rep.seconds)
+        }
+    }
+
+    // The MDP: the policy's own (its scales travel with it), else the run's mdp.json, else derived here.
+    let spec = match &policy {
+        Some(p) => p.mdp.clone(),
+        None => {
+            let mdp_path = run_dir.join("mdp.json");
+            let from_run = match &config {
+                Some(c) if c.experiment == experiment && mdp_path.exists() => {
+                    let text = std::fs::read_to_string(&mdp_path)
+                        .with_context(|| format!("cannot read {}", mdp_path.display()))?;
+                    Some(
+                        serde_json::from_str::<MdpSpec>(&text)
+                            .with_context(|| format!("{} is not a valid MDP description", mdp_path.display()))?,
+                    )
+                }
+                _ => None,
+            };
+            match from_run {
+                Some(s) => s,
+                None => {
+                    let env = config.as_ref().filter(|c| c.experiment == experiment).map(|c| c.env.clone());
+                    MdpSpec::new(experiment, &env.unwrap_or_default(), &ds)
+                }
+            }
+        }
+    };
+
+    let metrics_path = run_dir.join("metrics.jsonl");
+    let training_curve = std::fs::read_to_string(&metrics_path).ok().map(|t| TrainingCurve::parse(&t));
+
+    let mut opts = if a.quick { EvalOptions::quick() } else { EvalOptions::full() };
+    let wanted = |m: MethodArg| if a.ukf_only { m == MethodArg::Ukf } else { a.methods.contains(&m) };
+    opts.rl = wanted(MethodArg::Rl);
+    opts.ukf = wanted(MethodArg::Ukf);
+    opts.direct_mapping = wanted(MethodArg::Direct);
+    if let Some(k) = a.per_load {
+        if k == 0 {
+            bail!("--per-load must be at least 1");
+        }
+        opts.test_per_load = Some(k);
+    }
+    if let Some(s) = a.dm_budget_s {
+        opts.direct.time_budget_s = s;
+    }
+
+    let policy_input = match &policy {
+        Some(file) => PolicyInput::Loaded { file, path: policy_path.display().to_string() },
+        None => PolicyInput::Missing {
+            reason: format!(
+                "no policy file at {}: train one first (bcal train --run {}) or pass --policy FILE",
+                policy_path.display(),
+                run_dir.display()
+            ),
+        },
+    };
+    let input = EvalInput { ds: &ds, spec: &spec, model: &model, policy: policy_input, training_curve };
+    let mut eval = bcal_eval::evaluate(&input, &opts, &mut |msg| {
+        println!("[{:6.1} s] {msg}", started.elapsed().as_secs_f64());
+    })?;
+    let written = bcal_eval::write_outputs(&mut eval, run_dir, None)?;
+    print_summary(&eval.report);
+    for n in &eval.report.notes {
+        println!("note: {n}");
+    }
+    println!(
+        "wrote {} files into {} in {:.1} s: report.json, report.md, {}",
+        written.len(),
+        run_dir.display(),
+        started.elapsed().as_secs_f64(),
+        eval.report.plots.join(", ")
+    );
+    Ok(())
+}
+
+/// The three tables, compactly, on stdout.
+fn print_summary(r: &Report) {
+    let params = r.calibrated_params();
+    println!("\nTable 1 ({}): normalised RMSE %, every step (per-cycle median in brackets)", r.experiment);
+    for (key, name) in bcal_eval::report::METHODS {
+        let Some(m) = r.methods.get(key) else {
+            println!("  {name:<15} not evaluated");
+            continue;
+        };
+        let cells: Vec<String> = params
+            .iter()
+            .map(|p| {
+                format!(
+                    "{} {:.3} ({:.3})",
+                    short(*p),
+                    m.accuracy.nrmse_pct.get(*p).unwrap_or(f64::NAN),
+                    m.accuracy.cycle_nrmse_pct.get(*p).unwrap_or(f64::NAN)
+                )
+            })
+            .collect();
+        println!("  {name:<15} {}", cells.join("   "));
+    }
+    println!("Table 2: per-step inference cost (one battery-model step = {:.3} us)", r.model_step_us);
+    for (key, name) in bcal_eval::report::METHODS {
+        if let Some(m) = r.methods.get(key) {
+            println!("  {name:<15} {:8.2} us  ({:.1} model steps)", m.step_us, m.step_in_model_steps);
+        }
+    }
+    println!("EOD prediction MAE, s (% of EOD): at 10 % / at 50 % of the discharge");
+    let line = |name: &str, e: &bcal_eval::metrics::EodMetrics| {
+        println!(
+            "  {name:<15} {:7.1} ({:.2} %) / {:7.1} ({:.2} %)",
+            e.at_10pct.mae_s, e.at_10pct.mae_pct, e.at_50pct.mae_s, e.at_50pct.mae_pct
+        )
+    };
+    line("true params", &r.eod_references.true_parameters);
+    for (key, name) in bcal_eval::report::METHODS {
+        if let Some(m) = r.methods.get(key) {
+            line(name, &m.eod);
+        }
+    }
+    line("uncalibrated", &r.eod_references.uncalibrated);
+    for (k, why) in &r.not_evaluated {
+        println!("not evaluated: {k}: {why}");
+    }
+}
+
+fn short(p: Param) -> &'static str {
+    match p {
+        Param::QMobile => "Qmax",
+        Param::ROhm => "Ro",
+    }
+}
