@@ -369,7 +369,25 @@ fn judge(
     base: Option<&ModelResult>,
     heldout_starts: Option<&[CycleStart]>,
 ) -> Result<ModelResult, DoctorError> {
-    let held = refit_cycles(&cfg.fit, &p.heldout, causes, &train_fit.ext, heldout_starts)?;
+    // A calibrator meeting a new cycle starts its per-cycle extension parameters where the last training
+    // cycle left them (unless the given start already carries values for them); the re-fit also tries the
+    // neutral values from its own qMobile scan.
+    let warm: Option<Vec<CycleStart>> = heldout_starts.map(|starts| {
+        let last = train_fit.cycle_ext.last().copied().unwrap_or(train_fit.ext);
+        starts
+            .iter()
+            .map(|st| {
+                let mut ext = st.ext;
+                for s in &train_fit.cycle_specs {
+                    if crate::fit::ext_value(&ext, s.name) == Some(s.start) {
+                        ext.set(s.name, crate::fit::ext_value(&last, s.name).unwrap_or(s.start));
+                    }
+                }
+                CycleStart { d: st.d, ext }
+            })
+            .collect()
+    });
+    let held = refit_cycles(&cfg.fit, &p.heldout, causes, &train_fit.ext, warm.as_deref())?;
     let heldout_residuals = residuals_of(&cfg.fit, &p.heldout, &held)?;
     let ds: Vec<&Discharge> = p.heldout.iter().map(|r| r.d).collect();
     let heldout_structure = structure(&ds, &heldout_residuals);

@@ -286,6 +286,7 @@ pub fn ext_value(ext: &ExtParams, name: &str) -> Option<f64> {
         "voltage_offset_v" => ext.voltage_offset_v,
         "current_gain" => ext.current_gain,
         "xp_shift" => ext.xp_shift,
+        "xn_shift" => ext.xn_shift,
         "kinetics_scale" => ext.kinetics_scale,
         _ => return None,
     })

@@ -60,10 +60,29 @@ pub fn markdown(d: &Diagnosis) -> String {
         d.gain_pct,
         d.noise_mv
     );
-    let _ = writeln!(o, "Extended model parameters: {}\n", params_text(&d.extended));
+    let _ = writeln!(
+        o,
+        "Extended model parameters shared by all cycles (fitted on the training cycles only, frozen on held-out \
+         ones): {}\n",
+        params_text(&d.extended)
+    );
+    let mut per_cycle = vec!["q_mobile_c", "r_o_ohm"];
+    per_cycle.extend(d.extended.cycle_params.iter().copied());
+    let _ = writeln!(
+        o,
+        "Per-cycle parameters (calibrated on every cycle by the same bounded least squares, held-out cycles \
+         included, as a calibrator would): {}. Per-cycle parameters beyond qMobile and Ro are penalised in the \
+         ranking score as the BIC counts them (m per cycle over C held-out cycles and N held-out samples multiply \
+         the RMSE by exp(m C ln N / 2N)); each shared parameter costs {} of the RMSE.\n",
+        per_cycle.join(", "),
+        d.settings.penalty_per_param
+    );
     let _ = writeln!(o, "## Candidates (fitted on training cycles, judged on held-out cycles)\n");
-    let _ = writeln!(o, "| rank | cause | params | train RMSE mV | held-out RMSE mV | gain % | score mV | removes |");
-    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- | --- |");
+    let _ = writeln!(
+        o,
+        "| rank | cause | shared params | per-cycle params | train RMSE mV | held-out RMSE mV | gain % | score mV | removes |"
+    );
+    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for (k, c) in d.candidates.iter().enumerate() {
         let params = c.params.iter().map(|(k, v)| format!("{k} = {v:.4}")).collect::<Vec<_>>().join(", ");
         let removes = c.removes.as_ref().map_or(String::new(), |e| {
@@ -74,10 +93,11 @@ pub fn markdown(d: &Diagnosis) -> String {
         });
         let _ = writeln!(
             o,
-            "| {} | `{}` | {} | {:.2} | {:.2} | {:.1} | {:.2} | {} |",
+            "| {} | `{}` | {} | {} | {:.2} | {:.2} | {:.1} | {:.2} | {} |",
             k + 1,
             c.cause,
-            params,
+            if params.is_empty() { "-".to_string() } else { params },
+            if c.cycle_params.is_empty() { "-".to_string() } else { c.cycle_params.join(", ") },
             c.train_rmse_mv,
             c.heldout_rmse_mv,
             c.gain_pct,
@@ -96,13 +116,24 @@ pub fn markdown(d: &Diagnosis) -> String {
     structure_rows(&mut o, "base, held-out", &d.base.heldout_structure);
     structure_rows(&mut o, "extended, held-out", &d.extended.heldout_structure);
     let _ = writeln!(o, "\n## Per-cycle fits (held-out)\n");
-    let _ = writeln!(o, "| cycle | base qMobile C | base Ro ohm | base RMSE mV | extended qMobile C | extended Ro ohm | extended RMSE mV |");
-    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- |");
+    let _ = writeln!(
+        o,
+        "| cycle | base qMobile C | base Ro ohm | base RMSE mV | extended qMobile C | extended Ro ohm | extended per-cycle | extended RMSE mV |"
+    );
+    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- | --- |");
     for (b, e) in d.base.heldout_cycles.iter().zip(&d.extended.heldout_cycles) {
+        let extra = e.extra.iter().map(|(k, v)| format!("{k} = {v:.4}")).collect::<Vec<_>>().join(", ");
         let _ = writeln!(
             o,
-            "| {} | {:.0} | {:.4} | {:.1} | {:.0} | {:.4} | {:.1} |",
-            b.cycle, b.q_mobile_c, b.r_o_ohm, b.rmse_mv, e.q_mobile_c, e.r_o_ohm, e.rmse_mv
+            "| {} | {:.0} | {:.4} | {:.1} | {:.0} | {:.4} | {} | {:.1} |",
+            b.cycle,
+            b.q_mobile_c,
+            b.r_o_ohm,
+            b.rmse_mv,
+            e.q_mobile_c,
+            e.r_o_ohm,
+            if extra.is_empty() { "-".to_string() } else { extra },
+            e.rmse_mv
         );
     }
     let _ = writeln!(o, "\n## Records\n");

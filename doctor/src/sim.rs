@@ -71,8 +71,10 @@ impl Cause {
     /// held-out cycles too), with bounds and neutral starting values.
     pub fn cycle_params(self) -> Vec<ParamSpec> {
         match self {
-            Cause::ElectrodeBalance => vec![ParamSpec::lin("xp_shift", -0.2, 0.3, 0.0)],
-            Cause::ChargeTransfer => vec![ParamSpec::log("kinetics_scale", 0.005, 20.0, 1.0)],
+            Cause::ElectrodeBalance => {
+                vec![ParamSpec::lin("xp_shift", -0.2, 0.3, 0.0), ParamSpec::lin("xn_shift", -0.3, 0.3, 0.0)]
+            }
+            Cause::ChargeTransfer => vec![ParamSpec::log("kinetics_scale", 1e-3, 20.0, 1.0)],
             _ => Vec::new(),
         }
     }
@@ -153,6 +155,9 @@ pub struct ExtParams {
     /// Shift of the positive electrode's mole fraction at full charge (xp_min), added to the base value.
     /// Default 0.
     pub xp_shift: f64,
+    /// Shift of the negative electrode's mole fraction at full charge (xn_max), added to the base value.
+    /// Default 0.
+    pub xn_shift: f64,
     /// Factor on both Butler-Volmer rate constants kn and kp (below 1: slower charge transfer). Default 1.
     pub kinetics_scale: f64,
 }
@@ -171,6 +176,7 @@ impl Default for ExtParams {
             voltage_offset_v: 0.0,
             current_gain: 1.0,
             xp_shift: 0.0,
+            xn_shift: 0.0,
             kinetics_scale: 1.0,
         }
     }
@@ -198,6 +204,7 @@ impl ExtParams {
             "voltage_offset_v" => self.voltage_offset_v = value,
             "current_gain" => self.current_gain = value,
             "xp_shift" => self.xp_shift = value,
+            "xn_shift" => self.xn_shift = value,
             "kinetics_scale" => self.kinetics_scale = value,
             other => debug_assert!(false, "unknown extension parameter {other}"),
         }
@@ -245,6 +252,7 @@ impl ExtendedCell {
             t_diffusion_s: ext.t_diffusion_s,
             tau_thermal_s: ext.tau_thermal_s,
             xp_min: base.xp_min + ext.xp_shift,
+            xn_max: base.xn_max + ext.xn_shift,
             kn: base.kn * ext.kinetics_scale,
             kp: base.kp * ext.kinetics_scale,
             ..base.clone()

@@ -229,6 +229,7 @@ fn draw_params<DB: DrawingBackend>(
                     .configure_mesh()
                     .disable_x_mesh()
                     .light_line_style(TRANSPARENT)
+                    .x_label_formatter(&|x| format!("{x:.0}"))
                     .x_desc("test trajectory (grouped by load, low to high; by true value within a load)")
                     .y_desc(p.unit())
                     .draw()

@@ -43,9 +43,12 @@ pub struct EvalArgs {
     /// Test trajectories per test load, spread over the parameter grid (default: all; --quick: 12).
     #[arg(long)]
     pub per_load: Option<usize>,
-    /// Seconds of direct-mapping training (default 75; --quick: 8).
+    /// Cap on the seconds of direct-mapping training (default 150, for 6000 updates; --quick: 8).
     #[arg(long, value_parser = crate::cli::positive_f64)]
     pub dm_budget_s: Option<f64>,
+    /// Adam updates of the direct mapping (default 6000; --quick: 1500).
+    #[arg(long)]
+    pub dm_updates: Option<usize>,
     /// Dataset cache folder (default: $BCAL_CACHE/datasets or ~/.cache/bcal/datasets).
     #[arg(long)]
     pub cache_dir: Option<PathBuf>,
@@ -147,6 +150,12 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     }
     if let Some(s) = a.dm_budget_s {
         opts.direct.time_budget_s = s;
+    }
+    if let Some(n) = a.dm_updates {
+        if n == 0 {
+            bail!("--dm-updates must be at least 1");
+        }
+        opts.direct.max_updates = n;
     }
 
     let policy_input = match &policy {
