@@ -47,11 +47,13 @@ pub struct EnvConfig {
     pub q_mobile_range_c: [f64; 2],
     /// Range the Ro action in [-1, 1] maps onto, ohm; must contain the data's range.
     pub r_o_range_ohm: [f64; 2],
+    /// Cost shaping: 0 = the paper's cost (normalised tracking error e); > 0 = ln(1 + e / cost_log_e0).
+    pub cost_log_e0: f64,
 }
 
 impl Default for EnvConfig {
     fn default() -> Self {
-        Self { window_steps: 16, q_mobile_range_c: [3500.0, 7500.0], r_o_range_ohm: [0.08, 0.22] }
+        Self { window_steps: 16, q_mobile_range_c: [3500.0, 7500.0], r_o_range_ohm: [0.08, 0.22], cost_log_e0: 0.0 }
     }
 }
 
@@ -226,6 +228,9 @@ impl TrainConfig {
         };
         let e = &self.env;
         let l = &self.lac;
+        if !(e.cost_log_e0.is_finite() && e.cost_log_e0 >= 0.0) {
+            return Err(bad("env.cost_log_e0", &e.cost_log_e0, "must be >= 0 (0 = the paper's cost)"));
+        }
         if e.window_steps == 0 {
             return Err(bad("env.window_steps", &0, "must be at least 1"));
         }

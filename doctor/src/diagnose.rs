@@ -1,8 +1,10 @@
 //! The diagnosis, top to bottom: calibrate the base model per cycle, analyse its residual, fit every
-//! candidate cause on the training cycles (shared cause parameters, per-cycle qMobile and Ro), judge each
-//! on held-out cycles (cause parameters frozen, only qMobile and Ro re-fitted per cycle), rank by held-out
-//! RMSE with a per-parameter penalty, name the winner or `none`, then grow the extended model greedily
-//! while each added cause still buys held-out accuracy.
+//! candidate cause on the training cycles (shared cause parameters jointly with the per-cycle ones: qMobile,
+//! Ro and the cause's own per-cycle parameters, if any), judge each on held-out cycles (shared parameters
+//! frozen, per-cycle parameters re-calibrated on every held-out cycle by the same procedure), rank by
+//! held-out RMSE with a complexity penalty (a fixed cost per shared parameter, the BIC's cost for per-cycle
+//! ones), name the winner or `none`, then grow the extended model greedily while each added cause still
+//! buys held-out accuracy.
 //!
 //! Records that end under load (truncated) are kept out of every fit: their capacity is a lower bound and
 //! qMobile is a capacity. The diagnosis sees only the records; it never prints.

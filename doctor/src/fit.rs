@@ -1,11 +1,14 @@
 //! Bounded nonlinear least squares of the model's voltage on measured voltage under load.
 //!
-//! Per-cycle parameters are the degradation pair (qMobile, Ro); a cause adds a few parameters shared by
-//! every cycle of a cell. [`fit`] solves both jointly with the `levenberg-marquardt` crate (MINPACK's
+//! Per-cycle parameters are the degradation pair (qMobile, Ro) plus any per-cycle parameters of the causes
+//! (an ageing cause such as `electrode_balance` or `charge_transfer` is calibrated on every cycle, held-out
+//! ones included, exactly like qMobile and Ro); a cause may also add a few parameters shared by every cycle
+//! of a cell, which are fitted on training cycles only and frozen afterwards ([`refit_cycles`]). [`fit`] solves both jointly with the `levenberg-marquardt` crate (MINPACK's
 //! trust-region LM on nalgebra 0.34, the workspace's version). The crate has no bounds, so each parameter
 //! is searched through a logistic map onto its box (log-scaled where the parameter spans decades), and
 //! the Jacobian is ours: forward differences that re-simulate only the cycles a column touches, so a joint
-//! fit of N cycles and k shared parameters costs N * (k + 3) simulations per iteration, in parallel.
+//! fit of N cycles, k shared and m per-cycle parameters costs N * (k + m + 3) simulations per iteration,
+//! in parallel.
 
 use crate::error::DoctorError;
 use crate::record::{Discharge, Windows};
@@ -613,6 +616,29 @@ mod tests {
         assert!(f.rmse_all_v() < 1e-3, "rmse {}", f.rmse_all_v());
         assert!((f.ext.voltage_offset_v - 0.03).abs() < 2e-3, "offset {}", f.ext.voltage_offset_v);
         assert!((f.per_cycle[0].r_o_ohm - 0.15).abs() < 5e-3, "{:?}", f.per_cycle[0]);
+    }
+
+    #[test]
+    fn per_cycle_kinetics_are_recalibrated_on_each_record() {
+        // Two records of one cell with different charge-transfer kinetics: a per-cycle parameter.
+        let cfg = FitConfig { dt_max_s: 2.0, ..Default::default() };
+        let slow = [0.3, 0.05];
+        let ds: Vec<Discharge> = slow
+            .iter()
+            .map(|k| synthetic(6000.0, 0.12, &ExtParams { kinetics_scale: *k, ..Default::default() }))
+            .collect();
+        let recs: Vec<FitRecord<'_>> = ds
+            .iter()
+            .map(|d| FitRecord::new(d, d.windows(cfg.load_threshold_a, cfg.v_floor_v).unwrap(), cfg.step_threshold_a))
+            .collect();
+        let f = refit_cycles(&cfg, &recs, &[Cause::ChargeTransfer], &ExtParams::default(), None).unwrap();
+        assert_eq!(f.cycle_specs.len(), 1);
+        assert!(f.rmse_all_v() < 1e-3, "rmse {}", f.rmse_all_v());
+        for (e, want) in f.cycle_ext.iter().zip(slow) {
+            assert!((e.kinetics_scale / want - 1.0).abs() < 0.2, "kinetics {} vs {want}", e.kinetics_scale);
+        }
+        // The shared extension keeps the per-cycle parameter neutral.
+        assert_eq!(f.ext.kinetics_scale, 1.0);
     }
 
     #[test]

@@ -16,7 +16,8 @@ use serde::Serialize;
 #[serde(rename_all = "snake_case")]
 pub enum Cause {
     /// Temperature dependence: the cell temperature (measured, else a thermal state) drives the model, and
-    /// the ohmic resistance follows Arrhenius, Ro(T) = Ro * exp(Ea/R * (1/T - 1/T_ambient)), Ea >= 0.
+    /// the ohmic resistance follows Arrhenius, Ro(T) = Ro * exp(Ea/R * (1/T - 1/T_ambient)), Ea >= 0, and
+    /// so do the Butler-Volmer rate constants, k(T) = k * exp(-Ea_k/R * (1/T - 1/T_ambient)), Ea_k >= 0.
     /// Bounds of every cause are physical ranges, so a cause cannot stand in for another by going wild.
     Thermal,
     /// The open-circuit-voltage curve differs from the Redlich-Kister one: an additive Legendre
@@ -436,5 +437,24 @@ mod tests {
         // A sensor reading 10 % high means less true charge drawn: a higher voltage.
         let gain = run(ExtParams { current_gain: 1.1, ..Default::default() }, None);
         assert!(gain > v0);
+        // Slower charge transfer adds Butler-Volmer overpotential: a lower voltage under load.
+        let slow = run(ExtParams { kinetics_scale: 0.05, ..Default::default() }, None);
+        assert!(slow < v0 - 0.02, "slow kinetics {slow} vs {v0}");
+        // A positive electrode starting more lithiated reaches its knee sooner: a lower voltage late on.
+        let shifted = run(ExtParams { xp_shift: 0.05, ..Default::default() }, None);
+        assert!(shifted < v0 - 0.005, "shifted balance {shifted} vs {v0}");
+        // Arrhenius kinetics: a warmer cell with slow kinetics drops less voltage than a cell at ambient.
+        let slow_warm = run(
+            ExtParams {
+                temperature_driven: true,
+                kinetics_scale: 0.05,
+                kinetics_activation_k: 4000.0,
+                ..Default::default()
+            },
+            Some(&hot_k),
+        );
+        let slow_hot_no_arrhenius =
+            run(ExtParams { temperature_driven: true, kinetics_scale: 0.05, ..Default::default() }, Some(&hot_k));
+        assert!(slow_warm > slow_hot_no_arrhenius + 0.005, "{slow_warm} vs {slow_hot_no_arrhenius}");
     }
 }
