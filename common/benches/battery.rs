@@ -2,7 +2,8 @@
 //! `cargo bench -p bcal-common --bench battery`; the README quotes the steps/s figure.
 
 use bcal_common::battery::{BatteryModel, Degradation, Load, LoadProfile};
-use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use std::hint::black_box;
 
 fn bench_step(c: &mut Criterion) {
     let model = BatteryModel::default();
@@ -17,7 +18,7 @@ fn bench_step(c: &mut Criterion) {
             let (next, _) = model.step(black_box(&x), Load::PowerW(8.0), 1.0, black_box(&d));
             // Restart before EOD so every timed step is a mid-discharge step.
             n += 1;
-            x = if n % 3000 == 0 { x0 } else { next };
+            x = if n.is_multiple_of(3000) { x0 } else { next };
             black_box(&x);
         })
     });

@@ -236,10 +236,10 @@ impl BatteryModel {
                 why: "must be < 1",
             });
         }
-        if !(params.xn_max > params.xn_min) {
+        if params.xn_max.partial_cmp(&params.xn_min) != Some(std::cmp::Ordering::Greater) {
             return Err(ModelError::BadParam { name: "xn_max", value: params.xn_max, why: "must exceed xn_min" });
         }
-        if !(params.xp_max > params.xp_min) {
+        if params.xp_max.partial_cmp(&params.xp_min) != Some(std::cmp::Ordering::Greater) {
             return Err(ModelError::BadParam { name: "xp_max", value: params.xp_max, why: "must exceed xp_min" });
         }
         for v in params.ap.iter().chain(params.an.iter()).chain([params.u0p_v, params.u0n_v].iter()) {

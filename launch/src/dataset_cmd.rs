@@ -15,7 +15,7 @@ pub fn run(a: DatasetArgs) -> anyhow::Result<()> {
 fn generate(s: DatasetSelect) -> anyhow::Result<()> {
     let model = BatteryModel::default();
     let cache_dir = s.cache_dir.clone().unwrap_or_else(dataset::default_cache_dir);
-    println!("{:<9} {:>7} {:>10} {:>9} {:>9}  {}", "set", "trajs", "steps", "seconds", "MB", "status / file");
+    println!("{:<9} {:>7} {:>10} {:>9} {:>9}  status / file", "set", "trajs", "steps", "seconds", "MB");
     for e in s.experiment.experiments() {
         let def = e.definition();
         if s.force {

@@ -24,14 +24,17 @@ fn main() -> anyhow::Result<()> {
     let spec = MdpSpec::new(cfg.experiment, &cfg.env, &ds);
     let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: cfg.lac.hidden.clone() };
     let mut lac = Lac::new(&v, layout.clone(), cfg.seed)?;
-    let train: Vec<usize> = (0..ds.trajectories.len()).filter(|i| !v.def.is_test_load(ds.trajectories[*i].load_w)).collect();
-    let test: Vec<usize> = (0..ds.trajectories.len()).filter(|i| v.def.is_test_load(ds.trajectories[*i].load_w)).collect();
+    let train: Vec<usize> =
+        (0..ds.trajectories.len()).filter(|i| !v.def.is_test_load(ds.trajectories[*i].load_w)).collect();
+    let test: Vec<usize> =
+        (0..ds.trajectories.len()).filter(|i| v.def.is_test_load(ds.trajectories[*i].load_w)).collect();
     let n_val = cfg.learner.validate_trajectories.min(test.len());
     let val: Vec<usize> = (0..n_val).map(|k| test[k * test.len() / n_val]).collect();
 
     let mut rng = SplitMix64(cfg.seed);
     let n_envs = cfg.actors.envs_per_actor;
-    let mut envs: Vec<CalibrationEnv> = (0..n_envs).map(|_| CalibrationEnv::new(&spec, &model, &ds, &train, &mut rng)).collect();
+    let mut envs: Vec<CalibrationEnv> =
+        (0..n_envs).map(|_| CalibrationEnv::new(&spec, &model, &ds, &train, &mut rng)).collect();
     let mut net = PolicyNet::from_flat(layout.clone(), lac.actor_flat_params())?;
     let mut scratch = Scratch::new(&layout);
     let mut buffer: Vec<Transition> = Vec::with_capacity(cfg.replay.capacity.min(2_000_000));
@@ -39,7 +42,12 @@ fn main() -> anyhow::Result<()> {
     let (od, ad) = (spec.obs_dim(), spec.act_dim());
     let insert_per_update = (cfg.lac.batch_size as f64 / cfg.replay.samples_per_insert).max(1.0);
     let mut insert_credit = 0.0;
-    let mut step_envs = |n: usize, net: &PolicyNet, scratch: &mut Scratch, buffer: &mut Vec<Transition>, rng: &mut SplitMix64, next_slot: &mut usize| {
+    let mut step_envs = |n: usize,
+                         net: &PolicyNet,
+                         scratch: &mut Scratch,
+                         buffer: &mut Vec<Transition>,
+                         rng: &mut SplitMix64,
+                         next_slot: &mut usize| {
         for _ in 0..n {
             let e = rng.below(n_envs);
             let mut t = Transition::default();
@@ -63,11 +71,17 @@ fn main() -> anyhow::Result<()> {
         let (mut cost, mut n) = (0.0, 0.0);
         for &i in &val {
             let traj = &ds.trajectories[i];
-            rollout_calibrator(&spec, &model, traj, |o, a| net.act_deterministic(o, scratch, a), |_, est, c| {
-                acc.add(est, &traj.degradation);
-                cost += c;
-                n += 1.0;
-            });
+            rollout_calibrator(
+                &spec,
+                &model,
+                traj,
+                |o, a| net.act_deterministic(o, scratch, a),
+                |_, est, c| {
+                    acc.add(est, &traj.degradation);
+                    cost += c;
+                    n += 1.0;
+                },
+            );
         }
         (cost / n, acc.pct())
     };
