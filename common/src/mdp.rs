@@ -556,8 +556,8 @@ mod tests {
                 steps_in_window = 0;
             }
         }
-        assert!(dones > 20_000 / 16 - 10, "{dones} windows");
-        assert_eq!(max_window, 16);
+        assert!(dones > 20_000 / spec.window_steps - 10, "{dones} windows");
+        assert_eq!(max_window, spec.window_steps);
     }
 
     #[test]

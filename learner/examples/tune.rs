@@ -30,6 +30,9 @@ fn main() -> anyhow::Result<()> {
         (0..ds.trajectories.len()).filter(|i| v.def.is_test_load(ds.trajectories[*i].load_w)).collect();
     let n_val = cfg.learner.validate_trajectories.min(test.len());
     let val: Vec<usize> = (0..n_val).map(|k| test[k * test.len() / n_val]).collect();
+    // Diagnostic: the same metric on a spread of TRAINING trajectories (learning vs extrapolation).
+    let n_tv = 16.min(train.len());
+    let train_val: Vec<usize> = (0..n_tv).map(|k| train[k * train.len() / n_tv]).collect();
 
     let mut rng = SplitMix64(cfg.seed);
     let n_envs = cfg.actors.envs_per_actor;
@@ -53,7 +56,8 @@ fn main() -> anyhow::Result<()> {
             let mut t = Transition::default();
             envs[e].observe(&spec, &ds, &mut t.obs[..od]);
             net.act_stochastic(&t.obs[..od], scratch, || rng.normal(), &mut t.action[..ad]);
-            let s = envs[e].step(&spec, &model, &ds, &train, &t.action[..ad].to_vec(), &mut t.next_obs[..od], rng);
+            let action = t.action;
+            let s = envs[e].step(&spec, &model, &ds, &train, &action[..ad], &mut t.next_obs[..od], rng);
             t.cost = s.cost as f32;
             if buffer.len() < cfg.replay.capacity {
                 buffer.push(t);
@@ -66,10 +70,10 @@ fn main() -> anyhow::Result<()> {
     step_envs(cfg.replay.learning_starts, &net, &mut scratch, &mut buffer, &mut rng, &mut next_slot);
     let started = Instant::now();
     let mut batch = vec![Transition::default(); cfg.lac.batch_size];
-    let validate = |net: &PolicyNet, scratch: &mut Scratch| {
+    let validate_on = |net: &PolicyNet, scratch: &mut Scratch, set: &[usize]| {
         let mut acc = NrmseAccumulator::default();
         let (mut cost, mut n) = (0.0, 0.0);
-        for &i in &val {
+        for &i in set {
             let traj = &ds.trajectories[i];
             rollout_calibrator(
                 &spec,
@@ -85,6 +89,7 @@ fn main() -> anyhow::Result<()> {
         }
         (cost / n, acc.pct())
     };
+    let validate = |net: &PolicyNet, scratch: &mut Scratch| validate_on(net, scratch, &val);
     let (c0, (q0, r0)) = validate(&net, &mut scratch);
     println!("update 0 t 0 val_cost {c0:.4} q {q0:.2} r {r0:.2}");
     for u in 1..=updates {
@@ -102,8 +107,9 @@ fn main() -> anyhow::Result<()> {
         if u % validate_every == 0 {
             net.set_params(&lac.actor_flat_params())?;
             let (c, (q, r)) = validate(&net, &mut scratch);
+            let (_, (tq, tr)) = validate_on(&net, &mut scratch, &train_val);
             println!(
-                "update {u} t {:.0} val_cost {c:.4} q {q:.2} r {r:.2} | critic {:.3e} l_delta {:.3e} lambda {:.3} beta {:.3e} entropy {:.2} cost {:.4} L {:.3}",
+                "update {u} t {:.0} val_cost {c:.4} q {q:.2} r {r:.2} train_q {tq:.2} train_r {tr:.2} | critic {:.3e} l_delta {:.3e} lambda {:.3} beta {:.3e} entropy {:.2} cost {:.4} L {:.3}",
                 started.elapsed().as_secs_f64(),
                 m.critic_loss,
                 m.lyapunov_decrease,

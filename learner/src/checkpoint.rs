@@ -52,7 +52,7 @@ pub struct CheckpointMeta {
     pub lac: LacConfig,
     /// lr of lambda and beta actually used (`lac.lr_multipliers`, 0 meaning lr / 10, resolved).
     pub lr_multipliers: f64,
-    /// H_target actually used (`lac.target_entropy`, None meaning -dim(a), resolved).
+    /// H_target actually used (`lac.target_entropy`, None meaning -4 dim(a), resolved).
     pub target_entropy: f64,
     /// CRC32 of every tensor file, by file name.
     pub files: BTreeMap<String, u32>,

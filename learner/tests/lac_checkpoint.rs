@@ -156,6 +156,7 @@ fn policy_file_round_trips_without_libtorch() {
         scales: ObsScales { state_mean: [0.0; 7], state_std: [1.0; 7], load_mean_w: 12.0, load_std_w: 2.0 },
         window_steps: 16,
         dt_s: 1.0,
+        cost_log_e0: 0.0,
     };
     let path = run.path().join("policy.bcalpol");
     lac.policy_file(mdp, Experiment::SingleQ).save(&path).unwrap();
