@@ -9,11 +9,6 @@ use bcal_common::mdp::{CalibrationEnv, MdpSpec, SplitMix64};
 use bcal_common::policy::{PolicyNet, Scratch};
 use bcal_common::wire::{Transition, MAX_ACT, MAX_OBS};
 
-/// Indices of the training trajectories (those not at a test load).
-pub fn train_trajectories(ds: &Dataset) -> Vec<usize> {
-    (0..ds.trajectories.len()).filter(|i| !ds.def.is_test_load(ds.trajectories[*i].load_w)).collect()
-}
-
 /// The seed of one random stream of one actor: distinct per (run seed, actor id, stream), reproducible.
 pub fn actor_seed(run_seed: u64, actor_id: u32, stream: &str) -> u64 {
     let mut bytes = Vec::with_capacity(16 + stream.len());
@@ -124,7 +119,7 @@ mod tests {
         let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: vec![8, 8] };
         let params: Vec<f32> = (0..layout.n_params()).map(|i| ((i % 7) as f32 - 3.0) * 0.05).collect();
         let policy = PolicyNet::from_flat(layout.clone(), params).unwrap();
-        let train = train_trajectories(&ds);
+        let train = ds.train_indices();
         assert!(train.iter().all(|i| !ds.def.is_test_load(ds.trajectories[*i].load_w)));
         let mut envs = ActorEnvs::new(&spec, &model, &ds, train, 5, (1, 2), Scratch::new(&layout));
         let mut out = Vec::new();

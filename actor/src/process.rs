@@ -11,7 +11,7 @@
 //!
 //! Counters go to `DIR/actors/actor-K.json` every [`REPORT_EVERY`] and at exit.
 
-use crate::envs::{actor_seed, train_trajectories, ActorEnvs};
+use crate::envs::{actor_seed, ActorEnvs};
 use bcal_common::battery::BatteryModel;
 use bcal_common::config::{ConfigError, TrainConfig, Validated};
 use bcal_common::dataset::{default_cache_dir, load_or_generate, DatasetError};
@@ -161,7 +161,7 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
         &spec,
         &model,
         &ds,
-        train_trajectories(&ds),
+        ds.train_indices(),
         cfg.config.actors.envs_per_actor,
         seeds,
         Scratch::new(&layout),

@@ -215,6 +215,23 @@ impl Dataset {
         self.trajectories.iter().filter(|t| self.def.is_test_load(t.load_w))
     }
 
+    /// Indices of the training trajectories (below the test loads).
+    pub fn train_indices(&self) -> Vec<usize> {
+        (0..self.trajectories.len()).filter(|&i| !self.def.is_test_load(self.trajectories[i].load_w)).collect()
+    }
+
+    /// Indices of the test trajectories (the highest loads).
+    pub fn test_indices(&self) -> Vec<usize> {
+        (0..self.trajectories.len()).filter(|&i| self.def.is_test_load(self.trajectories[i].load_w)).collect()
+    }
+
+    /// `k` test trajectories spread evenly over the test set (all of them when k >= their number).
+    pub fn spread_test_indices(&self, k: usize) -> Vec<usize> {
+        let test = self.test_indices();
+        let k = k.min(test.len());
+        (0..k).map(|i| test[i * test.len() / k]).collect()
+    }
+
     pub fn total_steps(&self) -> usize {
         self.trajectories.iter().map(|t| t.len()).sum()
     }

@@ -423,6 +423,36 @@ pub fn rollout_calibrator(
     }
 }
 
+/// Mean one-step tracking error and Table-1 NRMSE (q_mobile %, r_o %) of a policy's deterministic action
+/// along `trajectories` (indices into `ds`). Evaluation only: it reads the true parameters.
+pub fn validate_policy(
+    spec: &MdpSpec,
+    model: &BatteryModel,
+    ds: &Dataset,
+    trajectories: &[usize],
+    net: &crate::policy::PolicyNet,
+) -> (f64, f64, f64) {
+    let mut scratch = crate::policy::Scratch::new(net.layout());
+    let mut acc = NrmseAccumulator::default();
+    let (mut error_sum, mut n) = (0.0, 0u64);
+    for &i in trajectories {
+        let traj = &ds.trajectories[i];
+        rollout_calibrator(
+            spec,
+            model,
+            traj,
+            |obs, a| net.act_deterministic(obs, &mut scratch, a),
+            |_, estimate, error| {
+                acc.add(estimate, &traj.degradation);
+                error_sum += error;
+                n += 1;
+            },
+        );
+    }
+    let (q, r) = acc.pct();
+    (error_sum / n.max(1) as f64, q, r)
+}
+
 /// Normalised RMSE in % of the paper's Table 1: parameters scaled to [0, 1] by the data ranges
 /// (qMobile 4000..7000 C, Ro 0.1..0.2 ohm).
 pub const NRMSE_RANGE_Q_MOBILE_C: [f64; 2] = [4000.0, 7000.0];
@@ -537,8 +567,7 @@ mod tests {
     #[test]
     fn env_windows_reset_and_never_index_past_the_trajectory() {
         let (ds, spec, model) = tiny();
-        let train: Vec<usize> =
-            (0..ds.trajectories.len()).filter(|i| !ds.def.is_test_load(ds.trajectories[*i].load_w)).collect();
+        let train = ds.train_indices();
         let mut rng = SplitMix64(7);
         let mut env = CalibrationEnv::new(&spec, &model, &ds, &train, &mut rng);
         let mut obs = vec![0f32; spec.obs_dim()];

@@ -147,14 +147,6 @@ pub fn spread_by_load(ds: &Dataset, candidates: &[usize], per_load: Option<usize
     out
 }
 
-fn test_indices(ds: &Dataset) -> Vec<usize> {
-    (0..ds.trajectories.len()).filter(|&i| ds.def.is_test_load(ds.trajectories[i].load_w)).collect()
-}
-
-fn train_indices(ds: &Dataset) -> Vec<usize> {
-    (0..ds.trajectories.len()).filter(|&i| !ds.def.is_test_load(ds.trajectories[i].load_w)).collect()
-}
-
 /// Timing repeats; the median repeat is reported (the paper averaged five runs of 2000 transitions; the
 /// median is robust to a repeat preempted by another process on a shared machine).
 const TIMING_REPEATS: usize = 5;
@@ -261,11 +253,11 @@ pub fn evaluate(
     if !(opts.rl || opts.ukf || opts.direct_mapping) {
         return Err(EvalError::NoMethods);
     }
-    let test = spread_by_load(ds, &test_indices(ds), opts.test_per_load);
+    let test = spread_by_load(ds, &ds.test_indices(), opts.test_per_load);
     if test.is_empty() {
         return Err(EvalError::NoTestTrajectories);
     }
-    let train = train_indices(ds);
+    let train = ds.train_indices();
     let test_trajs: Vec<&Trajectory> = test.iter().map(|&i| &ds.trajectories[i]).collect();
     let test_steps: usize = test_trajs.iter().map(|t| t.len() - 1).sum();
     progress(&format!(

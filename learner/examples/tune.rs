@@ -7,7 +7,7 @@
 use bcal_common::battery::BatteryModel;
 use bcal_common::config::TrainConfig;
 use bcal_common::dataset::{default_cache_dir, load_or_generate};
-use bcal_common::mdp::{rollout_calibrator, CalibrationEnv, MdpSpec, NrmseAccumulator, SplitMix64};
+use bcal_common::mdp::{validate_policy, CalibrationEnv, MdpSpec, SplitMix64};
 use bcal_common::policy::{PolicyLayout, PolicyNet, Scratch};
 use bcal_common::wire::Transition;
 use bcal_learner::Lac;
@@ -24,12 +24,8 @@ fn main() -> anyhow::Result<()> {
     let spec = MdpSpec::new(cfg.experiment, &cfg.env, &ds);
     let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: cfg.lac.hidden.clone() };
     let mut lac = Lac::new(&v, layout.clone(), cfg.seed)?;
-    let train: Vec<usize> =
-        (0..ds.trajectories.len()).filter(|i| !v.def.is_test_load(ds.trajectories[*i].load_w)).collect();
-    let test: Vec<usize> =
-        (0..ds.trajectories.len()).filter(|i| v.def.is_test_load(ds.trajectories[*i].load_w)).collect();
-    let n_val = cfg.learner.validate_trajectories.min(test.len());
-    let val: Vec<usize> = (0..n_val).map(|k| test[k * test.len() / n_val]).collect();
+    let train = ds.train_indices();
+    let val = ds.spread_test_indices(cfg.learner.validate_trajectories);
     // Diagnostic: the same metric on a spread of TRAINING trajectories (learning vs extrapolation).
     let n_tv = 16.min(train.len());
     let train_val: Vec<usize> = (0..n_tv).map(|k| train[k * train.len() / n_tv]).collect();
@@ -70,27 +66,12 @@ fn main() -> anyhow::Result<()> {
     step_envs(cfg.replay.learning_starts, &net, &mut scratch, &mut buffer, &mut rng, &mut next_slot);
     let started = Instant::now();
     let mut batch = vec![Transition::default(); cfg.lac.batch_size];
-    let validate_on = |net: &PolicyNet, scratch: &mut Scratch, set: &[usize]| {
-        let mut acc = NrmseAccumulator::default();
-        let (mut cost, mut n) = (0.0, 0.0);
-        for &i in set {
-            let traj = &ds.trajectories[i];
-            rollout_calibrator(
-                &spec,
-                &model,
-                traj,
-                |o, a| net.act_deterministic(o, scratch, a),
-                |_, est, c| {
-                    acc.add(est, &traj.degradation);
-                    cost += c;
-                    n += 1.0;
-                },
-            );
-        }
-        (cost / n, acc.pct())
+    let validate_on = |net: &PolicyNet, set: &[usize]| {
+        let (cost, q, r) = validate_policy(&spec, &model, &ds, set, net);
+        (cost, (q, r))
     };
-    let validate = |net: &PolicyNet, scratch: &mut Scratch| validate_on(net, scratch, &val);
-    let (c0, (q0, r0)) = validate(&net, &mut scratch);
+    let validate = |net: &PolicyNet| validate_on(net, &val);
+    let (c0, (q0, r0)) = validate(&net);
     println!("update 0 t 0 val_cost {c0:.4} q {q0:.2} r {r0:.2}");
     for u in 1..=updates {
         insert_credit += insert_per_update;
@@ -106,8 +87,8 @@ fn main() -> anyhow::Result<()> {
         }
         if u % validate_every == 0 {
             net.set_params(&lac.actor_flat_params())?;
-            let (c, (q, r)) = validate(&net, &mut scratch);
-            let (_, (tq, tr)) = validate_on(&net, &mut scratch, &train_val);
+            let (c, (q, r)) = validate(&net);
+            let (_, (tq, tr)) = validate_on(&net, &train_val);
             println!(
                 "update {u} t {:.0} val_cost {c:.4} q {q:.2} r {r:.2} train_q {tq:.2} train_r {tr:.2} | critic {:.3e} l_delta {:.3e} lambda {:.3} beta {:.3e} entropy {:.2} cost {:.4} L {:.3}",
                 started.elapsed().as_secs_f64(),

@@ -23,8 +23,8 @@ use bcal_common::ipc::{
     self, BatchClient, BatchPending, IpcError, Role, RunIpc, StatusSubscriber, UpdateConnections, WeightsPublisher,
     OPEN_TIMEOUT,
 };
-use bcal_common::mdp::{rollout_calibrator, MdpSpec, NrmseAccumulator};
-use bcal_common::policy::{PolicyLayout, PolicyNet, Scratch};
+use bcal_common::mdp::{validate_policy, MdpSpec};
+use bcal_common::policy::{PolicyLayout, PolicyNet};
 use bcal_common::wire::{BatchRequest, ReplayCounters, WeightsHeader};
 use bcal_learner::{Lac, UpdateMetrics};
 use serde_json::{json, Map, Value};
@@ -54,43 +54,6 @@ pub enum Outcome {
     Finished { reason: &'static str, updates: u64 },
     /// SIGTERM/SIGINT: checkpoint written, no `learner.done`.
     Stopped { updates: u64 },
-}
-
-/// Test trajectories for validation: `k` of them spread evenly over the test set (all when k >= n).
-pub fn validation_trajectories(ds: &Dataset, k: usize) -> Vec<usize> {
-    let test: Vec<usize> =
-        (0..ds.trajectories.len()).filter(|i| ds.def.is_test_load(ds.trajectories[*i].load_w)).collect();
-    let k = k.min(test.len());
-    (0..k).map(|i| test[i * test.len() / k]).collect()
-}
-
-/// Mean one-step cost and NRMSE (q_mobile %, r_o %) of the deterministic policy on `trajectories`.
-pub fn validate(
-    spec: &MdpSpec,
-    model: &BatteryModel,
-    ds: &Dataset,
-    trajectories: &[usize],
-    net: &PolicyNet,
-) -> (f64, f64, f64) {
-    let mut scratch = Scratch::new(net.layout());
-    let mut acc = NrmseAccumulator::default();
-    let (mut cost_sum, mut n) = (0.0, 0u64);
-    for &i in trajectories {
-        let traj = &ds.trajectories[i];
-        rollout_calibrator(
-            spec,
-            model,
-            traj,
-            |obs, a| net.act_deterministic(obs, &mut scratch, a),
-            |_, estimate, cost| {
-                acc.add(estimate, &traj.degradation);
-                cost_sum += cost;
-                n += 1;
-            },
-        );
-    }
-    let (q, r) = acc.pct();
-    (cost_sum / n.max(1) as f64, q, r)
 }
 
 /// Running means of the numeric [`UpdateMetrics`] fields over the updates of one `train` line.
@@ -209,7 +172,7 @@ impl Ctx {
 
     fn validation_line(&self, lac: &Lac, log: &MetricsLog) -> anyhow::Result<Map<String, Value>> {
         let net = PolicyNet::from_flat(lac.layout().clone(), lac.actor_flat_params()).context("validation policy")?;
-        let (cost, q, r) = validate(&self.spec, &self.model, &self.ds, &self.val_trajectories, &net);
+        let (cost, q, r) = validate_policy(&self.spec, &self.model, &self.ds, &self.val_trajectories, &net);
         let mut line = Map::new();
         line.insert("kind".into(), json!("validation"));
         line.insert("t_s".into(), json!(log.t_s()));
@@ -274,7 +237,7 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
     let batch_size = cfg.config.lac.batch_size;
     let ctx = Ctx {
         run_dir: args.run_dir.clone(),
-        val_trajectories: validation_trajectories(&ds, l.validate_trajectories),
+        val_trajectories: ds.spread_test_indices(l.validate_trajectories),
         cfg,
         spec,
         model,
@@ -451,7 +414,7 @@ mod tests {
         let (ds, _, _) = tiny();
         let n_test = ds.test().count();
         assert_eq!(n_test, 12);
-        let v = validation_trajectories(&ds, 4);
+        let v = ds.spread_test_indices(4);
         assert_eq!(v.len(), 4);
         assert!(v.iter().all(|i| ds.def.is_test_load(ds.trajectories[*i].load_w)));
         assert!(v.windows(2).all(|w| w[0] < w[1]), "{v:?}");
@@ -459,14 +422,14 @@ mod tests {
         let test: Vec<usize> =
             (0..ds.trajectories.len()).filter(|i| ds.def.is_test_load(ds.trajectories[*i].load_w)).collect();
         assert_eq!(v, vec![test[0], test[3], test[6], test[9]]);
-        assert_eq!(validation_trajectories(&ds, 100).len(), 12);
+        assert_eq!(ds.spread_test_indices(100).len(), 12);
     }
 
     #[test]
     fn validation_of_a_policy_that_outputs_the_truth_is_near_perfect() {
         // A network whose output ignores the observation: zero weights, bias = atanh(action of the truth).
         let (ds, spec, model) = tiny();
-        let val = validation_trajectories(&ds, 1);
+        let val = ds.spread_test_indices(1);
         let traj = &ds.trajectories[val[0]];
         let truth = spec.actions.to_action(&traj.degradation);
         let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: 2, hidden: vec![4] };
@@ -476,7 +439,7 @@ mod tests {
         p[mean_bias] = truth[0].clamp(-0.999_999, 0.999_999).atanh();
         p[mean_bias + 1] = truth[1].clamp(-0.999_999, 0.999_999).atanh();
         let net = PolicyNet::from_flat(layout, p).unwrap();
-        let (cost, q, r) = validate(&spec, &model, &ds, &val, &net);
+        let (cost, q, r) = validate_policy(&spec, &model, &ds, &val, &net);
         assert!(q < 0.01 && r < 0.01, "{q} {r}");
         assert!(cost < 1e-2, "{cost}");
     }
