@@ -18,7 +18,7 @@ use bcal_common::dataset::{default_cache_dir, load_or_generate, DatasetError};
 use bcal_common::ipc::{self, IpcError, Role, RunIpc, StatusSubscriber, WeightsSubscriber, OPEN_TIMEOUT};
 use bcal_common::mdp::MdpSpec;
 use bcal_common::policy::{PolicyLayout, PolicyNet, Scratch};
-use bcal_common::wire::{ReplayStatus, Transition, TransitionBatchHeader};
+use bcal_common::wire::{monotonic_ns, ReplayStatus, Transition, TransitionBatchHeader};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -230,11 +230,13 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
                 seq,
                 published_before: attempted,
                 weights_version: report.weights_version,
+                sent_mono_ns: 0,
             };
-            let mut sample =
+            let sample =
                 publisher.loan_slice_uninit(publish_batch).map_err(|e| transport("loan transitions")(&e))?;
-            *sample.user_header_mut() = header;
-            let sample = sample.write_from_slice(&pending[..publish_batch]);
+            let mut sample = sample.write_from_slice(&pending[..publish_batch]);
+            // Stamped last, so the latency the replay sees is transport only.
+            *sample.user_header_mut() = TransitionBatchHeader { sent_mono_ns: monotonic_ns(), ..header };
             match sample.send() {
                 Ok(receivers) if receivers > 0 => {
                     report.published_transitions += publish_batch as u64;

@@ -14,7 +14,7 @@
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Layout version of every payload below; part of each service name.
-pub const WIRE_VERSION: u32 = 1;
+pub const WIRE_VERSION: u32 = 2;
 /// Largest observation any observation builder may produce.
 pub const MAX_OBS: usize = 32;
 /// Largest action dimension (qMobile and Ro).
@@ -75,6 +75,18 @@ pub struct TransitionBatchHeader {
     pub published_before: u64,
     /// Learner update step of the weights that acted (0 = none yet).
     pub weights_version: u64,
+    /// [`monotonic_ns`] when the message was sent (the receiver's clock is the same: one host), so the
+    /// replay and `bcal bench` measure the one-way latency of a message.
+    pub sent_mono_ns: u64,
+}
+
+/// CLOCK_MONOTONIC in nanoseconds: one clock for every process of the host (unlike `Instant`, whose
+/// value cannot be sent), for one-way latencies across processes.
+pub fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes one timespec into the valid pointer; CLOCK_MONOTONIC always exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
 
 /// User header of a weights message (payload: `[f32]`, the actor network's flat parameters in
@@ -159,7 +171,7 @@ mod tests {
     fn payload_sizes_are_fixed_and_padding_free() {
         // 32 + 32 + 2 + 2 f32: no padding, 272 bytes per transition.
         assert_eq!(std::mem::size_of::<Transition>(), 272);
-        assert_eq!(std::mem::size_of::<TransitionBatchHeader>(), 40);
+        assert_eq!(std::mem::size_of::<TransitionBatchHeader>(), 48);
         assert_eq!(std::mem::size_of::<WeightsHeader>(), 24);
         assert_eq!(std::mem::size_of::<BatchRequest>(), 16);
         assert_eq!(std::mem::size_of::<ReplayCounters>(), 56);

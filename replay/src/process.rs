@@ -15,7 +15,7 @@
 use crate::store::ReplayStore;
 use bcal_common::config::{ConfigError, TrainConfig, Validated};
 use bcal_common::ipc::{self, BatchActiveRequest, IpcError, Role, RunIpc, REPLAY_CYCLE};
-use bcal_common::wire::{BatchHeader, ReplayStatus, Transition};
+use bcal_common::wire::{monotonic_ns, BatchHeader, ReplayStatus, Transition};
 use serde::Serialize;
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
@@ -65,6 +65,8 @@ pub struct ReplayReport {
     pub capacity: u64,
     /// Transitions received per second since the previous report.
     pub received_per_s: f64,
+    /// Mean one-way latency (actor send -> replay receive) of the messages since the previous report, µs.
+    pub latency_mean_us: f64,
     pub inserts_allowed: bool,
     pub insert_credit: u64,
     /// The limiter's error buffer in use (configured, or widened against a deadlock).
@@ -114,8 +116,15 @@ pub fn run(run_dir: &Path) -> Result<ReplayReport, ReplayError> {
     let mut last_report = (Instant::now(), 0u64);
     let mut last_cleanup = Instant::now();
 
-    let make_report =
-        |store: &ReplayStore, state: &'static str, pending: usize, refused: u64, cleaned: u64, received_per_s: f64| {
+    // One-way latency of the messages since the last report: (sum ns, count).
+    let mut latency = (0u64, 0u64);
+    let make_report = |store: &ReplayStore,
+                       state: &'static str,
+                       pending: usize,
+                       refused: u64,
+                       cleaned: u64,
+                       received_per_s: f64,
+                       latency: (u64, u64)| {
             let c = store.counters;
             ReplayReport {
                 pid: std::process::id(),
@@ -131,6 +140,7 @@ pub fn run(run_dir: &Path) -> Result<ReplayReport, ReplayError> {
                 size: c.size,
                 capacity: store.ring.capacity() as u64,
                 received_per_s,
+                latency_mean_us: latency.0 as f64 / latency.1.max(1) as f64 / 1e3,
                 inserts_allowed: store.inserts_allowed(),
                 insert_credit: store.limiter.insert_credit(),
                 ratio_error_buffer: store.limiter.error_buffer(),
@@ -144,11 +154,14 @@ pub fn run(run_dir: &Path) -> Result<ReplayReport, ReplayError> {
         ipc::write_json_atomic(&report_path, r)
             .map_err(|source| ReplayError::Write { path: report_path.clone(), source })
     };
-    write(&make_report(&store, "running", 0, 0, dead_nodes_cleaned, 0.0))?;
+    write(&make_report(&store, "running", 0, 0, dead_nodes_cleaned, 0.0, latency))?;
 
     while node.wait(REPLAY_CYCLE).is_ok() {
         // 1. Actors' transitions (all that arrived since the last cycle).
         while let Some(sample) = subscriber.receive().map_err(|e| transport("receive transitions")(&e))? {
+            let sent_ns = sample.user_header().sent_mono_ns;
+            latency.0 += monotonic_ns().saturating_sub(sent_ns);
+            latency.1 += 1;
             store.ingest(sample.user_header(), sample.payload());
         }
 
@@ -211,8 +224,9 @@ pub fn run(run_dir: &Path) -> Result<ReplayReport, ReplayError> {
         if last_report.0.elapsed() >= REPORT_EVERY {
             let received = store.counters.received_total;
             let rate = (received - last_report.1) as f64 / last_report.0.elapsed().as_secs_f64();
-            write(&make_report(&store, "running", pending.len(), requests_refused, dead_nodes_cleaned, rate))?;
+            write(&make_report(&store, "running", pending.len(), requests_refused, dead_nodes_cleaned, rate, latency))?;
             last_report = (Instant::now(), received);
+            latency = (0, 0);
         }
     }
 
@@ -230,7 +244,7 @@ pub fn run(run_dir: &Path) -> Result<ReplayReport, ReplayError> {
         std::thread::sleep(REPLAY_CYCLE);
     }
     let rate = (store.counters.received_total - last_report.1) as f64 / last_report.0.elapsed().as_secs_f64();
-    let report = make_report(&store, "stopped", pending.len(), requests_refused, dead_nodes_cleaned, rate);
+    let report = make_report(&store, "stopped", pending.len(), requests_refused, dead_nodes_cleaned, rate, latency);
     write(&report)?;
     Ok(report)
 }

@@ -339,6 +339,7 @@ mod tests {
             seq: 0,
             published_before,
             weights_version: 0,
+            sent_mono_ns: 0,
         };
         s.ingest(&h(1, 0), &batch);
         s.ingest(&h(1, 4), &batch);
