@@ -134,7 +134,9 @@ pub struct ReplayConfig {
     pub samples_per_insert: f64,
     /// Allowed deviation from the target ratio, in samples, before inserts or samples block.
     pub ratio_error_buffer: f64,
-    /// Seconds between buffer snapshots to the run folder; 0 disables snapshots.
+    /// Seconds between buffer snapshots to `DIR/replay/snapshot.bin` (and one at a clean stop); a replay
+    /// restarted after a crash resumes from the newest. 0 disables snapshots (a restarted replay then
+    /// refills from the actors). A full paper buffer is 272 MB on disk.
     pub snapshot_every_s: f64,
 }
 
@@ -145,7 +147,7 @@ impl Default for ReplayConfig {
             learning_starts: 10_000,
             samples_per_insert: 16.0,
             ratio_error_buffer: 100_000.0,
-            snapshot_every_s: 0.0,
+            snapshot_every_s: 120.0,
         }
     }
 }

@@ -104,6 +104,11 @@ pub enum IpcError {
     Incompatible { service: String, detail: String },
     #[error("service {service} did not appear within {seconds} s (last error: {detail}); is bcal-replay running for this run folder?")]
     Timeout { service: String, seconds: u64, detail: String },
+    #[error(
+        "run folder {run_id} is served by bcal processes of wire version {found} but this binary speaks version \
+         {ours}; a process from an older or newer build is running: stop it (or rebuild), or use a new run folder"
+    )]
+    WireVersion { run_id: String, found: u32, ours: u32 },
     #[error("interrupted by a termination signal")]
     Interrupted,
 }
@@ -132,22 +137,64 @@ pub fn fnv1a64(bytes: &[u8]) -> u64 {
     h
 }
 
+/// The iceoryx2 configuration of every bcal process: the built-in defaults (stated here, never searched
+/// for in config files, so every process of a run agrees), with a per-user file prefix `bcal{uid}_` so
+/// bcal's shared memory never mixes with another user's or another iceoryx2 application's.
+pub fn iox_config() -> Config {
+    let mut config = Config::default();
+    // SAFETY: geteuid has no preconditions and cannot fail.
+    let uid = unsafe { libc::geteuid() };
+    if let Ok(prefix) = FileName::new(format!("bcal{uid}_").as_bytes()) {
+        config.global.prefix = prefix;
+    }
+    config
+}
+
 /// Creates this process's node (termination signals make `node.wait` fail, so loops end cleanly) and
 /// removes the stale resources of dead nodes. Returns the node and how many dead nodes were cleaned.
-/// iceoryx2's own log level is Warn unless `IOX2_LOG_LEVEL` says otherwise; its configuration is the
-/// built-in default (shared memory under /tmp/iceoryx2), stated here rather than searched for in config
-/// files, so every bcal process of a run agrees on it.
+/// iceoryx2's own log level is Warn unless `IOX2_LOG_LEVEL` says otherwise.
+///
+/// Permissions: iceoryx2 creates every service segment owner-read-write (0600); only its domain-wide
+/// node counter is made writable by everyone (it is meant to be shared between users). Under bcal's
+/// per-user prefix nobody else needs it, so it is narrowed to 0600 as well.
 pub fn create_node(name: &str) -> Result<(Node, u64), IpcError> {
     set_log_level_from_env_or(LogLevel::Warn);
+    let config = iox_config();
     let node_name = NodeName::new(name).map_err(|e| iox(format!("node name {name:?}"))(&e))?;
     let node = NodeBuilder::new()
-        .config(&Config::default())
+        .config(&config)
         .name(&node_name)
         .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
         .create::<Service>()
         .map_err(|e| iox("node creation")(&e))?;
+    restrict_shared_files(&config);
     let cleaned = node.try_cleanup_dead_nodes();
     Ok((node, cleaned.cleanups))
+}
+
+/// Shared-memory files of this user's bcal domain (`/dev/shm/bcal{uid}_*`), for permission checks.
+pub fn shared_memory_files(config: &Config) -> Vec<PathBuf> {
+    let prefix = config.global.prefix.to_string();
+    std::fs::read_dir("/dev/shm")
+        .map(|rd| {
+            rd.flatten().map(|e| e.path()).filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().starts_with(&prefix))).collect()
+        })
+        .unwrap_or_default()
+}
+
+/// Removes group and other access from this user's bcal shared-memory files (the node counter is the
+/// only one iceoryx2 makes world-writable). Best effort: a file another user owns is left alone.
+fn restrict_shared_files(config: &Config) {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    // SAFETY: geteuid has no preconditions and cannot fail.
+    let uid = unsafe { libc::geteuid() };
+    for path in shared_memory_files(config) {
+        if let Ok(meta) = std::fs::metadata(&path) {
+            if meta.uid() == uid && meta.mode() & 0o077 != 0 {
+                let _ = std::fs::set_permissions(&path, std::fs::Permissions::from_mode(meta.mode() & 0o700));
+            }
+        }
+    }
 }
 
 /// Removes dead nodes' resources now (the replay calls this periodically); returns the number cleaned.
@@ -407,6 +454,7 @@ fn retry_open<T, E: std::fmt::Debug>(
     mut open: impl FnMut() -> Result<T, E>,
 ) -> Result<T, IpcError> {
     let started = std::time::Instant::now();
+    let mut version_checked: Option<std::time::Instant> = None;
     loop {
         match open() {
             Ok(v) => return Ok(v),
@@ -415,6 +463,13 @@ fn retry_open<T, E: std::fmt::Debug>(
                 if is_incompatible(&detail) {
                     return Err(IpcError::Incompatible { service: name.to_string(), detail });
                 }
+                // Listing services reads the service folder: a few times a second is plenty.
+                if version_checked.is_none_or(|t| t.elapsed() >= Duration::from_millis(250)) {
+                    version_checked = Some(std::time::Instant::now());
+                    if let Some(found) = other_wire_version(name) {
+                        return Err(IpcError::WireVersion { run_id: run_id_of(name), found, ours: WIRE_VERSION });
+                    }
+                }
                 if started.elapsed() >= timeout {
                     return Err(IpcError::Timeout { service: name.to_string(), seconds: timeout.as_secs(), detail });
                 }
@@ -422,6 +477,36 @@ fn retry_open<T, E: std::fmt::Debug>(
         }
         wait(node, Duration::from_millis(20))?;
     }
+}
+
+/// The `{run}` part of `bcal/v{N}/{run}/{leaf}`.
+fn run_id_of(name: &ServiceName) -> String {
+    name.to_string().split('/').nth(2).unwrap_or_default().to_string()
+}
+
+/// The wire version of another build's service for the same run and leaf, if one exists: an old binary
+/// finds the new one's services (and vice versa) and says so at once instead of waiting to time out.
+fn other_wire_version(name: &ServiceName) -> Option<u32> {
+    let ours = name.to_string();
+    let parts: Vec<&str> = ours.split('/').collect();
+    let [app, _, run, leaf] = parts[..] else { return None };
+    let mut found = None;
+    let _ = <Service as iceoryx2::service::Service>::list(&iox_config(), |details| {
+        let other = details.static_details.name().to_string();
+        let p: Vec<&str> = other.split('/').collect();
+        if let [a, v, r, l] = p[..] {
+            if a == app && r == run && l == leaf {
+                if let Some(n) = v.strip_prefix('v').and_then(|n| n.parse::<u32>().ok()) {
+                    if n != WIRE_VERSION {
+                        found = Some(n);
+                        return CallbackProgression::Stop;
+                    }
+                }
+            }
+        }
+        CallbackProgression::Continue
+    });
+    found
 }
 
 /// Writes `value` as pretty JSON to `path` atomically (temporary file in the same folder, then rename),

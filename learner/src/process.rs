@@ -162,7 +162,18 @@ impl Ctx {
     }
 
     fn checkpoint(&self, lac: &Lac) -> anyhow::Result<()> {
-        lac.save_checkpoint(&self.run_dir).context("checkpoint")?;
+        lac.save_checkpoint(&self.run_dir).with_context(|| {
+            let latest = std::fs::read_to_string(self.run_dir.join("checkpoints/LATEST")).unwrap_or_default();
+            let kept = match latest.trim() {
+                "" => "no earlier checkpoint exists".to_string(),
+                name => format!("the previous checkpoint {name} is kept"),
+            };
+            format!(
+                "cannot write the checkpoint of update {} into {} (disk full or folder not writable?); {kept}",
+                lac.updates(),
+                self.run_dir.join("checkpoints").display()
+            )
+        })?;
         let path = self.run_dir.join("policy.bcalpol");
         lac.policy_file(self.spec.clone(), self.cfg.config.experiment)
             .save(&path)

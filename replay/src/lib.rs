@@ -4,6 +4,7 @@
 //! never prints and never exits; `main` does both.
 
 pub mod process;
+pub mod snapshot;
 pub mod store;
 
 pub use process::{run, ReplayError, ReplayReport};

@@ -16,6 +16,10 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let report = bcal_replay::run(&args.run_dir)?;
+    eprintln!("bcal-replay: started from {}: {}", report.started_from, report.start_note);
+    if let Some(e) = &report.snapshot_error {
+        eprintln!("bcal-replay: {e}");
+    }
     eprintln!(
         "bcal-replay: stopped; received {} inserted {} quarantined {} dropped {} batches served {}",
         report.received_total,

@@ -50,6 +50,22 @@ impl RingBuffer {
         &self.items[i]
     }
 
+    /// The stored transitions in slot order and the slot the next insert overwrites once full (what a
+    /// snapshot saves).
+    pub fn parts(&self) -> (&[Transition], usize) {
+        (&self.items, self.next)
+    }
+
+    /// A buffer holding `items` in slot order with `next` as the next slot to overwrite (what a snapshot
+    /// restores); None when the parts do not fit `capacity`.
+    pub fn from_parts(capacity: usize, items: Vec<Transition>, next: usize) -> Option<Self> {
+        let consistent = capacity > 0
+            && items.len() <= capacity
+            && next < capacity
+            && (items.len() == capacity || next == items.len() % capacity);
+        consistent.then_some(Self { items, capacity, next })
+    }
+
     /// Fills `out` with transitions drawn uniformly with replacement (DDPG/SAC/LAC replay).
     pub fn sample_into(&self, rng: &mut SplitMix64, out: &mut [Transition]) {
         assert!(!self.items.is_empty(), "sampling an empty buffer");
@@ -132,6 +148,16 @@ impl RateLimiter {
 
     pub fn record_samples(&mut self, n: u64) {
         self.samples += n;
+    }
+
+    /// (inserts, samples) counted so far (saved by a snapshot, so a restored replay keeps the ratio).
+    pub fn counts(&self) -> (u64, u64) {
+        (self.inserts, self.samples)
+    }
+
+    pub fn restore_counts(&mut self, inserts: u64, samples: u64) {
+        self.inserts = inserts;
+        self.samples = samples;
     }
 }
 

@@ -136,8 +136,15 @@ pub struct Proc {
 impl Proc {
     /// Starts `bin(exe)` with `args`; stdout and stderr go to `<run>/logs/<name>.log`.
     pub fn start(run: &RunFolder, name: &str, exe: &str, args: &[&str]) -> Self {
+        Self::start_with(run, name, exe, args, |_| {})
+    }
+
+    /// As [`Proc::start`], with `configure` applied to the command first (limits, environment).
+    pub fn start_with(run: &RunFolder, name: &str, exe: &str, args: &[&str], configure: impl FnOnce(&mut Command)) -> Self {
         let log = std::fs::File::create(run.path().join("logs").join(format!("{name}.log"))).expect("log file");
-        let child = Command::new(bin(exe))
+        let mut cmd = Command::new(bin(exe));
+        configure(&mut cmd);
+        let child = cmd
             .args(args)
             .stdin(Stdio::null())
             .stdout(log.try_clone().unwrap())
@@ -238,4 +245,158 @@ pub fn tiny_config(actors: usize) -> TrainConfig {
     c.learner.max_updates = 0;
     c.learner.time_budget_s = 60.0;
     c
+}
+
+/// True while a process with this pid runs (a zombie, dead but not yet reaped by whoever adopted it,
+/// counts as dead: it holds no memory, files or locks).
+pub fn alive(pid: i32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        // The state letter follows the parenthesised command name.
+        Ok(stat) => stat.rsplit(')').next().and_then(|r| r.split_whitespace().next()).is_some_and(|st| st != "Z"),
+        Err(_) => false,
+    }
+}
+
+/// Sends `sig` to `pid` (no-op when it is gone).
+pub fn signal(pid: i32, sig: i32) {
+    // SAFETY: kill(2) with a pid read from our own run's logs; at worst ESRCH.
+    unsafe {
+        libc::kill(pid, sig);
+    }
+}
+
+/// A `bcal train` supervisor started on a fresh run folder (`<tmp>/run`), the way a user runs it.
+/// On drop every process it ever started (pids from `logs/supervisor.log`) and itself are killed, so a
+/// failing test leaves no strays.
+pub struct Train {
+    dir: tempfile::TempDir,
+    pub run_dir: PathBuf,
+    pub config: TrainConfig,
+    pub sup: Proc,
+    config_path: PathBuf,
+}
+
+impl Train {
+    /// Writes `config` beside the run folder and starts `bcal train --config .. --run <tmp>/run`.
+    pub fn start(config: TrainConfig, extra: &[&str]) -> Self {
+        config.validate().expect("test config validates");
+        let dir = tempfile::Builder::new().prefix("bcal-train-").tempdir().expect("temp folder");
+        let config_path = dir.path().join("config.toml");
+        std::fs::write(&config_path, config.to_toml()).expect("write config");
+        let run_dir = dir.path().join("run");
+        let sup = Self::spawn(dir.path(), &run_dir, &config_path, extra, "supervisor");
+        Self { dir, run_dir, config, sup, config_path }
+    }
+
+    fn spawn(dir: &Path, run_dir: &Path, config: &Path, extra: &[&str], log: &str) -> Proc {
+        let out = std::fs::File::create(dir.join(format!("{log}.out"))).expect("supervisor output");
+        let mut args: Vec<String> =
+            vec!["train".into(), "--run".into(), run_dir.display().to_string(), "--grace-s".into(), "10".into()];
+        if !extra.contains(&"--resume") {
+            args.extend(["--config".into(), config.display().to_string()]);
+        }
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let child = Command::new(bin("bcal"))
+            .args(&args)
+            .stdin(Stdio::null())
+            .stdout(out.try_clone().unwrap())
+            .stderr(out)
+            .spawn()
+            .expect("start bcal train");
+        Proc { name: log.to_string(), child, status: None }
+    }
+
+    /// Starts `bcal train --resume` on the same run folder (after the first supervisor ended).
+    pub fn resume(&mut self, extra: &[&str]) {
+        let mut args = vec!["--resume"];
+        args.extend_from_slice(extra);
+        self.sup = Self::spawn(self.dir.path(), &self.run_dir, &self.config_path, &args, "supervisor-resumed");
+    }
+
+    /// Reads a JSON file of the run folder.
+    pub fn json(&self, rel: &str) -> Option<serde_json::Value> {
+        let text = std::fs::read_to_string(self.run_dir.join(rel)).ok()?;
+        serde_json::from_str(&text).ok()
+    }
+
+    /// Every line of metrics.jsonl that parses.
+    pub fn metrics(&self) -> Vec<serde_json::Value> {
+        std::fs::read_to_string(self.run_dir.join("metrics.jsonl"))
+            .unwrap_or_default()
+            .lines()
+            .filter_map(|l| serde_json::from_str(l).ok())
+            .collect()
+    }
+
+    /// Highest learner update in metrics.jsonl.
+    pub fn last_update(&self) -> u64 {
+        self.metrics().iter().filter_map(|v| v["update"].as_u64()).max().unwrap_or(0)
+    }
+
+    pub fn supervisor_log(&self) -> String {
+        std::fs::read_to_string(self.run_dir.join("logs/supervisor.log")).unwrap_or_default()
+    }
+
+    /// (role, pid) of every `started`/`restarted` line of supervisor.log, in order.
+    pub fn started(&self) -> Vec<(String, i32)> {
+        self.supervisor_log()
+            .lines()
+            .filter_map(|l| {
+                let rest = l.split("] ").nth(1)?;
+                let mut w = rest.split_whitespace();
+                let verb = w.next()?;
+                if verb != "started" && verb != "restarted" {
+                    return None;
+                }
+                let role = w.next()?.to_string();
+                let pid = rest.rsplit("pid ").next()?.trim().parse().ok()?;
+                Some((role, pid))
+            })
+            .collect()
+    }
+
+    /// The newest pid the supervisor started for `role` ("replay", "learner", "actor-0", ...).
+    pub fn pid(&self, role: &str) -> Option<i32> {
+        self.started().into_iter().rev().find(|(r, _)| r == role).map(|(_, p)| p)
+    }
+
+    /// Supervisor output and every process log, for a failure message.
+    pub fn logs(&self) -> String {
+        let mut out = String::new();
+        for name in ["supervisor.out", "supervisor-resumed.out"] {
+            if let Ok(t) = std::fs::read_to_string(self.dir.path().join(name)) {
+                out.push_str(&format!("----- {name}\n{t}\n"));
+            }
+        }
+        if let Ok(rd) = std::fs::read_dir(self.run_dir.join("logs")) {
+            let mut paths: Vec<PathBuf> = rd.flatten().map(|e| e.path()).collect();
+            paths.sort();
+            for p in paths {
+                let text = std::fs::read_to_string(&p).unwrap_or_default();
+                let tail: Vec<&str> = text.lines().rev().take(30).collect();
+                let tail: Vec<&str> = tail.into_iter().rev().collect();
+                out.push_str(&format!("----- {} (last 30 lines)\n{}\n", p.display(), tail.join("\n")));
+            }
+        }
+        out
+    }
+
+    /// SIGKILL to every process of the run, supervisor first (a crash of the whole tree).
+    pub fn kill_all(&mut self) {
+        self.sup.signal(libc::SIGKILL);
+        let _ = self.sup.wait_timeout(Duration::from_secs(5));
+        for (_, pid) in self.started() {
+            signal(pid, libc::SIGKILL);
+        }
+        // The children were the supervisor's; once it is gone, init reaps them.
+        wait_until(Duration::from_secs(10), || self.started().iter().all(|(_, p)| !alive(*p)));
+    }
+}
+
+impl Drop for Train {
+    fn drop(&mut self) {
+        if self.sup.try_status().is_none() || self.started().iter().any(|(_, p)| alive(*p)) {
+            self.kill_all();
+        }
+    }
 }
