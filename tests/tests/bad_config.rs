@@ -1,0 +1,59 @@
+//! A bad config is refused before anything starts: `bcal train` exits 1 naming the key, and neither a run
+//! folder nor a process comes into being. The processes themselves refuse a bad `config.toml` in a run
+//! folder the same way (someone edited it between runs).
+
+use std::process::Command;
+
+const CASES: &[(&str, &str)] = &[
+    // Unknown key (a typo).
+    ("[lac]\nlearning_rate = 1e-3\n", "learning_rate"),
+    // Wrong type.
+    ("[lac]\nbatch_size = \"large\"\n", "batch_size"),
+    // Impossible values.
+    ("[lac]\nlr = -1e-3\n", "lac.lr"),
+    ("[actors]\nenvs_per_actor = 0\n", "actors.envs_per_actor"),
+    ("[replay]\ncapacity = 0\n", "replay.capacity"),
+    ("[replay]\nsnapshot_every_s = -5.0\n", "replay.snapshot_every_s"),
+    // A calibration range that does not contain the experiment's data.
+    ("[env]\nq_mobile_range_c = [4500.0, 7500.0]\n", "env.q_mobile_range_c"),
+    // Not TOML at all.
+    ("[lac\nlr = 1\n", "config"),
+];
+
+#[test]
+fn bcal_train_refuses_bad_configs_naming_the_key_and_starts_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    for (k, (toml, key)) in CASES.iter().enumerate() {
+        let cfg = dir.path().join(format!("bad-{k}.toml"));
+        std::fs::write(&cfg, toml).unwrap();
+        let run = dir.path().join(format!("run-{k}"));
+        let out = Command::new(bcal_tests::bin("bcal"))
+            .args(["train", "--config"])
+            .arg(&cfg)
+            .arg("--run")
+            .arg(&run)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{toml}: {err}");
+        assert!(err.contains(key), "{toml}: the error should name {key}: {err}");
+        assert!(!run.exists(), "{toml}: a run folder was created for a refused config");
+    }
+}
+
+#[test]
+fn a_process_refuses_a_bad_config_in_its_run_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("config.toml"), "[lac]\nlr = -1e-3\n").unwrap();
+    for exe in ["bcal-replay", "bcal-learner", "bcal-actor"] {
+        let mut cmd = Command::new(bcal_tests::bin(exe));
+        cmd.arg("--run").arg(dir.path());
+        if exe == "bcal-actor" {
+            cmd.args(["--actor-id", "0"]);
+        }
+        let out = cmd.output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{exe}: {err}");
+        assert!(err.contains("lac.lr"), "{exe}: {err}");
+    }
+}
