@@ -232,8 +232,7 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
                 weights_version: report.weights_version,
                 sent_mono_ns: 0,
             };
-            let sample =
-                publisher.loan_slice_uninit(publish_batch).map_err(|e| transport("loan transitions")(&e))?;
+            let sample = publisher.loan_slice_uninit(publish_batch).map_err(|e| transport("loan transitions")(&e))?;
             let mut sample = sample.write_from_slice(&pending[..publish_batch]);
             // Stamped last, so the latency the replay sees is transport only.
             *sample.user_header_mut() = TransitionBatchHeader { sent_mono_ns: monotonic_ns(), ..header };

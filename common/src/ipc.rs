@@ -177,7 +177,10 @@ pub fn shared_memory_files(config: &Config) -> Vec<PathBuf> {
     let prefix = config.global.prefix.to_string();
     std::fs::read_dir("/dev/shm")
         .map(|rd| {
-            rd.flatten().map(|e| e.path()).filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().starts_with(&prefix))).collect()
+            rd.flatten()
+                .map(|e| e.path())
+                .filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().starts_with(&prefix)))
+                .collect()
         })
         .unwrap_or_default()
 }
@@ -481,7 +484,8 @@ fn retry_open<T, E: std::fmt::Debug>(
 
 /// The `{run}` part of `bcal/v{N}/{run}/{leaf}`.
 fn run_id_of(name: &ServiceName) -> String {
-    name.to_string().split('/').nth(2).unwrap_or_default().to_string()
+    let name: &str = name.as_ref();
+    name.split('/').nth(2).unwrap_or_default().to_string()
 }
 
 /// The wire version of another build's service for the same run and leaf, if one exists: an old binary

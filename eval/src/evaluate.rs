@@ -149,16 +149,16 @@ pub fn spread_by_load(ds: &Dataset, candidates: &[usize], per_load: Option<usize
 
 /// Timing repeats; the median repeat is reported (the paper averaged five runs of 2000 transitions; the
 /// median is robust to a repeat preempted by another process on a shared machine).
-const TIMING_REPEATS: usize = 5;
+pub const TIMING_REPEATS: usize = 5;
 
-fn median_of(mut v: Vec<f64>) -> f64 {
+pub fn median_of(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }
 
 /// Wall time per call, us: [`TIMING_REPEATS`] repeats of `n / TIMING_REPEATS` calls after `n / 10` warm-up
 /// calls, median repeat.
-fn time_per_call_us(n: usize, mut f: impl FnMut(usize)) -> f64 {
+pub fn time_per_call_us(n: usize, mut f: impl FnMut(usize)) -> f64 {
     let per = (n / TIMING_REPEATS).max(1);
     for i in 0..n / 10 {
         f(i);
@@ -178,7 +178,7 @@ fn time_per_call_us(n: usize, mut f: impl FnMut(usize)) -> f64 {
 }
 
 /// Steps (trajectory, t) cycling over the test trajectories, for timing loops.
-fn step_cycle<'a>(trajs: &'a [&'a Trajectory]) -> impl Fn(usize) -> (&'a Trajectory, usize) + 'a {
+pub fn step_cycle<'a>(trajs: &'a [&'a Trajectory]) -> impl Fn(usize) -> (&'a Trajectory, usize) + 'a {
     let total: usize = trajs.iter().map(|t| t.len() - 1).sum();
     move |i| {
         let mut k = i % total;
@@ -214,7 +214,7 @@ fn run_net(input: &EvalInput, net: &PolicyNet, test: &[usize]) -> Vec<TrajEstima
 }
 
 /// Per-step cost of a pure-Rust network as a calibrator (observation, forward pass, action map), us.
-fn time_net(input: &EvalInput, net: &PolicyNet, trajs: &[&Trajectory], n: usize, tanh: bool) -> f64 {
+pub fn time_net(input: &EvalInput, net: &PolicyNet, trajs: &[&Trajectory], n: usize, tanh: bool) -> f64 {
     let mut scratch = Scratch::new(net.layout());
     let (od, ad) = (input.spec.obs_dim(), input.spec.act_dim());
     let mut obs = vec![0f32; od];

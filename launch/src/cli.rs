@@ -26,6 +26,13 @@ pub enum Command {
     Train(crate::train_cmd::TrainArgs),
     /// Evaluate RL-LAC against the UKF and the direct mapping on the held-out (high-load) trajectories; writes report.json, report.md and plots into the run folder.
     Eval(crate::eval_cmd::EvalArgs),
+    /// Measure every performance figure the README quotes, each beside its baseline (model steps/s,
+    /// calibrator step cost, iceoryx2 vs crossbeam transport, learner updates/s); prints tables and writes
+    /// bench.json.
+    Bench(crate::bench_cmd::BenchArgs),
+    /// One transport publisher process of `bcal bench` (started by it).
+    #[command(hide = true)]
+    BenchPublish(crate::bench_cmd::BenchPublishArgs),
 }
 
 #[derive(Args, Debug)]

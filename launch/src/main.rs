@@ -1,6 +1,7 @@
 //! `bcal`: the command-line entry point. `main` only parses and dispatches; each subcommand lives in its
 //! own module with a `run` function returning `anyhow::Result`.
 
+mod bench_cmd;
 mod cli;
 mod dataset_cmd;
 mod diagnose_cmd;
@@ -19,6 +20,8 @@ fn main() {
         cli::Command::Diagnose(a) => diagnose_cmd::run(a),
         cli::Command::Train(a) => train_cmd::run(a),
         cli::Command::Eval(a) => eval_cmd::run(a),
+        cli::Command::Bench(a) => bench_cmd::run(a),
+        cli::Command::BenchPublish(a) => bench_cmd::publish(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

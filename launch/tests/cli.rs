@@ -89,3 +89,74 @@ fn every_subcommand_documents_its_flags() {
         assert!(out.contains(sub), "--help lacks {sub}");
     }
 }
+
+/// Every number under `v` (bench.json's measurement sections) is finite and > 0, except per-sender message
+/// counts (a saturated iceoryx2 subscriber may starve a publisher: that is reported, not a figure).
+fn all_positive(path: &str, v: &serde_json::Value, bad: &mut Vec<String>) {
+    match v {
+        serde_json::Value::Number(n) => {
+            let x = n.as_f64().unwrap_or(f64::NAN);
+            if !(x.is_finite() && x > 0.0) {
+                bad.push(format!("{path} = {x}"));
+            }
+        }
+        serde_json::Value::Array(a) => {
+            a.iter().enumerate().for_each(|(k, x)| all_positive(&format!("{path}[{k}]"), x, bad))
+        }
+        serde_json::Value::Object(o) => o
+            .iter()
+            .filter(|(k, _)| k.as_str() != "per_actor_messages")
+            .for_each(|(k, x)| all_positive(&format!("{path}.{k}"), x, bad)),
+        serde_json::Value::Null => bad.push(format!("{path} = null")),
+        _ => {}
+    }
+}
+
+#[test]
+fn bench_quick_writes_every_figure() {
+    // Never asserts on speed: only that every figure was measured and is a positive number.
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bench.json");
+    let o = bcal(&["bench", "--quick", "--out", out.to_str().unwrap()], dir.path());
+    let (stdout, err) = text(&o);
+    assert!(o.status.success(), "{err}");
+    for section in ["## Battery model", "## Calibrator steps", "## Transport", "## Learner"] {
+        assert!(stdout.contains(section), "stdout lacks {section}:\n{stdout}");
+    }
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let mut bad = Vec::new();
+    for section in ["model", "calib", "transport", "learner"] {
+        assert!(v[section].is_object(), "bench.json lacks {section}");
+        all_positive(section, &v[section], &mut bad);
+    }
+    assert!(bad.is_empty(), "not finite and > 0: {bad:?}");
+    let actors: Vec<u64> =
+        v["transport"]["rows"].as_array().unwrap().iter().map(|r| r["actors"].as_u64().unwrap()).collect();
+    assert_eq!(actors, [1, 2, 4]);
+    for key in ["steps_per_s", "step_ns"] {
+        assert!(v["model"][key].is_number(), "model.{key}");
+    }
+    let calib: Vec<&str> = v["calib"]["rows"].as_array().unwrap().iter().map(|r| r["key"].as_str().unwrap()).collect();
+    for key in ["ukf", "rl_rust_b1_128x2", "rl_rust_b1_256x3", "rl_tch_b64_256x3", "direct_tch_b1_256x3"] {
+        assert!(calib.contains(&key), "calib rows lack {key}: {calib:?}");
+    }
+    let learner = &v["learner"]["rows"][0];
+    assert_eq!((learner["hidden"].clone(), learner["batch"].as_u64()), (serde_json::json!([256, 256, 256]), Some(256)));
+    assert_eq!(v["settings"]["quick"], true);
+    assert!(v["machine"]["cores"].as_u64().unwrap() >= 1);
+}
+
+#[test]
+fn bench_refuses_bad_parts_and_unwritable_output_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases: &[(&[&str], &str)] = &[
+        (&["bench", "--only", "model,gpu"], "unknown part `gpu`"),
+        (&["bench", "--out", "/nonexistent-dir/bench.json"], "/nonexistent-dir"),
+    ];
+    for (args, want) in cases {
+        let o = bcal(args, dir.path());
+        let (_, err) = text(&o);
+        assert!(!o.status.success(), "{args:?} should fail");
+        assert!(err.contains(want), "{args:?}: stderr lacks `{want}`:\n{err}");
+    }
+}

@@ -23,7 +23,9 @@ const HEADER_LEN: usize = 8 + 4 * 4 + 8 * HEADER_U64S + 4;
 pub enum SnapshotError {
     #[error("cannot read snapshot {path}: {source}")]
     Read { path: PathBuf, source: std::io::Error },
-    #[error("cannot write snapshot {path}: {source} (disk full or folder not writable?); the previous snapshot is kept")]
+    #[error(
+        "cannot write snapshot {path}: {source} (disk full or folder not writable?); the previous snapshot is kept"
+    )]
     Write { path: PathBuf, source: std::io::Error },
     #[error("snapshot {path} is unusable: {why}")]
     Invalid { path: PathBuf, why: String },
@@ -246,22 +248,31 @@ mod tests {
         let cases: Vec<(Vec<u8>, &str)> = vec![
             (good[..good.len() - 5].to_vec(), "truncated"),
             (good[..20].to_vec(), "header"),
-            ({
-                let mut b = good.clone();
-                let last = b.len() - 1;
-                b[last] ^= 0x40;
-                b
-            }, "CRC"),
-            ({
-                let mut b = good.clone();
-                b[0] = b'X';
-                b
-            }, "magic"),
-            ({
-                let mut b = good.clone();
-                b[12..16].copy_from_slice(&(WIRE_VERSION + 1).to_le_bytes());
-                b
-            }, "wire version"),
+            (
+                {
+                    let mut b = good.clone();
+                    let last = b.len() - 1;
+                    b[last] ^= 0x40;
+                    b
+                },
+                "CRC",
+            ),
+            (
+                {
+                    let mut b = good.clone();
+                    b[0] = b'X';
+                    b
+                },
+                "magic",
+            ),
+            (
+                {
+                    let mut b = good.clone();
+                    b[12..16].copy_from_slice(&(WIRE_VERSION + 1).to_le_bytes());
+                    b
+                },
+                "wire version",
+            ),
         ];
         for (bytes, want) in cases {
             std::fs::write(&p, &bytes).unwrap();

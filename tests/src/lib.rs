@@ -140,7 +140,13 @@ impl Proc {
     }
 
     /// As [`Proc::start`], with `configure` applied to the command first (limits, environment).
-    pub fn start_with(run: &RunFolder, name: &str, exe: &str, args: &[&str], configure: impl FnOnce(&mut Command)) -> Self {
+    pub fn start_with(
+        run: &RunFolder,
+        name: &str,
+        exe: &str,
+        args: &[&str],
+        configure: impl FnOnce(&mut Command),
+    ) -> Self {
         let log = std::fs::File::create(run.path().join("logs").join(format!("{name}.log"))).expect("log file");
         let mut cmd = Command::new(bin(exe));
         configure(&mut cmd);

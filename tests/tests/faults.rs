@@ -274,8 +274,8 @@ fn a_full_disk_while_checkpointing_is_a_clear_error_and_the_previous_checkpoint_
     assert!(wait_until(Duration::from_secs(90), || !latest().is_empty()), "{}", run.logs());
     assert_eq!(learner.terminate(Duration::from_secs(20)).and_then(|s| s.code()), Some(0), "{}", run.logs());
     let first_dir = run.path().join("checkpoints").join(latest().trim());
-    let biggest = std::fs::read_dir(&first_dir).unwrap().flatten().map(|e| e.metadata().unwrap().len()).max().unwrap()
-        as usize;
+    let biggest =
+        std::fs::read_dir(&first_dir).unwrap().flatten().map(|e| e.metadata().unwrap().len()).max().unwrap() as usize;
     let metrics_len = std::fs::metadata(run.path().join("metrics.jsonl")).map(|m| m.len()).unwrap_or(0) as usize;
     // The disk "fills": no file of this learner may grow past the limit (EFBIG, like ENOSPC, fails the
     // write; SIGXFSZ is ignored so the process sees the error instead of dying).
@@ -327,7 +327,10 @@ fn a_full_disk_while_checkpointing_is_a_clear_error_and_the_previous_checkpoint_
         .map(|e| e.file_name().to_string_lossy().into_owned())
         .filter(|n| n.starts_with("step-"))
         .collect();
-    assert!(!steps.iter().any(|n| n.trim_start_matches("step-").parse::<u64>().is_ok_and(|u| u == failed)), "{steps:?}");
+    assert!(
+        !steps.iter().any(|n| n.trim_start_matches("step-").parse::<u64>().is_ok_and(|u| u == failed)),
+        "{steps:?}"
+    );
     // And it is usable: a learner with room again resumes from it.
     let lines = std::fs::read_to_string(run.path().join("metrics.jsonl")).unwrap().lines().count();
     let mut again = Proc::start(&run, "learner-again", "bcal-learner", &["--run", &dir, "--resume"]);
@@ -335,9 +338,10 @@ fn a_full_disk_while_checkpointing_is_a_clear_error_and_the_previous_checkpoint_
     assert!(
         wait_until(Duration::from_secs(60), || {
             let text = std::fs::read_to_string(run.path().join("metrics.jsonl")).unwrap_or_default();
-            text.lines().skip(lines).filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()).any(|v| {
-                v["kind"] == "train" && v["update"].as_u64().is_some_and(|u| u > step)
-            })
+            text.lines()
+                .skip(lines)
+                .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+                .any(|v| v["kind"] == "train" && v["update"].as_u64().is_some_and(|u| u > step))
         }),
         "{}",
         run.logs()
@@ -388,11 +392,7 @@ fn a_peer_with_another_wire_layout_is_refused_with_a_clear_message() {
 
     // 1. A replay of the previous wire version serves this run folder.
     let old_name = format!("bcal/v{}/{}/transitions", WIRE_VERSION - 1, rid.run_id);
-    let _old = node
-        .service_builder(&ServiceName::new(&old_name).unwrap())
-        .publish_subscribe::<u64>()
-        .create()
-        .unwrap();
+    let _old = node.service_builder(&ServiceName::new(&old_name).unwrap()).publish_subscribe::<u64>().create().unwrap();
     let t0 = Instant::now();
     let mut actor = Proc::start(&run, "actor-old-replay", "bcal-actor", &["--run", &dir, "--actor-id", "0"]);
     let st = actor.wait_timeout(Duration::from_secs(30));
