@@ -3,7 +3,9 @@
 //!
 //! Bad input never passes silently: files named in the metadata but absent are skipped and counted,
 //! non-finite or non-numeric fields are errors naming file and line, a voltage column in millivolts is
-//! refused with a hint, time must increase. Truncated records (ending under load) are found later by
+//! refused with a hint, time must increase, a metadata row may name only a bare file in `data/`. Error
+//! lines are the lines records start on (CRLF and blank lines counted); file content in a message is shown
+//! escaped and shortened. Truncated records (ending under load) are found later by
 //! [`crate::record::Discharge::windows`] and flagged by the diagnosis. Readers never fit and never print.
 
 use crate::error::DoctorError;
@@ -47,8 +49,10 @@ pub fn read_nasa(
     cycles: Option<&RangeInclusive<u32>>,
 ) -> Result<(Vec<Discharge>, ReadReport), DoctorError> {
     let meta_path = root.join("metadata.csv");
-    let mut rdr = csv::Reader::from_path(&meta_path).map_err(|e| csv_error(&meta_path, e))?;
-    let headers = rdr.headers().map_err(|e| csv_error(&meta_path, e))?.clone();
+    let bytes = read_file(&meta_path)?;
+    let mut lines = Lines::new(&bytes);
+    let mut rdr = csv::Reader::from_reader(bytes.as_slice());
+    let headers = rdr.headers().map_err(|e| csv_error(&meta_path, e, &mut lines))?.clone();
     let col = |name: &str| column(&headers, name, &meta_path, "expected the NASA PCoE metadata.csv layout");
     let (c_type, c_amb, c_cell, c_test, c_file, c_cap) = (
         col("type")?,
@@ -61,16 +65,28 @@ pub fn read_nasa(
     // (test_id, filename, ambient_c, capacity_ah, metadata line) of the cell's discharges.
     let mut rows = Vec::new();
     for rec in rdr.records() {
-        let rec = rec.map_err(|e| csv_error(&meta_path, e))?;
+        let rec = rec.map_err(|e| csv_error(&meta_path, e, &mut lines))?;
         if rec.get(c_type) != Some("discharge") || rec.get(c_cell) != Some(cell) {
             continue;
         }
-        let line = rec.position().map_or(0, |p| p.line());
+        let line = lines.of(&rec);
         let test_id = number(&rec, c_test, "test_id", &meta_path, line)?;
         let ambient_c = number(&rec, c_amb, "ambient_temperature", &meta_path, line)?;
         let capacity_ah =
             rec.get(c_cap).and_then(|s| s.trim().parse::<f64>().ok()).filter(|c| c.is_finite() && *c > 0.0);
-        rows.push((test_id, rec.get(c_file).unwrap_or("").to_string(), ambient_c, capacity_ah));
+        let file = rec.get(c_file).unwrap_or("");
+        // A bare file name in `data/`: a path (`../x`, `/etc/x`, `sub/x`) would read outside the folder.
+        let mut parts = Path::new(file).components();
+        if !matches!((parts.next(), parts.next()), (Some(std::path::Component::Normal(_)), None)) {
+            let why = format!(
+                "line {line}: field `filename` = `{}` is not a file name in data/; write the bare file name \
+                 (e.g. 00042.csv)",
+                shown(file, 80)
+            );
+            let source = std::io::Error::new(std::io::ErrorKind::InvalidData, why);
+            return Err(DoctorError::Io { path: meta_path, source });
+        }
+        rows.push((test_id, file.to_string(), ambient_c, capacity_ah));
     }
     if rows.is_empty() {
         return Err(DoctorError::NothingSelected {
@@ -101,8 +117,10 @@ pub fn read_nasa(
 /// Reads one NASA discharge file (`Voltage_measured`, `Current_measured` negative while discharging,
 /// `Temperature_measured` deg C, `Time` s).
 pub fn read_nasa_record(path: &Path, cell: &str, cycle: u32, ambient_k: f64) -> Result<Discharge, DoctorError> {
-    let mut rdr = csv::Reader::from_path(path).map_err(|e| csv_error(path, e))?;
-    let headers = rdr.headers().map_err(|e| csv_error(path, e))?.clone();
+    let bytes = read_file(path)?;
+    let mut lines = Lines::new(&bytes);
+    let mut rdr = csv::Reader::from_reader(bytes.as_slice());
+    let headers = rdr.headers().map_err(|e| csv_error(path, e, &mut lines))?.clone();
     let hint = "expected a NASA PCoE discharge record (Voltage_measured, Current_measured, Temperature_measured, Time)";
     let cv = column(&headers, "Voltage_measured", path, hint)?;
     let ci = column(&headers, "Current_measured", path, hint)?;
@@ -111,8 +129,8 @@ pub fn read_nasa_record(path: &Path, cell: &str, cycle: u32, ambient_k: f64) -> 
     let mut d = empty(cell, cycle, path, ambient_k, true);
     let temps = d.temperature_k.as_mut().expect("allocated");
     for rec in rdr.records() {
-        let rec = rec.map_err(|e| csv_error(path, e))?;
-        let line = rec.position().map_or(0, |p| p.line());
+        let rec = rec.map_err(|e| csv_error(path, e, &mut lines))?;
+        let line = lines.of(&rec);
         let time_s = number(&rec, cs, "Time", path, line)?;
         check_time(&d.time_s, time_s, path, line)?;
         d.time_s.push(time_s);
@@ -128,8 +146,10 @@ pub fn read_nasa_record(path: &Path, cell: &str, cycle: u32, ambient_k: f64) -> 
 /// time restarts per cycle. The ambient is `ambient_c` if given, else each record's first temperature,
 /// else [`DEFAULT_AMBIENT_C`].
 pub fn read_generic(path: &Path, ambient_c: Option<f64>) -> Result<Vec<Discharge>, DoctorError> {
-    let mut rdr = csv::Reader::from_path(path).map_err(|e| csv_error(path, e))?;
-    let headers = rdr.headers().map_err(|e| csv_error(path, e))?.clone();
+    let bytes = read_file(path)?;
+    let mut lines = Lines::new(&bytes);
+    let mut rdr = csv::Reader::from_reader(bytes.as_slice());
+    let headers = rdr.headers().map_err(|e| csv_error(path, e, &mut lines))?.clone();
     let hint = "the generic CSV needs time_s,voltage_v,current_a[,temperature_c][,cycle]";
     let cs = column(&headers, "time_s", path, hint)?;
     let cv = column(&headers, "voltage_v", path, hint)?;
@@ -139,12 +159,13 @@ pub fn read_generic(path: &Path, ambient_c: Option<f64>) -> Result<Vec<Discharge
     let cell = path.file_stem().map_or_else(|| "cell".to_string(), |s| s.to_string_lossy().into_owned());
     let mut by_cycle: BTreeMap<u32, Discharge> = BTreeMap::new();
     for rec in rdr.records() {
-        let rec = rec.map_err(|e| csv_error(path, e))?;
-        let line = rec.position().map_or(0, |p| p.line());
+        let rec = rec.map_err(|e| csv_error(path, e, &mut lines))?;
+        let line = lines.of(&rec);
         let cycle = match cc {
             Some(c) => {
                 let v = number(&rec, c, "cycle", path, line)?;
-                if v < 0.0 || v.fract() != 0.0 {
+                // Beyond u32 the cast would saturate and merge distinct cycles.
+                if v < 0.0 || v.fract() != 0.0 || v > f64::from(u32::MAX) {
                     return Err(bad_field(path, line, "cycle", rec.get(c).unwrap_or("")));
                 }
                 v as u32
@@ -224,7 +245,7 @@ fn column(headers: &csv::StringRecord, name: &str, path: &Path, hint: &'static s
     headers.iter().position(|h| h.trim() == name).ok_or_else(|| DoctorError::MissingColumn {
         path: path.to_path_buf(),
         column: name.to_string(),
-        found: headers.iter().collect::<Vec<_>>().join(","),
+        found: shown(&headers.iter().collect::<Vec<_>>().join(","), 200),
         hint,
     })
 }
@@ -238,10 +259,83 @@ fn number(rec: &csv::StringRecord, col: usize, name: &str, path: &Path, line: u6
 }
 
 fn bad_field(path: &Path, line: u64, column: &str, value: &str) -> DoctorError {
-    DoctorError::BadField { path: path.to_path_buf(), line, column: column.to_string(), value: value.to_string() }
+    DoctorError::BadField { path: path.to_path_buf(), line, column: column.to_string(), value: shown(value, 40) }
 }
 
-fn csv_error(path: &Path, source: csv::Error) -> DoctorError {
+/// File content as an error message shows it: control and invisible characters escaped (a NUL, a terminal
+/// escape or a byte-order mark must not reach the terminal raw or hide), at most `max` characters (a
+/// hostile field may be megabytes).
+fn shown(text: &str, max: usize) -> String {
+    let mut out = String::new();
+    for (k, c) in text.chars().enumerate() {
+        if k == max {
+            out.push_str(&format!("... ({} characters)", text.chars().count()));
+            break;
+        }
+        let invisible =
+            matches!(c, '\u{200b}'..='\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}' | '\u{feff}');
+        if c.is_control() || invisible {
+            out.extend(c.escape_default());
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
+fn read_file(path: &Path) -> Result<Vec<u8>, DoctorError> {
+    std::fs::read(path).map_err(|source| DoctorError::Io { path: path.to_path_buf(), source })
+}
+
+/// Line numbers of records, counted over the file's bytes. The csv crate's `Position::line` names the line
+/// where it began skipping line ends before a record: one line early after a CRLF or a blank line.
+struct Lines<'a> {
+    bytes: &'a [u8],
+    /// Byte up to which `line` is counted, and the 1-based line holding it.
+    at: usize,
+    line: u64,
+}
+
+impl<'a> Lines<'a> {
+    fn new(bytes: &'a [u8]) -> Self {
+        Lines { bytes, at: 0, line: 1 }
+    }
+
+    /// Line of the first byte at or after `byte` that is not a line end (where the record's text starts).
+    fn at_byte(&mut self, byte: u64) -> u64 {
+        let start = usize::try_from(byte).map_or(self.bytes.len(), |b| b.min(self.bytes.len()));
+        let rest = &self.bytes[start..];
+        let first = rest.iter().position(|b| !matches!(b, b'\r' | b'\n')).map_or(self.bytes.len(), |k| start + k);
+        if first < self.at {
+            // Records come in order; count afresh if ever asked about an earlier one.
+            (self.at, self.line) = (0, 1);
+        }
+        self.line += self.bytes[self.at..first].iter().filter(|b| **b == b'\n').count() as u64;
+        self.at = first;
+        self.line
+    }
+
+    fn of(&mut self, rec: &csv::StringRecord) -> u64 {
+        match rec.position() {
+            Some(p) => self.at_byte(p.byte()),
+            None => self.line,
+        }
+    }
+}
+
+/// A CSV error naming the line the bad record starts on (see [`Lines`]) and what to do.
+fn csv_error(path: &Path, source: csv::Error, lines: &mut Lines) -> DoctorError {
+    let line = source.position().map(|p| lines.at_byte(p.byte()));
+    let why = match (source.kind(), line) {
+        (csv::ErrorKind::UnequalLengths { expected_len, len, .. }, Some(line)) => format!(
+            "line {line}: {len} fields where the first row has {expected_len}; every row needs one field per column"
+        ),
+        (csv::ErrorKind::Utf8 { err, .. }, Some(line)) => {
+            format!("line {line}, field {}: not valid UTF-8; save the file as UTF-8 text", err.field() + 1)
+        }
+        _ => return DoctorError::Csv { path: path.to_path_buf(), source },
+    };
+    let source = csv::Error::from(std::io::Error::new(std::io::ErrorKind::InvalidData, why));
     DoctorError::Csv { path: path.to_path_buf(), source }
 }
 

@@ -99,6 +99,22 @@ impl Lac {
     /// Writes `run_dir/checkpoints/step-<updates>/` atomically, points `LATEST` at it and keeps the
     /// [`KEEP_CHECKPOINTS`] newest step folders. Returns the step folder.
     pub fn save_checkpoint(&self, run_dir: &Path) -> Result<PathBuf, LacError> {
+        let res = self.write_checkpoint(run_dir);
+        if res.is_err() {
+            // A failed write (disk full) leaves no partial folder behind to fill the disk further; the
+            // previous checkpoint and LATEST were never touched.
+            let dir = run_dir.join(CHECKPOINTS_DIR);
+            let _ = std::fs::remove_dir_all(dir.join(format!(
+                ".tmp-{}-{}",
+                step_folder_name(self.updates),
+                std::process::id()
+            )));
+            let _ = std::fs::remove_file(dir.join(format!(".{LATEST_FILE}.tmp-{}", std::process::id())));
+        }
+        res
+    }
+
+    fn write_checkpoint(&self, run_dir: &Path) -> Result<PathBuf, LacError> {
         let dir = run_dir.join(CHECKPOINTS_DIR);
         std::fs::create_dir_all(&dir).map_err(io_err("create", &dir))?;
         let name = step_folder_name(self.updates);
@@ -190,30 +206,34 @@ impl Lac {
         let text = std::fs::read(&meta_path).map_err(|e| corrupt(&meta_path, format!("cannot read: {e}")))?;
         let meta: CheckpointMeta =
             serde_json::from_slice(&text).map_err(|e| corrupt(&meta_path, format!("not valid metadata: {e}")))?;
+        // Refusals drawn from meta.json name it: a damaged file and another run's read alike.
         if meta.format != CHECKPOINT_FORMAT {
-            return Err(mismatch(&folder, format!("format {} but this build reads {CHECKPOINT_FORMAT}", meta.format)));
+            return Err(mismatch(
+                &meta_path,
+                format!("format {} but this build reads {CHECKPOINT_FORMAT}", meta.format),
+            ));
         }
         if meta.update_step != step {
             return Err(corrupt(&folder, format!("meta.json says step {} in folder {name}", meta.update_step)));
         }
         if meta.experiment != cfg.config.experiment {
             return Err(mismatch(
-                &folder,
+                &meta_path,
                 format!("trained on experiment {}, this run is {}", meta.experiment, cfg.config.experiment),
             ));
         }
         if meta.layout != layout || meta.fingerprint != layout.fingerprint() {
-            return Err(mismatch(&folder, format!("network shape {:?}, this run needs {layout:?}", meta.layout)));
+            return Err(mismatch(&meta_path, format!("network shape {:?}, this run needs {layout:?}", meta.layout)));
         }
         if meta.lac.hidden != cfg.config.lac.hidden {
             return Err(mismatch(
-                &folder,
+                &meta_path,
                 format!("critic hidden {:?}, this run's lac.hidden is {:?}", meta.lac.hidden, cfg.config.lac.hidden),
             ));
         }
         for file in TENSOR_FILES {
             let path = folder.join(file);
-            let want = *meta.files.get(file).ok_or_else(|| corrupt(&folder, format!("meta.json lists no {file}")))?;
+            let want = *meta.files.get(file).ok_or_else(|| corrupt(&meta_path, format!("it lists no {file}")))?;
             let got = crc_of(&path).map_err(|e| corrupt(&path, e.to_string()))?;
             if got != want {
                 return Err(corrupt(&path, format!("checksum {got:08x}, meta.json says {want:08x} (damaged)")));
@@ -238,10 +258,41 @@ impl Lac {
 }
 
 fn read_tensors(path: &Path) -> Result<HashMap<String, Tensor>, LacError> {
+    check_safetensors_framing(path)?;
     Ok(Tensor::read_safetensors(path)
-        .map_err(|e| corrupt(path, format!("unreadable safetensors: {e}")))?
+        // libtorch appends a C++ backtrace to its message: keep its first line.
+        .map_err(|e| corrupt(path, format!("unreadable safetensors: {}", e.to_string().lines().next().unwrap_or(""))))?
         .into_iter()
         .collect())
+}
+
+/// Checks what the safetensors reader (0.3) adds without overflow checks: the header length and every
+/// tensor's data offsets must lie within the file. A file crafted past its checksum (offsets near 2^64)
+/// would otherwise panic there instead of being refused.
+fn check_safetensors_framing(path: &Path) -> Result<(), LacError> {
+    let bytes = std::fs::read(path).map_err(|e| corrupt(path, format!("cannot read: {e}")))?;
+    let bad = |why: String| corrupt(path, format!("unreadable safetensors: {why}"));
+    let (len, rest) =
+        bytes.split_first_chunk::<8>().ok_or_else(|| bad("shorter than its 8-byte header length".into()))?;
+    let header_len = u64::from_le_bytes(*len);
+    let data_len = (rest.len() as u64)
+        .checked_sub(header_len)
+        .ok_or_else(|| bad(format!("header of {header_len} bytes in a file of {}", bytes.len())))?;
+    let header: HashMap<String, serde_json::Value> = serde_json::from_slice(&rest[..header_len as usize])
+        .map_err(|e| bad(format!("header is not a JSON object: {e}")))?;
+    for (name, info) in header.iter().filter(|(name, _)| *name != "__metadata__") {
+        let offsets = info.get("data_offsets").and_then(|o| o.as_array()).map(|o| o.iter().map(|x| x.as_u64()));
+        match offsets.map(|mut o| (o.next().flatten(), o.next().flatten(), o.next())) {
+            Some((Some(from), Some(to), None)) if from <= to && to <= data_len => {}
+            _ => {
+                return Err(bad(format!(
+                    "tensor {name:?}: data_offsets {} outside the {data_len} data bytes",
+                    info["data_offsets"]
+                )))
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Copies `src` into the variable after checking shape, dtype and finiteness.

@@ -240,7 +240,26 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
     let mut lac = match args.resume {
         true => match Lac::load_latest(&cfg, layout.clone(), &args.run_dir).context("--resume")? {
             Some(lac) => lac,
-            None => Lac::new(&cfg, layout.clone(), seed)?,
+            None => {
+                // No LATEST: fine before the first checkpoint, but never silently start over on top of
+                // step folders (LATEST was deleted or lost).
+                let dir = args.run_dir.join("checkpoints");
+                let mut steps: Vec<String> = std::fs::read_dir(&dir)
+                    .map(|rd| rd.flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect())
+                    .unwrap_or_default();
+                steps.retain(|n| n.starts_with("step-"));
+                steps.sort();
+                if let Some(newest) = steps.last() {
+                    anyhow::bail!(
+                        "--resume: {} has step folders ({}) but no LATEST; write the one to resume into it \
+                         (e.g. `echo {newest} > {}`) or move the folder away to start over",
+                        dir.display(),
+                        steps.join(", "),
+                        dir.join("LATEST").display()
+                    );
+                }
+                Lac::new(&cfg, layout.clone(), seed)?
+            }
         },
         false => Lac::new(&cfg, layout.clone(), seed)?,
     };

@@ -320,7 +320,7 @@ fn a_full_disk_while_checkpointing_is_a_clear_error_and_the_previous_checkpoint_
         .expect("the error names the update");
     let kept_step: u64 = kept.trim().trim_start_matches("step-").parse().unwrap();
     assert!(kept_step < failed, "LATEST {kept_step} must predate the failed checkpoint {failed}");
-    // Nothing half-written under a real step name.
+    // Nothing half-written under a real step name, and no temporary folder left to fill the disk.
     let steps: Vec<String> = std::fs::read_dir(run.path().join("checkpoints"))
         .unwrap()
         .flatten()
@@ -331,6 +331,13 @@ fn a_full_disk_while_checkpointing_is_a_clear_error_and_the_previous_checkpoint_
         !steps.iter().any(|n| n.trim_start_matches("step-").parse::<u64>().is_ok_and(|u| u == failed)),
         "{steps:?}"
     );
+    let leftovers: Vec<_> = std::fs::read_dir(run.path().join("checkpoints"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with('.'))
+        .collect();
+    assert!(leftovers.is_empty(), "temporary files left after the failed write: {leftovers:?}");
     // And it is usable: a learner with room again resumes from it.
     let lines = std::fs::read_to_string(run.path().join("metrics.jsonl")).unwrap().lines().count();
     let mut again = Proc::start(&run, "learner-again", "bcal-learner", &["--run", &dir, "--resume"]);
@@ -347,6 +354,14 @@ fn a_full_disk_while_checkpointing_is_a_clear_error_and_the_previous_checkpoint_
         run.logs()
     );
     assert_eq!(again.terminate(Duration::from_secs(20)).and_then(|s| s.code()), Some(0), "{}", run.logs());
+
+    // A lost LATEST is never a silent fresh start on top of existing checkpoints.
+    std::fs::remove_file(run.path().join("checkpoints/LATEST")).unwrap();
+    let mut lost = Proc::start(&run, "learner-no-latest", "bcal-learner", &["--run", &dir, "--resume"]);
+    let st = lost.wait_timeout(Duration::from_secs(60));
+    let log = std::fs::read_to_string(run.path().join("logs/learner-no-latest.log")).unwrap();
+    assert_eq!(st.and_then(|s| s.code()), Some(1), "{log}");
+    assert!(log.contains("no LATEST") && log.contains("step-"), "{log}");
 }
 
 #[test]
