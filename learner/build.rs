@@ -1,26 +1,3 @@
-//! Bake an rpath to libtorch into this package's binaries, tests and benches, so
-//! they run without LD_LIBRARY_PATH. LIBTORCH comes from .cargo/config.toml
-//! (<repo>/.libtorch, made by launch/setup-libtorch.sh) or the environment.
-//! `rustc-link-arg` only reaches this package's own targets: every crate that
-//! links tch carries its own copy of this file, verbatim.
-use std::path::Path;
-
-fn main() {
-    println!("cargo:rerun-if-env-changed=LIBTORCH");
-    let Some(libtorch) = std::env::var_os("LIBTORCH") else {
-        println!("cargo:warning=LIBTORCH is not set: run launch/setup-libtorch.sh");
-        return;
-    };
-    // Watched through the symlink, so re-pointing .libtorch reruns this script;
-    // while the path is missing, cargo reruns it on every build.
-    let lib = Path::new(&libtorch).join("lib");
-    println!("cargo:rerun-if-changed={}", lib.display());
-    // The rpath holds the canonical path: it must not depend on the symlink.
-    match lib.canonicalize() {
-        Ok(lib) if matches!(std::env::var("CARGO_CFG_TARGET_OS").as_deref(), Ok("linux" | "macos")) => {
-            println!("cargo:rustc-link-arg=-Wl,-rpath,{}", lib.display());
-        }
-        Ok(_) => {}
-        Err(e) => println!("cargo:warning={}: {e}; run launch/setup-libtorch.sh", lib.display()),
-    }
-}
+//! Bakes an rpath to libtorch into this package's binaries, tests and benches (the one script all crates
+//! that link tch share; see launch/libtorch_rpath.rs).
+include!("../launch/libtorch_rpath.rs");
