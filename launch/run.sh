@@ -10,7 +10,7 @@ cd "$(dirname "$0")/.."
 
 experiment=multi
 budget_s=900
-actors=0
+actors=""
 name=""
 usage() { sed -n '2,7p' "$0" | sed 's/^# \{0,1\}//'; }
 while [ $# -gt 0 ]; do
@@ -34,7 +34,9 @@ bin=target/release
 echo "== data set"
 "$bin/bcal" dataset generate --experiment "$experiment"
 echo "== train ($experiment, budget ${budget_s} s)"
-"$bin/bcal" train --experiment "$experiment" --budget-s "$budget_s" --actors "$actors" --name "$name"
+actor_args=()
+[ -z "$actors" ] || actor_args=(--actors "$actors")
+"$bin/bcal" train --experiment "$experiment" --budget-s "$budget_s" "${actor_args[@]}" --name "$name"
 run="runs/$name"
 echo "== evaluate"
 "$bin/bcal" eval --run "$run" --experiment "$experiment"

@@ -356,7 +356,7 @@ fn iceoryx2_flow(
 ) -> anyhow::Result<Flow> {
     let dir = tempfile::Builder::new().prefix("bcal-bench-").tempdir().context("creating a temporary run folder")?;
     let mut cfg = TrainConfig::default();
-    cfg.actors.count = actors;
+    cfg.actors.count = Some(actors);
     let v = cfg.validate()?;
     let config_path = dir.path().join("config.toml");
     std::fs::write(&config_path, cfg.to_toml()).with_context(|| format!("writing {}", config_path.display()))?;

@@ -190,8 +190,8 @@ impl Default for LearnerConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ActorConfig {
-    /// Number of actor processes (0 = one per core).
-    pub count: usize,
+    /// Number of actor processes, at least 1; leave the key out for one per core.
+    pub count: Option<usize>,
     /// Environments each actor steps in lockstep (one batched policy forward per step).
     pub envs_per_actor: usize,
     /// Transitions per published message.
@@ -202,7 +202,7 @@ pub struct ActorConfig {
 
 impl Default for ActorConfig {
     fn default() -> Self {
-        Self { count: 0, envs_per_actor: 32, publish_batch: 64, max_restarts: 5 }
+        Self { count: None, envs_per_actor: 32, publish_batch: 64, max_restarts: 5 }
     }
 }
 
@@ -333,7 +333,13 @@ impl TrainConfig {
             ));
         }
         let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-        let actor_count = if a.count == 0 { cores } else { a.count };
+        let actor_count = match a.count {
+            None => cores,
+            Some(0) => {
+                return Err(bad("actors.count", &0, "must be at least 1 (leave the key out for one actor per core)"))
+            }
+            Some(n) => n,
+        };
         if actor_count > crate::wire::MAX_ACTORS {
             return Err(bad("actors.count", &actor_count, &format!("must be at most {}", crate::wire::MAX_ACTORS)));
         }

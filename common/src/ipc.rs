@@ -536,7 +536,7 @@ mod tests {
 
     fn cfg(actors: usize) -> Validated {
         let mut c = TrainConfig::default();
-        c.actors.count = actors;
+        c.actors.count = Some(actors);
         c.validate().unwrap()
     }
 

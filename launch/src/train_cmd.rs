@@ -38,7 +38,7 @@ pub struct TrainArgs {
     /// Stop after this many learner updates (overrides learner.max_updates).
     #[arg(long)]
     pub max_updates: Option<u64>,
-    /// Number of actor processes (overrides actors.count; 0 = one per core).
+    /// Number of actor processes, at least 1 (overrides actors.count; default: one per core).
     #[arg(long)]
     pub actors: Option<usize>,
     /// Seed of every random stream (overrides seed).
@@ -91,7 +91,7 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
         cfg.learner.max_updates = m;
     }
     if let Some(n) = a.actors {
-        cfg.actors.count = n;
+        cfg.actors.count = Some(n);
     }
     if let Some(s) = a.seed {
         cfg.seed = s;

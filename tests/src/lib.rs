@@ -241,7 +241,7 @@ pub fn tiny_config(actors: usize) -> TrainConfig {
     c.lac.batch_size = 32;
     c.replay.capacity = 100_000;
     c.replay.learning_starts = 256;
-    c.actors.count = actors;
+    c.actors.count = Some(actors);
     c.actors.envs_per_actor = 8;
     c.actors.publish_batch = 32;
     c.learner.weights_every = 10;

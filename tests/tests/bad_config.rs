@@ -11,6 +11,7 @@ const CASES: &[(&str, &str)] = &[
     ("[lac]\nbatch_size = \"large\"\n", "batch_size"),
     // Impossible values.
     ("[lac]\nlr = -1e-3\n", "lac.lr"),
+    ("[actors]\ncount = 0\n", "actors.count"),
     ("[actors]\nenvs_per_actor = 0\n", "actors.envs_per_actor"),
     ("[replay]\ncapacity = 0\n", "replay.capacity"),
     ("[replay]\nsnapshot_every_s = -5.0\n", "replay.snapshot_every_s"),

@@ -12,7 +12,7 @@ use bcal_tests::{field, tiny_config, wait_until, Proc, RunFolder};
 use std::time::{Duration, Instant};
 
 fn measure(label: &str, mut cfg: TrainConfig, actors: usize, window: Duration) {
-    cfg.actors.count = actors;
+    cfg.actors.count = Some(actors);
     cfg.replay.samples_per_insert = 1.0;
     cfg.replay.ratio_error_buffer = 1e12;
     cfg.replay.capacity = 1_000_000;
