@@ -99,6 +99,16 @@ pub struct ObsScales {
     pub state_std: [f64; N_STATE],
     pub load_mean_w: f64,
     pub load_std_w: f64,
+    /// Mean and standard deviation of [`apparent_resistance_ohm`] over the training steps (absent in
+    /// MDP files written before it existed; only [`ObservationKind::FullStateOhmic`] reads them).
+    #[serde(default)]
+    pub r_app_mean_ohm: f64,
+    #[serde(default = "one")]
+    pub r_app_std_ohm: f64,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 impl ObsScales {
@@ -108,8 +118,12 @@ impl ObsScales {
         let mut sum = [0f64; N_STATE];
         let mut sq = [0f64; N_STATE];
         let (mut ln, mut lsum, mut lsq) = (0f64, 0f64, 0f64);
+        let (mut rsum, mut rsq) = (0f64, 0f64);
         for t in ds.train() {
-            for s in &t.states {
+            for (s, v) in t.states.iter().zip(&t.voltage_v) {
+                let r = apparent_resistance_ohm(f64::from(s[idx::V_O]), *v, t.load_w);
+                rsum += r;
+                rsq += r * r;
                 for k in 0..N_STATE {
                     let v = f64::from(s[k]);
                     sum[k] += v;
@@ -130,7 +144,14 @@ impl ObsScales {
             state_std[k] = std(sum[k], sq[k], n).max(state_mean[k].abs() * 1e-6).max(1e-9);
         }
         let load_std_w = std(lsum, lsq, ln).max(1e-3);
-        Self { state_mean, state_std, load_mean_w: lsum / ln, load_std_w }
+        Self {
+            state_mean,
+            state_std,
+            load_mean_w: lsum / ln,
+            load_std_w,
+            r_app_mean_ohm: rsum / n,
+            r_app_std_ohm: std(rsum, rsq, n).max(1e-6),
+        }
     }
 
     #[inline]
@@ -157,31 +178,45 @@ impl ObsScales {
     }
 }
 
-/// How an observation is assembled: one small, replaceable piece (a voltage-only variant comes later).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+/// How an observation is assembled: one small, replaceable piece.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub enum ObservationKind {
     /// The paper's [x_hat_t, x_{t+1}, u_{t+1}]: 7 + 7 + 1 features.
     FullState,
+    /// The paper's features plus the cell's apparent ohmic resistance at t+1, Vo / i with i = P / V
+    /// (what an engineer reads off a voltage step); it depends on the load far less than Vo itself, so the
+    /// policy need not extrapolate a division to loads it never saw.
+    #[default]
+    FullStateOhmic,
 }
 
 impl ObservationKind {
     pub fn dim(self) -> usize {
         match self {
             ObservationKind::FullState => 2 * N_STATE + 1,
+            ObservationKind::FullStateOhmic => 2 * N_STATE + 2,
         }
     }
 
-    /// Writes the observation into `out[..self.dim()]`.
+    /// Writes the observation of x_hat_t against the measured row `row` (= t + 1) of `traj` into
+    /// `out[..self.dim()]`.
     #[inline]
-    pub fn build(self, scales: &ObsScales, x_hat: &StateVec, x_next: &StateVec, load_next_w: f64, out: &mut [f32]) {
-        match self {
-            ObservationKind::FullState => {
-                scales.normalise_state(x_hat, &mut out[0..N_STATE]);
-                scales.normalise_state(x_next, &mut out[N_STATE..2 * N_STATE]);
-                out[2 * N_STATE] = scales.normalise_load(load_next_w);
-            }
+    pub fn build(self, scales: &ObsScales, x_hat: &StateVec, traj: &Trajectory, row: usize, out: &mut [f32]) {
+        let x_next = state_at(traj, row);
+        scales.normalise_state(x_hat, &mut out[0..N_STATE]);
+        scales.normalise_state(&x_next, &mut out[N_STATE..2 * N_STATE]);
+        out[2 * N_STATE] = scales.normalise_load(traj.load_w);
+        if self == ObservationKind::FullStateOhmic {
+            let r = apparent_resistance_ohm(x_next[idx::V_O], traj.voltage_v[row], traj.load_w);
+            out[2 * N_STATE + 1] = ((r - scales.r_app_mean_ohm) / scales.r_app_std_ohm) as f32;
         }
     }
+}
+
+/// Vo / i with i = P / V: the ohmic overpotential per ampere, ohm.
+#[inline]
+pub fn apparent_resistance_ohm(vo_v: f64, voltage_v: f32, load_w: f64) -> f64 {
+    vo_v * f64::from(voltage_v) / load_w
 }
 
 /// Everything that defines the MDP apart from the data; shared by actors, learner validation and evaluator.
@@ -200,7 +235,7 @@ pub struct MdpSpec {
 impl MdpSpec {
     pub fn new(experiment: Experiment, env: &EnvConfig, train: &Dataset) -> Self {
         Self {
-            observation: ObservationKind::FullState,
+            observation: env.observation,
             actions: ActionMap::from_config(experiment, env),
             scales: ObsScales::from_train(train),
             window_steps: env.window_steps,
@@ -362,8 +397,7 @@ impl CalibrationEnv {
     #[inline]
     pub fn observe(&self, spec: &MdpSpec, ds: &Dataset, out: &mut [f32]) {
         let traj = &ds.trajectories[self.traj];
-        let x_next = state_at(traj, self.t + 1);
-        spec.observation.build(&spec.scales, &electro(&self.x_hat), &x_next, traj.load_w, out);
+        spec.observation.build(&spec.scales, &electro(&self.x_hat), traj, self.t + 1, out);
     }
 
     /// Applies action `a`: x_hat advances under the action's parameters; returns the cost. When the window
@@ -387,7 +421,7 @@ impl CalibrationEnv {
         // The next observation pairs x_hat_{t+1} with the real x_{t+2}; at the trajectory's last row there
         // is no x_{t+2}, so the last usable step is len - 2 and we pair with the last row instead.
         let look = (self.t + 1).min(traj.len() - 1);
-        spec.observation.build(&spec.scales, &electro(&self.x_hat), &state_at(traj, look), traj.load_w, next_obs);
+        spec.observation.build(&spec.scales, &electro(&self.x_hat), traj, look, next_obs);
         let window_done = self.t >= self.window_end || self.t + 1 >= traj.len();
         if window_done {
             self.reset(spec, model, ds, trajectories, rng);
@@ -416,7 +450,7 @@ pub fn rollout_calibrator(
     for t in 0..traj.len().saturating_sub(1) {
         let x_hat = model_state_at(model, traj, t);
         let x_next = state_at(traj, t + 1);
-        spec.observation.build(&spec.scales, &electro(&x_hat), &x_next, traj.load_w, &mut obs[..od]);
+        spec.observation.build(&spec.scales, &electro(&x_hat), traj, t + 1, &mut obs[..od]);
         policy(&obs[..od], &mut action[..ad]);
         let (_, cost) = spec.transition(model, &x_hat, &action[..ad], traj.load_w, &x_next);
         on_step(t, &spec.actions.to_degradation(&action[..ad]), cost);
@@ -487,6 +521,29 @@ impl NrmseAccumulator {
 mod tests {
     use super::*;
     use crate::dataset::{generate, ExperimentDef, Grid};
+
+    #[test]
+    fn apparent_resistance_reads_ro_off_the_measured_state_at_every_load() {
+        // Vo relaxes to i Ro within a few of its 6 s time constants: past the first 40 s, Vo / i is Ro
+        // whatever the load (the point of the feature: no division left for the policy to extrapolate).
+        let (ds, spec, _) = tiny();
+        for traj in ds.trajectories.iter().filter(|t| t.len() > 80) {
+            let row = 40 + (traj.len() - 40) / 2;
+            let x = state_at(traj, row);
+            let r = apparent_resistance_ohm(x[idx::V_O], traj.voltage_v[row], traj.load_w);
+            let ro = traj.degradation.r_o_ohm;
+            assert!((r - ro).abs() < 0.01 * ro, "load {} W: Vo/i {r} vs Ro {ro}", traj.load_w);
+        }
+        // The feature is normalised with training statistics and lands in the last slot.
+        let traj = &ds.trajectories[0];
+        let mut obs = [0f32; crate::wire::MAX_OBS];
+        let x_hat = electro(&model_state_at(&BatteryModel::default(), traj, 10));
+        ObservationKind::FullStateOhmic.build(&spec.scales, &x_hat, traj, 11, &mut obs);
+        let r = apparent_resistance_ohm(state_at(traj, 11)[idx::V_O], traj.voltage_v[11], traj.load_w);
+        let want = (r - spec.scales.r_app_mean_ohm) / spec.scales.r_app_std_ohm;
+        assert!((f64::from(obs[2 * N_STATE + 1]) - want).abs() < 1e-5);
+        assert!(spec.scales.r_app_std_ohm > 1e-3 && spec.scales.r_app_mean_ohm > 0.05);
+    }
 
     fn tiny() -> (Dataset, MdpSpec, BatteryModel) {
         let def = ExperimentDef {

@@ -82,7 +82,7 @@ impl Pairs {
 /// The observation of step `t` of `traj`, as the RL evaluation builds it (x_hat = measured x_t).
 #[inline]
 pub fn observation(spec: &MdpSpec, traj: &Trajectory, t: usize, out: &mut [f32]) {
-    spec.observation.build(&spec.scales, &state_at(traj, t), &state_at(traj, t + 1), traj.load_w, out);
+    spec.observation.build(&spec.scales, &state_at(traj, t), traj, t + 1, out);
 }
 
 /// Samples up to `max_pairs` (observation, true action) pairs uniformly over the steps of `trajs`.

@@ -153,7 +153,14 @@ fn policy_file_round_trips_without_libtorch() {
     let mdp = MdpSpec {
         observation: ObservationKind::FullState,
         actions: ActionMap::from_config(Experiment::SingleQ, &EnvConfig::default()),
-        scales: ObsScales { state_mean: [0.0; 7], state_std: [1.0; 7], load_mean_w: 12.0, load_std_w: 2.0 },
+        scales: ObsScales {
+            state_mean: [0.0; 7],
+            state_std: [1.0; 7],
+            load_mean_w: 12.0,
+            load_std_w: 2.0,
+            r_app_mean_ohm: 0.0,
+            r_app_std_ohm: 1.0,
+        },
         window_steps: 16,
         dt_s: 1.0,
         cost_log_e0: 0.0,
