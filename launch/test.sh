@@ -20,6 +20,10 @@ if ! cargo nextest --version >/dev/null 2>&1; then
     || echo "test.sh: could not install cargo-nextest; falling back to cargo test" >&2
 fi
 
+# The binaries the process tests start, built here by the same command tests/src/lib.rs `bin()` runs
+# (one feature set for the four packages), so no test waits on a build.
+cargo build --bins -p bcal -p bcal-replay -p bcal-actor -p bcal-learner
+
 if cargo nextest --version >/dev/null 2>&1; then
   cargo nextest run --workspace --no-fail-fast "$@"
 else

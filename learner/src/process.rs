@@ -290,6 +290,13 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
     // Actors wait for these: publish before anything slow.
     ctx.publish_weights(&lac, &weights_pub)?;
     let mut log = MetricsLog::open(&args.run_dir)?;
+    // One line per (re)start: where the update counter begins, so a restart shows in the log.
+    let mut start = Map::new();
+    start.insert("kind".into(), json!("start"));
+    start.insert("t_s".into(), json!(log.t_s()));
+    start.insert("update".into(), json!(lac.updates()));
+    start.insert("resumed".into(), json!(args.resume && lac.updates() > 0));
+    log.write(&start)?;
     if l.validate_every > 0 {
         let line = ctx.validation_line(&lac, &log)?;
         log.write(&line)?;

@@ -13,7 +13,6 @@ use bcal_common::battery::BatteryModel;
 use bcal_common::config::{TrainConfig, Validated};
 use bcal_common::dataset::{default_cache_dir, load_or_generate, Dataset};
 use bcal_common::mdp::MdpSpec;
-use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::Mutex;
@@ -86,9 +85,16 @@ fn profile_dir() -> PathBuf {
     deps.parent().expect("profile folder").to_path_buf()
 }
 
-static BUILT: Mutex<Option<HashSet<String>>> = Mutex::new(None);
+/// The packages whose binaries the tests start. They are built by one command, so cargo resolves one
+/// feature set for them: building each alone (`-p bcal-replay`) resolves another set per package and
+/// recompiles the dependencies each time on a fresh machine. launch/test.sh runs the same command
+/// before the tests.
+pub const BIN_PACKAGES: &[&str] = &["bcal", "bcal-replay", "bcal-actor", "bcal-learner"];
 
-/// Path of a workspace binary (`bcal-replay`, `bcal-actor`, `bcal-learner`, `bcal`), built on first use.
+static BUILT: Mutex<bool> = Mutex::new(false);
+
+/// Path of a workspace binary (`bcal-replay`, `bcal-actor`, `bcal-learner`, `bcal`); all four are built
+/// (or found up to date) on the first call.
 pub fn bin(name: &str) -> PathBuf {
     if let Some(dir) = std::env::var_os("BCAL_BIN_DIR") {
         return PathBuf::from(dir).join(name);
@@ -100,16 +106,16 @@ pub fn bin(name: &str) -> PathBuf {
         return path;
     }
     let mut built = BUILT.lock().unwrap_or_else(|e| e.into_inner());
-    let set = built.get_or_insert_with(HashSet::new);
-    if set.insert(name.to_string()) {
+    if !*built {
         let profile = profile_dir.file_name().and_then(|s| s.to_str()).unwrap_or("debug").to_string();
         let target_dir = profile_dir.parent().expect("target folder");
-        let package = if name == "bcal" { "bcal".to_string() } else { name.to_string() };
         let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
         let mut cmd = Command::new(cargo);
-        cmd.current_dir(workspace_root())
-            .args(["build", "--quiet", "-p", &package, "--bin", name, "--target-dir"])
-            .arg(target_dir);
+        cmd.current_dir(workspace_root()).args(["build", "--quiet", "--bins"]);
+        for p in BIN_PACKAGES {
+            cmd.args(["-p", p]);
+        }
+        cmd.arg("--target-dir").arg(target_dir);
         match profile.as_str() {
             "debug" => {}
             "release" => {
@@ -120,7 +126,8 @@ pub fn bin(name: &str) -> PathBuf {
             }
         }
         let status = cmd.status().expect("run cargo build");
-        assert!(status.success(), "cargo build of {name} failed");
+        assert!(status.success(), "cargo build of {BIN_PACKAGES:?} failed");
+        *built = true;
     }
     assert!(path.exists(), "{} was not built", path.display());
     path

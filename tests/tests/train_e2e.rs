@@ -125,6 +125,12 @@ fn learner_sigterm_checkpoints_and_resume_continues_the_update_counter() {
     );
     let after: Vec<u64> = metrics(&run)[lines_before..].iter().filter_map(|v| v["update"].as_u64()).collect();
     assert!(after.iter().all(|u| *u >= step), "resumed counter restarted: {after:?} after step {step}");
+    // The resumed learner's first line says where it starts: exactly the checkpoint.
+    let first = &metrics(&run)[lines_before];
+    assert_eq!(
+        (first["kind"].as_str(), first["update"].as_u64(), first["resumed"].as_bool()),
+        (Some("start"), Some(step), Some(true))
+    );
     for p in [&mut resumed, &mut actor, &mut replay] {
         assert_eq!(p.terminate(Duration::from_secs(20)).and_then(|s| s.code()), Some(0), "{}: {}", p.name, run.logs());
     }
