@@ -14,7 +14,9 @@ pub enum DoctorError {
     MissingColumn { path: PathBuf, column: String, found: String, hint: &'static str },
     #[error("{path}, line {line}: field `{column}` = `{value}` is not a finite number; fix or remove that row")]
     BadField { path: PathBuf, line: u64, column: String, value: String },
-    #[error("{path}, line {line}: time {time_s} s does not increase (previous {previous_s} s); samples must be in time order")]
+    #[error("{path}, line {line}: field `filename` = `{value}` is not a file name in data/; write the bare file name (e.g. 00042.csv)")]
+    NotAFileName { path: PathBuf, line: u64, value: String },
+    #[error("{path}, line {line}: time {time_s:?} s does not increase (previous {previous_s:?} s); samples must be in time order")]
     TimeNotIncreasing { path: PathBuf, line: u64, time_s: f64, previous_s: f64 },
     #[error(
         "{path}: voltage median {median_v:.1} looks like millivolts (a Li-ion cell reads 2.0-4.5 V); \
@@ -22,7 +24,7 @@ pub enum DoctorError {
     )]
     VoltageInMillivolts { path: PathBuf, median_v: f64 },
     #[error(
-        "{path}: voltage median {median_v} V is outside a Li-ion cell's range (0.5-5 V); check the column and its unit"
+        "{path}: voltage median {median_v:?} V is outside a Li-ion cell's range (0.5-5 V); check the column and its unit"
     )]
     VoltageOutOfRange { path: PathBuf, median_v: f64 },
     #[error(

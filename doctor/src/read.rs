@@ -10,6 +10,7 @@
 
 use crate::error::DoctorError;
 use crate::record::{Discharge, CELSIUS_TO_KELVIN};
+use bcal_common::text::shown;
 use std::collections::BTreeMap;
 use std::ops::RangeInclusive;
 use std::path::Path;
@@ -78,13 +79,7 @@ pub fn read_nasa(
         // A bare file name in `data/`: a path (`../x`, `/etc/x`, `sub/x`) would read outside the folder.
         let mut parts = Path::new(file).components();
         if !matches!((parts.next(), parts.next()), (Some(std::path::Component::Normal(_)), None)) {
-            let why = format!(
-                "line {line}: field `filename` = `{}` is not a file name in data/; write the bare file name \
-                 (e.g. 00042.csv)",
-                shown(file, 80)
-            );
-            let source = std::io::Error::new(std::io::ErrorKind::InvalidData, why);
-            return Err(DoctorError::Io { path: meta_path, source });
+            return Err(DoctorError::NotAFileName { path: meta_path, line, value: shown(file, 80) });
         }
         rows.push((test_id, file.to_string(), ambient_c, capacity_ah));
     }
@@ -260,27 +255,6 @@ fn number(rec: &csv::StringRecord, col: usize, name: &str, path: &Path, line: u6
 
 fn bad_field(path: &Path, line: u64, column: &str, value: &str) -> DoctorError {
     DoctorError::BadField { path: path.to_path_buf(), line, column: column.to_string(), value: shown(value, 40) }
-}
-
-/// File content as an error message shows it: control and invisible characters escaped (a NUL, a terminal
-/// escape or a byte-order mark must not reach the terminal raw or hide), at most `max` characters (a
-/// hostile field may be megabytes).
-fn shown(text: &str, max: usize) -> String {
-    let mut out = String::new();
-    for (k, c) in text.chars().enumerate() {
-        if k == max {
-            out.push_str(&format!("... ({} characters)", text.chars().count()));
-            break;
-        }
-        let invisible =
-            matches!(c, '\u{200b}'..='\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}' | '\u{feff}');
-        if c.is_control() || invisible {
-            out.extend(c.escape_default());
-        } else {
-            out.push(c);
-        }
-    }
-    out
 }
 
 fn read_file(path: &Path) -> Result<Vec<u8>, DoctorError> {

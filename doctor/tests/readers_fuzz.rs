@@ -54,7 +54,9 @@ impl std::fmt::Debug for Bytes {
     }
 }
 
+/// `n` cases per property, or `BCAL_FUZZ_CASES` of them (a soak run, not for CI).
 fn cases(n: u32) -> ProptestConfig {
+    let n = std::env::var("BCAL_FUZZ_CASES").ok().and_then(|v| v.parse().ok()).unwrap_or(n);
     ProptestConfig { cases: n, max_shrink_iters: 2000, ..ProptestConfig::default() }
 }
 
@@ -109,7 +111,7 @@ fn check_err(err: &DoctorError, path: &Path, bytes: &[u8]) -> Result<(), TestCas
                 );
             }
         }
-        DoctorError::TimeNotIncreasing { line, .. } => {
+        DoctorError::TimeNotIncreasing { line, .. } | DoctorError::NotAFileName { line, .. } => {
             prop_assert!(exists(*line), "line {line} of {} lines: {msg}", lines.len());
             prop_assert!(msg.contains(&format!("line {line}")), "{msg}");
         }

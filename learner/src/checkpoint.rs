@@ -16,6 +16,7 @@ use crate::lac::{Lac, LacError};
 use bcal_common::config::{LacConfig, Validated};
 use bcal_common::dataset::Experiment;
 use bcal_common::policy::PolicyLayout;
+use bcal_common::text::shown;
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -63,13 +64,17 @@ fn io_err(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> L
     move |source| LacError::CheckpointIo { action, path, source }
 }
 
+// The reason may quote the damaged file (a parser's "unknown variant ..."): shown escaped and cut.
 fn corrupt(path: &Path, why: impl Into<String>) -> LacError {
-    LacError::CheckpointCorrupt { path: path.to_path_buf(), why: why.into() }
+    LacError::CheckpointCorrupt { path: path.to_path_buf(), why: shown(&why.into(), 400) }
 }
 
 fn mismatch(path: &Path, why: impl Into<String>) -> LacError {
-    LacError::CheckpointMismatch { path: path.to_path_buf(), why: why.into() }
+    LacError::CheckpointMismatch { path: path.to_path_buf(), why: shown(&why.into(), 400) }
 }
+
+/// Bound on a loaded log multiplier (log_lambda, log_beta); see [`Lac::load_latest`].
+const LOG_MULTIPLIER_LIMIT: f64 = 80.0;
 
 fn step_folder_name(step: u64) -> String {
     format!("step-{step}")
@@ -250,6 +255,15 @@ impl Lac {
         for (name, var) in [("log_lambda", &mut lac.log_lambda), ("log_beta", &mut lac.log_beta)] {
             let src = scalars.remove(name).ok_or_else(|| corrupt(&path, format!("no tensor {name}")))?;
             copy_checked(&path, name, &src, var)?;
+            // exp() of a log multiplier must stay finite and non-zero in f32 (|x| < 87): beyond is damage
+            // that the checksum did not catch, and would poison every loss.
+            let value = var.double_value(&[]);
+            if !(-LOG_MULTIPLIER_LIMIT..=LOG_MULTIPLIER_LIMIT).contains(&value) {
+                return Err(corrupt(
+                    &path,
+                    format!("{name} = {value:e} is outside [-{LOG_MULTIPLIER_LIMIT}, {LOG_MULTIPLIER_LIMIT}]"),
+                ));
+            }
         }
         lac.updates = step;
         lac.quarantined = meta.quarantined;

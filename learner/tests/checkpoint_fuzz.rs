@@ -367,8 +367,14 @@ fn edited_meta(text: &[u8], edit: &MetaEdit) -> Vec<u8> {
     }
 }
 
+/// `n` cases per property, or `BCAL_FUZZ_CASES` of them (a soak run, not for CI).
+fn cases(n: u32) -> ProptestConfig {
+    let n = std::env::var("BCAL_FUZZ_CASES").ok().and_then(|v| v.parse().ok()).unwrap_or(n);
+    ProptestConfig { cases: n, max_shrink_iters: 500, ..ProptestConfig::default() }
+}
+
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 128, max_shrink_iters: 500, ..ProptestConfig::default() })]
+    #![proptest_config(cases(128))]
 
     /// Byte damage to any file (meta.json, a tensor file, LATEST): an error naming that file, or (a harmless
     /// edit such as JSON whitespace) exactly the saved weights.
