@@ -89,7 +89,7 @@ fn profile_dir() -> PathBuf {
 /// feature set for them: building each alone (`-p bcal-replay`) resolves another set per package and
 /// recompiles the dependencies each time on a fresh machine. launch/test.sh runs the same command
 /// before the tests.
-pub const BIN_PACKAGES: &[&str] = &["bcal", "bcal-replay", "bcal-actor", "bcal-learner"];
+const BIN_PACKAGES: &[&str] = &["bcal", "bcal-replay", "bcal-actor", "bcal-learner"];
 
 static BUILT: Mutex<bool> = Mutex::new(false);
 
