@@ -14,7 +14,10 @@ pub enum DoctorError {
     MissingColumn { path: PathBuf, column: String, found: String, hint: &'static str },
     #[error("{path}, line {line}: field `{column}` = `{value}` is not a finite number; fix or remove that row")]
     BadField { path: PathBuf, line: u64, column: String, value: String },
-    #[error("{path}, line {line}: field `filename` = `{value}` is not a file name in data/; write the bare file name (e.g. 00042.csv)")]
+    #[error(
+        "{path}, line {line}: field `filename` = `{value}` is not a file name in data/; write the bare file name \
+         (e.g. 00042.csv)"
+    )]
     NotAFileName { path: PathBuf, line: u64, value: String },
     #[error("{path}, line {line}: time {time_s:?} s does not increase (previous {previous_s:?} s); samples must be in time order")]
     TimeNotIncreasing { path: PathBuf, line: u64, time_s: f64, previous_s: f64 },
