@@ -1,13 +1,16 @@
 //! An actor's environments stepped in lockstep with one policy: each step observes every environment,
-//! draws a stochastic action (squashed Gaussian, SplitMix64 normals) and appends one [`Transition`] per
-//! environment. No IPC here, so a unit test can step it directly.
+//! draws a stochastic action (squashed Gaussian) and appends one [`Transition`] per environment. No IPC
+//! here, so a unit test can step it directly.
 
 use bcal_common::battery::BatteryModel;
 use bcal_common::dataset::Dataset;
-use bcal_common::ipc::fnv1a64;
-use bcal_common::mdp::{CalibrationEnv, MdpSpec, SplitMix64};
+use bcal_common::hash::fnv1a64;
+use bcal_common::mdp::{CalibrationEnv, MdpSpec};
 use bcal_common::policy::{PolicyNet, Scratch};
 use bcal_common::wire::{Transition, MAX_ACT, MAX_OBS};
+use rand::rngs::SmallRng;
+use rand::SeedableRng;
+use rand_distr::StandardNormal;
 
 /// The seed of one random stream of one actor: distinct per (run seed, actor id, stream), reproducible.
 pub fn actor_seed(run_seed: u64, actor_id: u32, stream: &str) -> u64 {
@@ -15,40 +18,38 @@ pub fn actor_seed(run_seed: u64, actor_id: u32, stream: &str) -> u64 {
     bytes.extend_from_slice(&run_seed.to_le_bytes());
     bytes.extend_from_slice(&u64::from(actor_id).to_le_bytes());
     bytes.extend_from_slice(stream.as_bytes());
-    SplitMix64(fnv1a64(&bytes)).next_u64()
+    fnv1a64(&bytes)
 }
 
 /// N environments, their random streams and the policy's scratch space.
 pub struct ActorEnvs {
     envs: Vec<CalibrationEnv>,
-    train: Vec<usize>,
-    env_rng: SplitMix64,
-    noise_rng: SplitMix64,
+    env_rng: SmallRng,
+    noise_rng: SmallRng,
     scratch: Scratch,
     obs_dim: usize,
     act_dim: usize,
 }
 
 impl ActorEnvs {
-    /// `n_envs` environments on `train` trajectories; `policy_scratch` sized for the policy's layout.
+    /// `n_envs` environments on the trajectories of `train` (the training split); `policy_scratch` sized
+    /// for the policy's layout.
     pub fn new(
         spec: &MdpSpec,
         model: &BatteryModel,
-        ds: &Dataset,
-        train: Vec<usize>,
+        train: &Dataset,
         n_envs: usize,
         seeds: (u64, u64),
         policy_scratch: Scratch,
     ) -> Self {
-        assert!(!train.is_empty(), "no training trajectories");
+        assert!(!train.trajectories.is_empty(), "no training trajectories");
         assert!(spec.obs_dim() <= MAX_OBS && spec.act_dim() <= MAX_ACT, "MDP larger than the wire types");
-        let mut env_rng = SplitMix64(seeds.0);
-        let envs = (0..n_envs).map(|_| CalibrationEnv::new(spec, model, ds, &train, &mut env_rng)).collect();
+        let mut env_rng = SmallRng::seed_from_u64(seeds.0);
+        let envs = (0..n_envs).map(|_| CalibrationEnv::new(spec, model, train, &mut env_rng)).collect();
         Self {
             envs,
-            train,
             env_rng,
-            noise_rng: SplitMix64(seeds.1),
+            noise_rng: SmallRng::seed_from_u64(seeds.1),
             scratch: policy_scratch,
             obs_dim: spec.obs_dim(),
             act_dim: spec.act_dim(),
@@ -77,8 +78,13 @@ impl ActorEnvs {
             let mut t = Transition::default();
             env.observe(spec, ds, &mut t.obs[..od]);
             let noise = &mut self.noise_rng;
-            policy.act_stochastic(&t.obs[..od], &mut self.scratch, || noise.normal(), &mut t.action[..ad]);
-            let s = env.step(spec, model, ds, &self.train, &t.action[..ad], &mut t.next_obs[..od], &mut self.env_rng);
+            policy.act_stochastic(
+                &t.obs[..od],
+                &mut self.scratch,
+                || rand::Rng::sample(noise, StandardNormal),
+                &mut t.action[..ad],
+            );
+            let s = env.step(spec, model, ds, &t.action[..ad], &mut t.next_obs[..od], &mut self.env_rng);
             t.cost = s.cost as f32;
             // Window ends are time limits, not terminal states: the learner bootstraps through them.
             t.terminal = 0.0;
@@ -91,7 +97,7 @@ impl ActorEnvs {
 mod tests {
     use super::*;
     use bcal_common::config::EnvConfig;
-    use bcal_common::dataset::{generate, Experiment, ExperimentDef, Grid};
+    use bcal_common::dataset::{generate, Experiment, ExperimentDef, Grid, Split};
     use bcal_common::policy::PolicyLayout;
 
     #[test]
@@ -110,18 +116,17 @@ mod tests {
             r_o_ohm: Grid { start: 0.1, end: 0.2, n: 2 },
             loads_w: Grid { start: 8.0, end: 16.0, n: 5 },
             n_test_loads: 2,
+            validation: Experiment::Multi.definition().validation,
             dt_s: 1.0,
             max_steps: 100_000,
         };
         let model = BatteryModel::default();
-        let ds = generate(&def, &model).unwrap();
+        let ds = generate(&def, &model, Split::Train).unwrap();
         let spec = MdpSpec::new(Experiment::Multi, &EnvConfig::default(), &ds);
         let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: vec![8, 8] };
         let params: Vec<f32> = (0..layout.n_params()).map(|i| ((i % 7) as f32 - 3.0) * 0.05).collect();
         let policy = PolicyNet::from_flat(layout.clone(), params).unwrap();
-        let train = ds.train_indices();
-        assert!(train.iter().all(|i| !ds.def.is_test_load(ds.trajectories[*i].load_w)));
-        let mut envs = ActorEnvs::new(&spec, &model, &ds, train, 5, (1, 2), Scratch::new(&layout));
+        let mut envs = ActorEnvs::new(&spec, &model, &ds, 5, (1, 2), Scratch::new(&layout));
         let mut out = Vec::new();
         for _ in 0..40 {
             envs.step(&spec, &model, &ds, &policy, &mut out);

@@ -14,7 +14,7 @@
 use crate::envs::{actor_seed, ActorEnvs};
 use bcal_common::battery::BatteryModel;
 use bcal_common::config::{ConfigError, TrainConfig, Validated};
-use bcal_common::dataset::{default_cache_dir, load_or_generate, DatasetError};
+use bcal_common::dataset::{default_cache_dir, load_or_generate, DatasetError, Split};
 use bcal_common::ipc::{self, IpcError, Role, RunIpc, StatusSubscriber, WeightsSubscriber, OPEN_TIMEOUT};
 use bcal_common::mdp::MdpSpec;
 use bcal_common::policy::{PolicyLayout, PolicyNet, Scratch};
@@ -113,13 +113,14 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
     }
     let spec = read_mdp(&args.run_dir)?;
     let model = BatteryModel::default();
-    let (ds, _) = load_or_generate(&cfg.def, &model, &default_cache_dir())?;
+    // The training split only: an actor never holds validation or test data.
+    let (ds, _) = load_or_generate(&cfg.def, &model, &default_cache_dir(), Split::Train)?;
     cfg.check_dataset(&ds)?;
 
     let report_dir = args.run_dir.join("actors");
     std::fs::create_dir_all(&report_dir).map_err(|source| ActorError::Write { path: report_dir.clone(), source })?;
     let report_path = report_dir.join(format!("actor-{}.json", args.actor_id));
-    let epoch = ipc::fnv1a64(format!("{}:{}", std::process::id(), ipc::unix_time_s()).as_bytes());
+    let epoch = bcal_common::hash::fnv1a64(format!("{}:{}", std::process::id(), ipc::unix_time_s()).as_bytes());
     let mut report = ActorReport {
         actor_id: args.actor_id,
         pid: std::process::id(),
@@ -130,7 +131,7 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
     let write = |r: &mut ActorReport| {
         r.uptime_s = started.elapsed().as_secs_f64();
         r.updated_unix_s = ipc::unix_time_s();
-        ipc::write_json_atomic(&report_path, r)
+        bcal_common::fsutil::write_json_atomic(&report_path, r)
             .map_err(|source| ActorError::Write { path: report_path.clone(), source })
     };
     write(&mut report)?;
@@ -157,15 +158,7 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
         PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: cfg.config.lac.hidden.clone() };
     let seeds =
         (actor_seed(cfg.config.seed, args.actor_id, "env"), actor_seed(cfg.config.seed, args.actor_id, "noise"));
-    let mut envs = ActorEnvs::new(
-        &spec,
-        &model,
-        &ds,
-        ds.train_indices(),
-        cfg.config.actors.envs_per_actor,
-        seeds,
-        Scratch::new(&layout),
-    );
+    let mut envs = ActorEnvs::new(&spec, &model, &ds, cfg.config.actors.envs_per_actor, seeds, Scratch::new(&layout));
     let publish_batch = run.limits.publish_batch;
     let mut pending: Vec<Transition> = Vec::with_capacity(publish_batch + envs.len());
     let mut policy: Option<PolicyNet> = None;

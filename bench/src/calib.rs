@@ -64,7 +64,8 @@ fn actor_pair(obs_dim: usize, act_dim: usize, hidden: &[usize]) -> anyhow::Resul
     Ok((lac, net))
 }
 
-/// Times every calibrator step; `steps` per row (the model unit gets 20 times as many, as in the evaluator).
+/// Times every calibrator step on test trajectories `ds`; `steps` per row (the model unit gets 20 times as
+/// many, as in the evaluator).
 pub fn measure(
     ds: &Dataset,
     spec: &MdpSpec,
@@ -72,12 +73,16 @@ pub fn measure(
     steps: usize,
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<CalibReport> {
-    let test = spread_by_load(ds, &ds.test_indices(), None);
+    let all: Vec<usize> = (0..ds.trajectories.len()).collect();
+    let test = spread_by_load(ds, &all, None);
     let trajs: Vec<&Trajectory> = test.iter().take(8).map(|&i| &ds.trajectories[i]).collect();
     anyhow::ensure!(!trajs.is_empty(), "the dataset has no test trajectories to time on");
     let dt_s = ds.def.dt_s;
+    // Only the step timing reads this input: the test trajectories stand in for every split.
     let input = EvalInput {
-        ds,
+        test: ds,
+        validation: ds,
+        train: None,
         spec,
         model,
         policy: PolicyInput::Missing { reason: "bench: networks are built in place".into() },

@@ -3,7 +3,7 @@
 
 use bcal_common::config::TrainConfig;
 use bcal_common::dataset::Experiment;
-use bcal_common::mdp::{ActionMap, ObservationKind, SplitMix64};
+use bcal_common::mdp::{ActionMap, ObservationKind};
 use bcal_common::policy::PolicyLayout;
 use bcal_common::wire::Transition;
 use bcal_learner::Lac;
@@ -38,21 +38,7 @@ pub fn measure(hidden: &[usize], batch: usize, torch_threads: usize, window: Dur
     let v = c.validate()?;
     let obs_dim = ObservationKind::FullState.dim();
     let act_dim = ActionMap::from_config(c.experiment, &c.env).dim();
-    let mut rng = SplitMix64(1);
-    let transitions: Vec<Transition> = (0..batch)
-        .map(|_| {
-            let mut t = Transition::default();
-            for k in 0..obs_dim {
-                t.obs[k] = rng.normal() as f32;
-                t.next_obs[k] = rng.normal() as f32;
-            }
-            for a in &mut t.action[..act_dim] {
-                *a = (rng.unit_f64() * 2.0 - 1.0) as f32;
-            }
-            t.cost = rng.unit_f64() as f32;
-            t
-        })
-        .collect();
+    let transitions = Transition::synthetic_batch(1, batch, obs_dim, act_dim);
     let threads_before = tch::get_num_threads();
     let mut lac = Lac::new(&v, PolicyLayout { obs_dim, act_dim, hidden: hidden.to_vec() }, 1)?;
     let result = (|| {

@@ -20,7 +20,7 @@ pub mod transport;
 use anyhow::Context;
 use bcal_common::battery::BatteryModel;
 use bcal_common::config::TrainConfig;
-use bcal_common::dataset::{self, CacheStatus, Experiment};
+use bcal_common::dataset::{self, CacheStatus, Experiment, Split};
 use bcal_common::mdp::MdpSpec;
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
@@ -251,13 +251,16 @@ pub fn run(
     if parts.calib {
         let experiment = Experiment::Multi;
         progress(&format!("calib: loading the {experiment} data set from {} ...", cache_dir.display()));
-        let (ds, rep) = dataset::load_or_generate(&experiment.definition(), &model, cache_dir)
-            .with_context(|| format!("dataset {experiment} in {}", cache_dir.display()))?;
+        let def = experiment.definition();
+        let (train, _) = dataset::load_or_generate(&def, &model, cache_dir, Split::Train)
+            .with_context(|| format!("dataset {experiment} train in {}", cache_dir.display()))?;
+        let (ds, rep) = dataset::load_or_generate(&def, &model, cache_dir, Split::Test)
+            .with_context(|| format!("dataset {experiment} test in {}", cache_dir.display()))?;
         let source = match rep.status {
             CacheStatus::Hit => "cached",
             CacheStatus::Generated | CacheStatus::Regenerated { .. } => "generated",
         };
-        progress(&format!("calib: dataset {experiment} {source} in {:.1} s", rep.seconds));
+        progress(&format!("calib: dataset {experiment} test split {source} in {:.1} s", rep.seconds));
         report.dataset = Some(DatasetFacts {
             experiment: experiment.to_string(),
             trajectories: ds.trajectories.len() as u64,
@@ -265,7 +268,8 @@ pub fn run(
             seconds: rep.seconds,
         });
         let cfg = TrainConfig { experiment, ..Default::default() };
-        let spec = MdpSpec::new(experiment, &cfg.env, &ds);
+        let spec = MdpSpec::new(experiment, &cfg.env, &train);
+        drop(train);
         report.calib = Some(calib::measure(&ds, &spec, &model, settings.calib_steps, progress)?);
     }
     if parts.learner {

@@ -23,8 +23,7 @@
 use anyhow::{bail, Context};
 use bcal_common::config::TrainConfig;
 use bcal_common::ipc::{self, Role, RunIpc, TRANSITION_BUFFER_MESSAGES};
-use bcal_common::mdp::SplitMix64;
-use bcal_common::wire::{monotonic_ns, Transition, TransitionBatchHeader};
+use bcal_common::wire::{monotonic_ns, Transition, TransitionBatchHeader, MAX_ACT, MAX_OBS};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -166,17 +165,7 @@ pub fn measure(
 
 /// The batch every sender sends: finite pseudo-random transitions.
 fn template(n: usize, seed: u64) -> Vec<Transition> {
-    let mut rng = SplitMix64(seed);
-    (0..n)
-        .map(|_| {
-            let mut t = Transition::default();
-            for v in t.obs.iter_mut().chain(t.next_obs.iter_mut()).chain(t.action.iter_mut()) {
-                *v = rng.normal() as f32;
-            }
-            t.cost = rng.unit_f64() as f32;
-            t
-        })
-        .collect()
+    Transition::synthetic_batch(seed, n, MAX_OBS, MAX_ACT)
 }
 
 /// The receivers' shared bookkeeping: a ring store the transitions are copied into, and the latencies.

@@ -1,12 +1,19 @@
 //! The paper's three experiments (Appendix A): grids of degradation parameters and constant loads, each
-//! trajectory simulated from its initial state until end of discharge, split by load (never by trajectory).
+//! trajectory simulated from its initial state until end of discharge, split by load (never by trajectory)
+//! into three sets ([`Split`]): training (the lower loads), test (the paper's held-out highest loads) and a
+//! validation set of its own, at a load between the two that is in neither and with parameter values off
+//! the training grid. Every choice (hyperparameters, filter settings, early stopping, which checkpoint to
+//! deliver) is made on validation; test is only ever reported.
 //!
-//! Generation runs on every core (rayon) and is cached on disk in a compact binary file keyed by a hash of
-//! the experiment's definition and the model parameters: a changed definition lands in a new file, and a
-//! corrupt file is reported and regenerated, never used. This module never prints: it returns what
+//! Generation runs on every core (rayon) and each split is cached on disk in its own compact binary file
+//! keyed by a hash of the experiment's definition, the split and the model parameters: a changed
+//! definition lands in a new file, a corrupt file is reported and regenerated, never used, and a process
+//! reads only the split it needs (actors the training set, the learner the validation set). This module never prints: it returns what
 //! happened ([`CacheStatus`]) and the caller tells the user.
 
 use crate::battery::{BatteryModel, BatteryParams, Degradation, Load, LoadProfile, ModelError};
+use crate::fsutil::write_atomic_with;
+use crate::hash::fnv1a64;
 use crate::math::{electro, N_STATE};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -16,13 +23,14 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Bumped whenever the file layout or the simulation semantics change, so old caches are never read.
-pub const CACHE_FORMAT_VERSION: u32 = 1;
+pub const CACHE_FORMAT_VERSION: u32 = 2;
 const CACHE_MAGIC: &[u8; 8] = b"BCALDS\0\0";
 /// Magic (8) + format version (4) + key (8) + payload length (8) + payload CRC32 (4).
 const HEADER_LEN: usize = 32;
 
-/// The three experiments of the paper's Appendix A.
+/// The three experiments of the paper's Appendix A (the CLI takes them by these kebab-case names).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum Experiment {
     /// qMobile varies (501 values, 4000..7000 C), Ro fixed at 0.117215 ohm, 11 loads 8..16 W.
@@ -58,6 +66,13 @@ impl Experiment {
                 r_o_ohm: Grid::single(0.117215),
                 loads_w: single_loads,
                 n_test_loads: 4,
+                // Off the training grid (4000 + 6 k C) and at 13.2 W, between the training loads (<= 12.8)
+                // and the test loads (>= 13.6).
+                validation: ValidationDef {
+                    loads_w: vec![13.2],
+                    q_mobile_c: Grid { start: 4003.0, end: 6997.0, n: 48 },
+                    r_o_ohm: Grid::single(0.117215),
+                },
                 dt_s: 1.0,
                 max_steps: 100_000,
             },
@@ -67,6 +82,11 @@ impl Experiment {
                 r_o_ohm: Grid { start: 0.1, end: 0.2, n: 501 },
                 loads_w: single_loads,
                 n_test_loads: 4,
+                validation: ValidationDef {
+                    loads_w: vec![13.2],
+                    q_mobile_c: Grid::single(7600.0),
+                    r_o_ohm: Grid { start: 0.1001, end: 0.1999, n: 48 },
+                },
                 dt_s: 1.0,
                 max_steps: 100_000,
             },
@@ -76,11 +96,65 @@ impl Experiment {
                 r_o_ohm: Grid { start: 0.1, end: 0.2, n: 5 },
                 loads_w: Grid { start: 8.0, end: 16.0, n: 9 },
                 n_test_loads: 3,
+                // Half a grid step off both training grids, at 13.5 W (training <= 13, test >= 14).
+                validation: ValidationDef {
+                    loads_w: vec![13.5],
+                    q_mobile_c: Grid { start: 4015.0, end: 6985.0, n: 12 },
+                    r_o_ohm: Grid { start: 0.1125, end: 0.1875, n: 4 },
+                },
                 dt_s: 1.0,
                 max_steps: 100_000,
             },
         }
     }
+}
+
+impl std::str::FromStr for Experiment {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::parse(s).ok_or_else(|| {
+            let names: Vec<&str> = Self::ALL.iter().map(|e| e.name()).collect();
+            format!("unknown experiment `{s}`; one of {}", names.join(", "))
+        })
+    }
+}
+
+/// Which of the three disjoint sets of an experiment.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Split {
+    /// The lower loads of the paper grid: what actors train on and observation scales come from.
+    Train,
+    /// Its own loads and parameter values: every tuning choice and checkpoint selection.
+    Validation,
+    /// The paper's held-out highest loads: only ever reported.
+    Test,
+}
+
+impl Split {
+    pub const ALL: [Split; 3] = [Split::Train, Split::Validation, Split::Test];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Validation => "validation",
+            Split::Test => "test",
+        }
+    }
+}
+
+impl std::fmt::Display for Split {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// The validation set of an experiment: loads in neither training nor test, parameters off the grid.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ValidationDef {
+    pub loads_w: Vec<f64>,
+    pub q_mobile_c: Grid,
+    pub r_o_ohm: Grid,
 }
 
 impl std::fmt::Display for Experiment {
@@ -124,14 +198,37 @@ pub struct ExperimentDef {
     pub loads_w: Grid,
     /// The highest `n_test_loads` loads form the test set (extrapolation to unseen loads).
     pub n_test_loads: usize,
+    /// The validation set, generated apart from the grid.
+    pub validation: ValidationDef,
     pub dt_s: f64,
     /// Safety stop for a trajectory that never reaches EOD (an error, not a silent truncation).
     pub max_steps: usize,
 }
 
 impl ExperimentDef {
+    /// Trajectories of the paper grid (training and test together).
     pub fn n_trajectories(&self) -> usize {
         self.q_mobile_c.n * self.r_o_ohm.n * self.loads_w.n
+    }
+
+    /// (degradation, load) of every trajectory of `split`, q-major, then Ro, then load.
+    pub fn combos(&self, split: Split) -> Vec<(Degradation, f64)> {
+        let (q_grid, r_grid, loads): (&Grid, &Grid, Vec<f64>) = match split {
+            Split::Train => (&self.q_mobile_c, &self.r_o_ohm, self.train_loads_w()),
+            Split::Test => (&self.q_mobile_c, &self.r_o_ohm, self.test_loads_w()),
+            Split::Validation => {
+                (&self.validation.q_mobile_c, &self.validation.r_o_ohm, self.validation.loads_w.clone())
+            }
+        };
+        let mut combos = Vec::with_capacity(q_grid.n * r_grid.n * loads.len());
+        for q in q_grid.values() {
+            for r in r_grid.values() {
+                for l in &loads {
+                    combos.push((Degradation { q_mobile_c: q, r_o_ohm: r }, *l));
+                }
+            }
+        }
+        combos
     }
 
     /// The smallest test load, W: trajectories at or above it are test trajectories.
@@ -153,22 +250,14 @@ impl ExperimentDef {
         self.loads_w.values().filter(|l| !self.is_test_load(*l)).collect()
     }
 
-    /// Cache key: FNV-1a over the serialised definition, model parameters and format version. FNV rather
-    /// than std's hasher because std does not promise a stable hash across Rust releases.
-    pub fn cache_key(&self, params: &BatteryParams) -> u64 {
-        let bytes = bincode::serde::encode_to_vec((CACHE_FORMAT_VERSION, self, params), bincode::config::standard())
-            .expect("definitions always serialise");
+    /// Cache key of one split: a stable hash over the serialised definition, split, model parameters and
+    /// format version.
+    pub fn cache_key(&self, split: Split, params: &BatteryParams) -> u64 {
+        let bytes =
+            bincode::serde::encode_to_vec((CACHE_FORMAT_VERSION, self, split, params), bincode::config::standard())
+                .expect("definitions always serialise");
         fnv1a64(&bytes)
     }
-}
-
-fn fnv1a64(bytes: &[u8]) -> u64 {
-    let mut h: u64 = 0xcbf29ce484222325;
-    for b in bytes {
-        h ^= *b as u64;
-        h = h.wrapping_mul(0x100000001b3);
-    }
-    h
 }
 
 /// One constant-load discharge from the initial state to the first step below VEOD.
@@ -199,41 +288,33 @@ impl Trajectory {
     }
 }
 
-/// A generated experiment: its definition and every trajectory, ordered q-major, then Ro, then load.
+/// One split of a generated experiment: its definition and the split's trajectories, ordered q-major, then
+/// Ro, then load.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Dataset {
     pub def: ExperimentDef,
+    pub split: Split,
     pub trajectories: Vec<Trajectory>,
 }
 
 impl Dataset {
-    pub fn train(&self) -> impl Iterator<Item = &Trajectory> {
-        self.trajectories.iter().filter(|t| !self.def.is_test_load(t.load_w))
-    }
-
-    pub fn test(&self) -> impl Iterator<Item = &Trajectory> {
-        self.trajectories.iter().filter(|t| self.def.is_test_load(t.load_w))
-    }
-
-    /// Indices of the training trajectories (below the test loads).
-    pub fn train_indices(&self) -> Vec<usize> {
-        (0..self.trajectories.len()).filter(|&i| !self.def.is_test_load(self.trajectories[i].load_w)).collect()
-    }
-
-    /// Indices of the test trajectories (the highest loads).
-    pub fn test_indices(&self) -> Vec<usize> {
-        (0..self.trajectories.len()).filter(|&i| self.def.is_test_load(self.trajectories[i].load_w)).collect()
-    }
-
-    /// `k` test trajectories spread evenly over the test set (all of them when k >= their number).
-    pub fn spread_test_indices(&self, k: usize) -> Vec<usize> {
-        let test = self.test_indices();
-        let k = k.min(test.len());
-        (0..k).map(|i| test[i * test.len() / k]).collect()
+    /// `k` trajectories spread evenly over the split (all of them when k is 0 or >= their number).
+    pub fn spread_indices(&self, k: usize) -> Vec<usize> {
+        let n = self.trajectories.len();
+        let k = if k == 0 { n } else { k.min(n) };
+        (0..k).map(|i| i * n / k).collect()
     }
 
     pub fn total_steps(&self) -> usize {
         self.trajectories.iter().map(|t| t.len()).sum()
+    }
+
+    /// The loads of the split, sorted, each once.
+    pub fn loads_w(&self) -> Vec<f64> {
+        let mut loads: Vec<f64> = self.trajectories.iter().map(|t| t.load_w).collect();
+        loads.sort_by(f64::total_cmp);
+        loads.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+        loads
     }
 }
 
@@ -243,6 +324,8 @@ pub enum DatasetError {
     Model(#[from] ModelError),
     #[error("trajectory q_mobile {q_mobile_c} C, Ro {r_o_ohm} ohm, load {load_w} W did not reach EOD within {max_steps} steps")]
     NoEod { q_mobile_c: f64, r_o_ohm: f64, load_w: f64, max_steps: usize },
+    #[error("the {split} split of experiment {experiment} is empty; its definition puts no trajectory in it")]
+    EmptySplit { experiment: Experiment, split: Split },
     #[error("cannot {action} dataset cache {path}: {source}; check that the folder exists and is writable (or set --cache-dir)")]
     Io { action: &'static str, path: PathBuf, source: std::io::Error },
 }
@@ -267,21 +350,17 @@ pub struct LoadReport {
     pub file_bytes: u64,
 }
 
-/// Simulates every trajectory of `def` on all cores.
-pub fn generate(def: &ExperimentDef, model: &BatteryModel) -> Result<Dataset, DatasetError> {
-    let mut combos = Vec::with_capacity(def.n_trajectories());
-    for q in def.q_mobile_c.values() {
-        for r in def.r_o_ohm.values() {
-            for l in def.loads_w.values() {
-                combos.push((Degradation { q_mobile_c: q, r_o_ohm: r }, l));
-            }
-        }
+/// Simulates every trajectory of one split of `def` on all cores.
+pub fn generate(def: &ExperimentDef, model: &BatteryModel, split: Split) -> Result<Dataset, DatasetError> {
+    let combos = def.combos(split);
+    if combos.is_empty() {
+        return Err(DatasetError::EmptySplit { experiment: def.experiment, split });
     }
     let trajectories = combos
         .into_par_iter()
         .map(|(d, load_w)| simulate_trajectory(model, &d, load_w, def.dt_s, def.max_steps))
         .collect::<Result<Vec<_>, _>>()?;
-    Ok(Dataset { def: def.clone(), trajectories })
+    Ok(Dataset { def: def.clone(), split, trajectories })
 }
 
 /// One constant-power trajectory from the degradation's initial state to EOD.
@@ -314,9 +393,9 @@ pub fn simulate_trajectory(
     Ok(Trajectory { degradation: *d, load_w, states, voltage_v })
 }
 
-/// The cache file of `def` under `cache_dir`.
-pub fn cache_path(cache_dir: &Path, def: &ExperimentDef, params: &BatteryParams) -> PathBuf {
-    cache_dir.join(format!("{}-{:016x}.bcalds", def.experiment.name(), def.cache_key(params)))
+/// The cache file of one split of `def` under `cache_dir`.
+pub fn cache_path(cache_dir: &Path, def: &ExperimentDef, split: Split, params: &BatteryParams) -> PathBuf {
+    cache_dir.join(format!("{}-{}-{:016x}.bcalds", def.experiment.name(), split.name(), def.cache_key(split, params)))
 }
 
 /// The default cache folder: `$BCAL_CACHE/datasets`, else `$HOME/.cache/bcal/datasets`, else `.cache/datasets`.
@@ -330,20 +409,21 @@ pub fn default_cache_dir() -> PathBuf {
     }
 }
 
-/// Reads the cached dataset of `def`, or generates and caches it. A corrupt cache file is regenerated and
+/// Reads the cached split of `def`, or generates and caches it. A corrupt cache file is regenerated and
 /// the reason returned in the report.
 pub fn load_or_generate(
     def: &ExperimentDef,
     model: &BatteryModel,
     cache_dir: &Path,
+    split: Split,
 ) -> Result<(Dataset, LoadReport), DatasetError> {
     let started = Instant::now();
-    let path = cache_path(cache_dir, def, &model.params);
-    let key = def.cache_key(&model.params);
+    let path = cache_path(cache_dir, def, split, &model.params);
+    let key = def.cache_key(split, &model.params);
     let mut status = CacheStatus::Generated;
     if path.exists() {
         match read_cache(&path, key) {
-            Ok(ds) if ds.def == *def => {
+            Ok(ds) if ds.def == *def && ds.split == split => {
                 let file_bytes = fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
                 let seconds = started.elapsed().as_secs_f64();
                 return Ok((ds, LoadReport { path, status: CacheStatus::Hit, seconds, file_bytes }));
@@ -352,14 +432,14 @@ pub fn load_or_generate(
             Err(reason) => status = CacheStatus::Regenerated { reason },
         }
     }
-    let ds = generate(def, model)?;
+    let ds = generate(def, model, split)?;
     let file_bytes = write_cache(&path, key, &ds)?;
     let seconds = started.elapsed().as_secs_f64();
     Ok((ds, LoadReport { path, status, seconds, file_bytes }))
 }
 
-/// Writes the dataset atomically (temporary file, fsync, rename) so a crash never leaves a half file
-/// under the final name. Returns the file size in bytes.
+/// Writes the dataset atomically so a crash never leaves a half file under the final name. Returns the
+/// file size in bytes.
 pub fn write_cache(path: &Path, key: u64, ds: &Dataset) -> Result<u64, DatasetError> {
     let io = |action, source| DatasetError::Io { action, path: path.to_path_buf(), source };
     if let Some(dir) = path.parent() {
@@ -372,18 +452,11 @@ pub fn write_cache(path: &Path, key: u64, ds: &Dataset) -> Result<u64, DatasetEr
     header.extend_from_slice(&key.to_le_bytes());
     header.extend_from_slice(&(payload.len() as u64).to_le_bytes());
     header.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
-    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-    let write = || -> std::io::Result<()> {
-        let mut f = fs::File::create(&tmp)?;
+    write_atomic_with(path, |f| {
         f.write_all(&header)?;
-        f.write_all(&payload)?;
-        f.sync_all()?;
-        fs::rename(&tmp, path)
-    };
-    if let Err(e) = write() {
-        let _ = fs::remove_file(&tmp);
-        return Err(io("write", e));
-    }
+        f.write_all(&payload)
+    })
+    .map_err(|e| io("write", e))?;
     Ok((HEADER_LEN + payload.len()) as u64)
 }
 
@@ -425,13 +498,18 @@ pub fn read_cache(path: &Path, key: u64) -> Result<Dataset, String> {
 mod tests {
     use super::*;
 
-    fn tiny_def() -> ExperimentDef {
+    pub(crate) fn tiny_def() -> ExperimentDef {
         ExperimentDef {
             experiment: Experiment::Multi,
             q_mobile_c: Grid { start: 4000.0, end: 7000.0, n: 3 },
             r_o_ohm: Grid { start: 0.1, end: 0.2, n: 2 },
             loads_w: Grid { start: 8.0, end: 16.0, n: 9 },
             n_test_loads: 3,
+            validation: ValidationDef {
+                loads_w: vec![13.5],
+                q_mobile_c: Grid { start: 4500.0, end: 6500.0, n: 2 },
+                r_o_ohm: Grid { start: 0.125, end: 0.175, n: 2 },
+            },
             dt_s: 1.0,
             max_steps: 100_000,
         }
@@ -448,6 +526,7 @@ mod tests {
         let test: Vec<f64> = q.test_loads_w().iter().map(|l| (l * 10.0).round() / 10.0).collect();
         assert_eq!(test, vec![13.6, 14.4, 15.2, 16.0]);
         assert_eq!(q.train_loads_w().len(), 7);
+        assert_eq!(q.combos(Split::Train).len() + q.combos(Split::Test).len(), 5511);
 
         let r = Experiment::SingleR.definition();
         assert_eq!(r.n_trajectories(), 5511);
@@ -460,22 +539,47 @@ mod tests {
         assert_eq!(m.train_loads_w(), vec![8.0, 9.0, 10.0, 11.0, 12.0, 13.0]);
     }
 
+    /// The validation set shares no load with training or test and no parameter value with the grid.
     #[test]
-    fn generated_set_splits_by_load_and_reaches_eod() {
+    fn validation_loads_and_parameters_are_in_neither_training_nor_test() {
+        for e in Experiment::ALL {
+            let def = e.definition();
+            let val = def.combos(Split::Validation);
+            assert!(val.len() >= 48, "{e}: {} validation trajectories", val.len());
+            let max_train = def.train_loads_w().into_iter().fold(0.0, f64::max);
+            let min_test = def.test_loads_w().into_iter().fold(f64::INFINITY, f64::min);
+            let off = |v: f64, g: &Grid| {
+                g.n == 1 || g.values().all(|x| (x - v).abs() > 1e-3 * (g.end - g.start) / g.n as f64)
+            };
+            for (d, l) in &val {
+                assert!(*l > max_train && *l < min_test, "{e}: validation load {l}");
+                assert!(off(d.q_mobile_c, &def.q_mobile_c) && off(d.r_o_ohm, &def.r_o_ohm), "{e}: {d:?} on the grid");
+            }
+        }
+    }
+
+    #[test]
+    fn generated_splits_hold_their_loads_and_reach_eod() {
         let def = tiny_def();
-        let ds = generate(&def, &BatteryModel::default()).unwrap();
-        assert_eq!(ds.trajectories.len(), 3 * 2 * 9);
-        assert_eq!(ds.test().count(), 3 * 2 * 3);
-        assert_eq!(ds.train().count(), 3 * 2 * 6);
-        assert!(ds.test().all(|t| t.load_w >= 14.0) && ds.train().all(|t| t.load_w <= 13.0));
-        for t in &ds.trajectories {
+        let model = BatteryModel::default();
+        let train = generate(&def, &model, Split::Train).unwrap();
+        let test = generate(&def, &model, Split::Test).unwrap();
+        let val = generate(&def, &model, Split::Validation).unwrap();
+        assert_eq!((train.trajectories.len(), test.trajectories.len(), val.trajectories.len()), (36, 18, 4));
+        assert!(test.trajectories.iter().all(|t| t.load_w >= 14.0));
+        assert!(train.trajectories.iter().all(|t| t.load_w <= 13.0));
+        assert_eq!(val.loads_w(), vec![13.5]);
+        for t in train.trajectories.iter().chain(&test.trajectories).chain(&val.trajectories) {
             let n = t.len();
             assert!(t.voltage_v[n - 1] < 3.0 && t.voltage_v[..n - 1].iter().all(|v| *v >= 3.0));
         }
         // More capacity lasts longer at the same load and resistance.
-        let eod =
-            |q: f64| ds.trajectories.iter().find(|t| t.degradation.q_mobile_c == q && t.load_w == 8.0).unwrap().len();
+        let eod = |q: f64| {
+            train.trajectories.iter().find(|t| t.degradation.q_mobile_c == q && t.load_w == 8.0).unwrap().len()
+        };
         assert!(eod(7000.0) > eod(5500.0) && eod(5500.0) > eod(4000.0));
+        assert_eq!(train.spread_indices(4), vec![0, 9, 18, 27]);
+        assert_eq!(train.spread_indices(0).len(), 36);
     }
 
     #[test]
@@ -483,19 +587,23 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let model = BatteryModel::default();
         let def = tiny_def();
-        let (a, r1) = load_or_generate(&def, &model, dir.path()).unwrap();
+        let (a, r1) = load_or_generate(&def, &model, dir.path(), Split::Train).unwrap();
         assert_eq!(r1.status, CacheStatus::Generated);
-        let (b, r2) = load_or_generate(&def, &model, dir.path()).unwrap();
+        let (b, r2) = load_or_generate(&def, &model, dir.path(), Split::Train).unwrap();
         assert_eq!(r2.status, CacheStatus::Hit);
         assert_eq!(a, b);
+        // Each split has its own file.
+        let (v, rv) = load_or_generate(&def, &model, dir.path(), Split::Validation).unwrap();
+        assert_eq!((rv.status, v.split), (CacheStatus::Generated, Split::Validation));
+        assert_ne!(rv.path, r1.path);
         let changed = ExperimentDef { loads_w: Grid { start: 8.0, end: 12.0, n: 5 }, n_test_loads: 1, ..def.clone() };
-        assert_ne!(cache_path(dir.path(), &changed, &model.params), r1.path);
-        let (c, r3) = load_or_generate(&changed, &model, dir.path()).unwrap();
+        assert_ne!(cache_path(dir.path(), &changed, Split::Train, &model.params), r1.path);
+        let (c, r3) = load_or_generate(&changed, &model, dir.path(), Split::Train).unwrap();
         assert_eq!(r3.status, CacheStatus::Generated);
-        assert_eq!(c.trajectories.len(), 3 * 2 * 5);
+        assert_eq!(c.trajectories.len(), 3 * 2 * 4);
         // Different model parameters are a different key too.
         let p2 = BatteryParams { t_diffusion_s: 6e6, ..BatteryParams::default() };
-        assert_ne!(def.cache_key(&p2), def.cache_key(&model.params));
+        assert_ne!(def.cache_key(Split::Train, &p2), def.cache_key(Split::Train, &model.params));
     }
 
     #[test]
@@ -503,49 +611,32 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let model = BatteryModel::default();
         let def = tiny_def();
-        let (good, r) = load_or_generate(&def, &model, dir.path()).unwrap();
+        let (good, r) = load_or_generate(&def, &model, dir.path(), Split::Test).unwrap();
         let bytes = fs::read(&r.path).unwrap();
 
         // Each damage must be named and must not be used.
+        let flip = |at: usize, v: Option<u8>| {
+            let mut b = bytes.clone();
+            b[at] = v.unwrap_or(b[at] ^ 0x55);
+            b
+        };
         let damages: Vec<(Vec<u8>, &str)> = vec![
-            (
-                {
-                    let mut b = bytes.clone();
-                    let n = b.len();
-                    b[n / 2] ^= 0x55;
-                    b
-                },
-                "checksum",
-            ),
+            (flip(bytes.len() / 2, None), "checksum"),
             (bytes[..bytes.len() - 10].to_vec(), "truncated"),
             (bytes[..10].to_vec(), "truncated"),
-            (
-                {
-                    let mut b = bytes.clone();
-                    b[0] = b'X';
-                    b
-                },
-                "magic",
-            ),
-            (
-                {
-                    let mut b = bytes.clone();
-                    b[8] = 99;
-                    b
-                },
-                "format version",
-            ),
+            (flip(0, Some(b'X')), "magic"),
+            (flip(8, Some(99)), "format version"),
         ];
         for (damaged, why) in damages {
             fs::write(&r.path, &damaged).unwrap();
-            let (ds, rep) = load_or_generate(&def, &model, dir.path()).unwrap();
+            let (ds, rep) = load_or_generate(&def, &model, dir.path(), Split::Test).unwrap();
             match &rep.status {
                 CacheStatus::Regenerated { reason } => assert!(reason.contains(why), "{why}: got {reason}"),
                 s => panic!("{why}: expected regeneration, got {s:?}"),
             }
             assert_eq!(ds, good);
             // And the regenerated file is valid again.
-            assert_eq!(load_or_generate(&def, &model, dir.path()).unwrap().1.status, CacheStatus::Hit);
+            assert_eq!(load_or_generate(&def, &model, dir.path(), Split::Test).unwrap().1.status, CacheStatus::Hit);
         }
     }
 
@@ -554,7 +645,8 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let blocker = dir.path().join("file");
         fs::write(&blocker, b"x").unwrap();
-        let err = load_or_generate(&tiny_def(), &BatteryModel::default(), &blocker.join("sub")).unwrap_err();
+        let err =
+            load_or_generate(&tiny_def(), &BatteryModel::default(), &blocker.join("sub"), Split::Train).unwrap_err();
         let msg = err.to_string();
         assert!(msg.contains("cannot") && msg.contains("sub"), "{msg}");
     }

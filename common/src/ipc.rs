@@ -26,6 +26,7 @@ pub use iceoryx2;
 pub use iceoryx2::port::update_connections::UpdateConnections;
 
 use crate::config::Validated;
+use crate::hash::fnv1a64;
 use crate::wire::{
     BatchHeader, BatchRequest, ReplayStatus, Transition, TransitionBatchHeader, WeightsHeader, MAX_PUBLISH_BATCH,
     WIRE_VERSION,
@@ -125,16 +126,6 @@ pub enum Role {
     Create,
     /// Open, retrying up to `timeout` while the service does not exist yet.
     Open { timeout: Duration },
-}
-
-/// Stable 64-bit FNV-1a hash (run ids, seeds).
-pub fn fnv1a64(bytes: &[u8]) -> u64 {
-    let mut h: u64 = 0xcbf29ce484222325;
-    for b in bytes {
-        h ^= u64::from(*b);
-        h = h.wrapping_mul(0x100000001b3);
-    }
-    h
 }
 
 /// The iceoryx2 configuration of every bcal process: the built-in defaults (stated here, never searched
@@ -511,17 +502,6 @@ fn other_wire_version(name: &ServiceName) -> Option<u32> {
         CallbackProgression::Continue
     });
     found
-}
-
-/// Writes `value` as pretty JSON to `path` atomically (temporary file in the same folder, then rename),
-/// so a reader never sees half a counters file.
-pub fn write_json_atomic(path: &Path, value: &impl serde::Serialize) -> std::io::Result<()> {
-    let text = serde_json::to_string_pretty(value).map_err(std::io::Error::other)?;
-    let tmp = path.with_extension(format!("json.tmp{}", std::process::id()));
-    std::fs::write(&tmp, text.as_bytes())?;
-    std::fs::rename(&tmp, path).inspect_err(|_| {
-        let _ = std::fs::remove_file(&tmp);
-    })
 }
 
 /// Seconds since the Unix epoch (for counters files).

@@ -1,14 +1,19 @@
 //! bcal-common: what every bcal process shares. The battery model ([`battery`]), the paper's experiments
-//! ([`dataset`]), the calibration MDP ([`mdp`]), the pure-Rust policy forward pass ([`policy`]), the run
-//! configuration ([`config`]), the wire types ([`wire`]), the math vocabulary ([`math`]) and file text as
-//! error messages show it ([`text`]). It never prints and never exits: errors are typed.
+//! and their train / validation / test splits ([`dataset`]), the calibration MDP ([`mdp`]), the Table-1
+//! metric ([`nrmse`]), the pure-Rust policy forward pass ([`policy`]), the run configuration ([`config`]),
+//! the wire types ([`wire`]) and iceoryx2 services ([`ipc`]), the math vocabulary ([`math`]), atomic file
+//! writes ([`fsutil`]), the stable hash ([`hash`]) and file text as error messages show it ([`text`]). It
+//! never prints and never exits: errors are typed.
 
 pub mod battery;
 pub mod config;
 pub mod dataset;
+pub mod fsutil;
+pub mod hash;
 pub mod ipc;
 pub mod math;
 pub mod mdp;
+pub mod nrmse;
 pub mod policy;
 pub mod text;
 pub mod wire;

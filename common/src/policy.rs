@@ -1,6 +1,6 @@
 //! The actor network's forward pass in plain Rust, so actors and the evaluator run the policy without
 //! libtorch. The learner's tch network exports its parameters in exactly [`PolicyLayout`]'s order and a
-//! test in the learner holds the two forward passes equal to 1e-5.
+//! test in the learner holds the two forward passes equal within [`PolicyNet::rounding_bound`].
 //!
 //! Network (paper 4.2): hidden Linear layers with LeakyReLU (slope 0.01, torch's default), then two heads,
 //! mean and log standard deviation; the action is tanh(mean + std * eps) (squashed Gaussian), and the
@@ -45,14 +45,12 @@ impl PolicyLayout {
 
     /// A stable fingerprint of the shape, carried in weight messages so a mismatched peer is refused.
     pub fn fingerprint(&self) -> u64 {
-        let mut h: u64 = 0xcbf29ce484222325;
-        for v in [self.obs_dim, self.act_dim].iter().chain(self.hidden.iter()) {
-            for b in (*v as u64).to_le_bytes() {
-                h ^= u64::from(b);
-                h = h.wrapping_mul(0x100000001b3);
-            }
-        }
-        h
+        let bytes: Vec<u8> = [self.obs_dim, self.act_dim]
+            .iter()
+            .chain(self.hidden.iter())
+            .flat_map(|v| (*v as u64).to_le_bytes())
+            .collect();
+        crate::hash::fnv1a64(&bytes)
     }
 
     pub fn max_width(&self) -> usize {
@@ -198,6 +196,55 @@ impl PolicyNet {
         }
     }
 
+    /// A bound on how far two correct f32 forward passes of this network (any summation order, with or
+    /// without fused multiply-adds: this one and libtorch's CPU kernels of any level) may differ on `obs`,
+    /// per output: (mean bound, log-std bound).
+    ///
+    /// Why a bound and not a constant: the difference grows with the dot-product length n and with the
+    /// magnitudes summed. A Linear output computed in any order is within lambda sqrt(n + 1) u M of the
+    /// exact value, M = sum |w x| + |b|, u = 2^-24, except with probability <= 2 exp(-lambda^2 / 2)
+    /// (Higham & Mary 2019, probabilistic rounding error analysis; the worst-case bound n u M is
+    /// thousands of times looser than any real difference once propagated through 256-wide layers).
+    /// Two implementations differ by at most twice that, plus the input difference carried through W,
+    /// added in quadrature (independent rounding errors); LeakyReLU and the log-std clip are 1-Lipschitz.
+    /// lambda = 8: a spurious failure is rarer than 1e-13 per output. Computed in f64.
+    pub fn rounding_bound(&self, obs: &[f32]) -> (Vec<f64>, Vec<f64>) {
+        const LAMBDA: f64 = 8.0;
+        let u = f64::from(f32::EPSILON) / 2.0;
+        let l = &self.layout;
+        let mut h: Vec<f64> = obs.iter().map(|v| f64::from(*v)).collect();
+        let mut err = vec![0.0f64; h.len()];
+        // One Linear in f64: (exact output, bound on the two implementations' difference).
+        let linear = |k: usize, h: &[f64], err: &[f64], n_out: usize| -> (Vec<f64>, Vec<f64>) {
+            let n_in = h.len();
+            let w = &self.params[self.offsets[k]..self.offsets[k] + n_in * n_out];
+            let b = &self.params[self.offsets[k] + n_in * n_out..self.offsets[k] + n_in * n_out + n_out];
+            let local = 2.0 * LAMBDA * ((n_in + 1) as f64).sqrt() * u;
+            let (mut out, mut bound) = (vec![0.0; n_out], vec![0.0; n_out]);
+            for j in 0..n_out {
+                let row = &w[j * n_in..(j + 1) * n_in];
+                let (mut s, mut mag, mut carried_sq) = (f64::from(b[j]), f64::from(b[j]).abs(), 0.0);
+                for i in 0..n_in {
+                    let wi = f64::from(row[i]);
+                    s += wi * h[i];
+                    mag += wi.abs() * (h[i].abs() + err[i]);
+                    carried_sq += (wi * err[i]).powi(2);
+                }
+                out[j] = s;
+                bound[j] = carried_sq.sqrt() + local * mag;
+            }
+            (out, bound)
+        };
+        for (k, width) in l.hidden.iter().enumerate() {
+            let (out, bound) = linear(k, &h, &err, *width);
+            h = out.into_iter().map(|v| if v < 0.0 { v * f64::from(LEAKY_SLOPE) } else { v }).collect();
+            err = bound;
+        }
+        let (_, mean_bound) = linear(l.hidden.len(), &h, &err, l.act_dim);
+        let (_, log_std_bound) = linear(l.hidden.len() + 1, &h, &err, l.act_dim);
+        (mean_bound, log_std_bound)
+    }
+
     /// Stochastic action tanh(mean + std * eps) with eps ~ N(0, 1) drawn from `normal`.
     pub fn act_stochastic(&self, obs: &[f32], s: &mut Scratch, mut normal: impl FnMut() -> f64, action: &mut [f32]) {
         let mut log_std = [0f32; 8];
@@ -292,6 +339,68 @@ mod tests {
         net.act_stochastic(&[2.0, 1.0], &mut s, || 0.0, &mut a);
         assert_eq!(a[0], 5.25f32.tanh());
     }
+
+    /// The rounding bound holds for a forward pass summed in another order, grows with the dot-product
+    /// length, and is far below the difference a real mistake (one weight changed) makes.
+    #[test]
+    fn rounding_bound_covers_another_summation_order_and_not_a_wrong_weight() {
+        let l = PolicyLayout { obs_dim: 15, act_dim: 2, hidden: vec![256, 256, 256] };
+        let mut seed = 0x1234_5678u64;
+        let mut next = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 0.2
+        };
+        let params: Vec<f32> = (0..l.n_params()).map(|_| next()).collect();
+        let net = PolicyNet::from_flat(l.clone(), params.clone()).unwrap();
+        let obs: Vec<f32> = (0..15).map(|k| (k as f32 - 7.0) * 0.8).collect();
+        let (mean_bound, _) = net.rounding_bound(&obs);
+        // A plain f32 forward pass summing each dot product backwards: another legal order.
+        let reversed = |p: &[f32]| {
+            let mut h: Vec<f32> = obs.clone();
+            let mut off = 0;
+            for (k, (n_in, n_out)) in l.linears().into_iter().take(l.hidden.len() + 1).enumerate() {
+                let mut out = vec![0f32; n_out];
+                for (j, o) in out.iter_mut().enumerate() {
+                    let mut s = 0f32;
+                    for i in (0..n_in).rev() {
+                        s += p[off + j * n_in + i] * h[i];
+                    }
+                    *o = s + p[off + n_in * n_out + j];
+                }
+                off += n_in * n_out + n_out;
+                let hidden = k < l.hidden.len();
+                h = out.iter().map(|v| if hidden && *v < 0.0 { v * LEAKY_SLOPE } else { *v }).collect();
+            }
+            h
+        };
+        let mut s = Scratch::new(&l);
+        let (mut mean, mut log_std) = ([0f32; 2], [0f32; 2]);
+        net.forward(&obs, &mut s, &mut mean, &mut log_std);
+        let other = reversed(&params);
+        for j in 0..2 {
+            let d = f64::from((mean[j] - other[j]).abs());
+            assert!(d <= mean_bound[j], "output {j}: differ by {d:e}, bound {:e}", mean_bound[j]);
+            assert!(mean_bound[j] < 1e-3 * (1.0 + f64::from(mean[j].abs())), "bound {:e} is useless", mean_bound[j]);
+        }
+        // A mean-head bias off by 0.01 moves the output by far more than the bound: real mistakes show.
+        let mut wrong = params.clone();
+        let mean_bias = 15 * 256 + 256 + 2 * (256 * 256 + 256) + 2 * 256;
+        wrong[mean_bias] += 0.01;
+        let moved = reversed(&wrong);
+        let moved_by: Vec<f32> = (0..2).map(|j| (moved[j] - other[j]).abs()).collect();
+        assert!(
+            (0..2).any(|j| f64::from(moved_by[j]) > 10.0 * mean_bound[j]),
+            "a wrong weight moved the outputs by {moved_by:?}, bounds {mean_bound:?}"
+        );
+        // Longer dot products get a larger bound on the same magnitude (sum |w x| = 1 in both).
+        let one_layer = |n: usize| {
+            let l = PolicyLayout { obs_dim: n, act_dim: 1, hidden: vec![] };
+            let mut p = vec![1.0 / n as f32; l.n_params()];
+            p[n] = 0.0; // the mean head's bias
+            PolicyNet::from_flat(l, p).unwrap().rounding_bound(&vec![1.0; n]).0[0]
+        };
+        assert!(one_layer(1024) > 4.0 * one_layer(16), "{} vs {}", one_layer(1024), one_layer(16));
+    }
 }
 
 /// What a trained calibrator is, apart from libtorch: the actor's flat weights with the MDP they were
@@ -309,6 +418,16 @@ pub struct PolicyFile {
 
 const POLICY_MAGIC: &[u8; 8] = b"BCALPOL1";
 
+/// A run folder's policy files: the latest weights (written at every checkpoint) ...
+pub const POLICY_LAST: &str = "policy.bcalpol";
+/// ... and the delivered one, the best by the run's `learner.select_by` validation score.
+pub const POLICY_BEST: &str = "policy.best.bcalpol";
+
+/// The file of the best policy by one validation score.
+pub fn best_policy_file(select: crate::config::SelectBy) -> String {
+    format!("policy.best-{}.bcalpol", select.name())
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum PolicyFileError {
     #[error("cannot {action} policy file {path}: {source}")]
@@ -320,24 +439,16 @@ pub enum PolicyFileError {
 }
 
 impl PolicyFile {
-    /// Atomic write: temporary file, fsync, rename. Magic + CRC32 + bincode payload.
+    /// Atomic write ([`crate::fsutil`]): magic + CRC32 + bincode payload.
     pub fn save(&self, path: &std::path::Path) -> Result<(), PolicyFileError> {
         use std::io::Write;
-        let io = |action, source| PolicyFileError::Io { action, path: path.to_path_buf(), source };
         let payload = bincode::serde::encode_to_vec(self, bincode::config::standard()).expect("policies serialise");
-        let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-        let write = || -> std::io::Result<()> {
-            let mut f = std::fs::File::create(&tmp)?;
+        crate::fsutil::write_atomic_with(path, |f| {
             f.write_all(POLICY_MAGIC)?;
             f.write_all(&crc32fast::hash(&payload).to_le_bytes())?;
-            f.write_all(&payload)?;
-            f.sync_all()?;
-            std::fs::rename(&tmp, path)
-        };
-        write().map_err(|e| {
-            let _ = std::fs::remove_file(&tmp);
-            io("write", e)
+            f.write_all(&payload)
         })
+        .map_err(|source| PolicyFileError::Io { action: "write", path: path.to_path_buf(), source })
     }
 
     /// Reads and verifies a policy file (magic, checksum, shape, finite weights).

@@ -46,6 +46,27 @@ impl Default for Transition {
 }
 
 impl Transition {
+    /// `n` synthetic transitions for tests and benchmarks: observations N(0, 1) in the first `obs_dim`
+    /// slots, actions uniform in [-1, 1] in the first `act_dim`, costs uniform in [0, 1), seeded.
+    pub fn synthetic_batch(seed: u64, n: usize, obs_dim: usize, act_dim: usize) -> Vec<Transition> {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(seed);
+        (0..n)
+            .map(|_| {
+                let mut t = Transition::default();
+                for k in 0..obs_dim.min(MAX_OBS) {
+                    t.obs[k] = rng.sample(rand_distr::StandardNormal);
+                    t.next_obs[k] = rng.sample(rand_distr::StandardNormal);
+                }
+                for a in &mut t.action[..act_dim.min(MAX_ACT)] {
+                    *a = rng.random_range(-1.0..=1.0);
+                }
+                t.cost = rng.random();
+                t
+            })
+            .collect()
+    }
+
     /// True when every number is finite (the replay quarantines the others).
     pub fn is_finite(&self) -> bool {
         self.obs.iter().chain(&self.next_obs).chain(&self.action).all(|v| v.is_finite())

@@ -1,14 +1,16 @@
 //! The evaluator's loop, top to bottom: pick the held-out test trajectories, run every method along each of
-//! them (RL-LAC, the tuned UKF, the direct mapping), time one step of each on one thread beside one
-//! battery-model step, score them with [`crate::metrics`], and assemble the [`Report`]; then
-//! [`write_outputs`] writes report.json, report.md and the figures into the run folder.
+//! them (RL-LAC, the UKF tuned on the validation split, the direct mapping trained on the training split
+//! with early stopping on validation), time one step of each on one thread beside one battery-model step,
+//! score them with [`crate::metrics`], and assemble the [`Report`]; then [`write_outputs`] writes
+//! report.json, report.md and the figures into the run folder.
 //!
 //! Every method sees the same test trajectories and the same information per step (the measured x_t, the
 //! next measured x_{t+1} and the load); only the direct mapping was trained with true parameters, and only
-//! on training trajectories. Progress goes to a caller-supplied callback: this module never prints.
+//! on training trajectories. Every choice any method makes is made on the validation split; the test split
+//! is only scored. Progress goes to a caller-supplied callback: this module never prints.
 
 use crate::direct::{self, DirectMap, DirectMapConfig, DirectMapError};
-use crate::metrics::{self, accuracy, EodMetrics, Param, ParamValues, TrajEstimates};
+use crate::metrics::{self, accuracy, params_of, EodMetrics, Param, ParamValues, TrajEstimates};
 use crate::plots::{self, method_color, MethodSeries, TrainingCurve};
 use crate::report::{
     paper_json, render_markdown, DirectMapInfo, EodReferences, MethodReport, Methods, Report, RlInfo, UkfInfo,
@@ -41,7 +43,7 @@ pub struct EvalOptions {
     /// Test trajectories per test load (`None` = all), spread evenly over the parameter grid.
     pub test_per_load: Option<usize>,
     pub ukf_grid: UkfGrid,
-    /// Training trajectories the UKF is tuned on, spread over loads and parameters.
+    /// Validation trajectories the UKF is tuned on, spread over the validation split (0 = all).
     pub ukf_tune_trajectories: usize,
     pub direct: DirectMapConfig,
     /// Training trajectories on which the direct mapping's training error is measured.
@@ -60,7 +62,7 @@ impl EvalOptions {
             direct_mapping: true,
             test_per_load: None,
             ukf_grid: UkfGrid::default(),
-            ukf_tune_trajectories: 14,
+            ukf_tune_trajectories: 16,
             direct: DirectMapConfig::default(),
             direct_train_eval_trajectories: 140,
             timing_steps: 20_000,
@@ -73,7 +75,7 @@ impl EvalOptions {
             quick: true,
             test_per_load: Some(12),
             ukf_grid: UkfGrid::quick(),
-            ukf_tune_trajectories: 7,
+            ukf_tune_trajectories: 6,
             direct: DirectMapConfig::quick(),
             direct_train_eval_trajectories: 28,
             timing_steps: 3_000,
@@ -84,13 +86,25 @@ impl EvalOptions {
 
 /// The trained policy, or why there is none.
 pub enum PolicyInput<'a> {
-    Loaded { file: &'a PolicyFile, path: String },
-    Missing { reason: String },
+    /// `choice` says which of the run's policies this is and why (e.g. "best by validation tracking error").
+    Loaded {
+        file: &'a PolicyFile,
+        path: String,
+        choice: String,
+    },
+    Missing {
+        reason: String,
+    },
 }
 
 /// Everything the evaluation reads.
 pub struct EvalInput<'a> {
-    pub ds: &'a Dataset,
+    /// The test split: only ever scored.
+    pub test: &'a Dataset,
+    /// The validation split: UKF tuning, the direct mapping's early stopping, the policy's validation score.
+    pub validation: &'a Dataset,
+    /// The training split: the direct mapping's supervised pairs (None when it is not evaluated).
+    pub train: Option<&'a Dataset>,
     /// The MDP (observation scales, action map): the policy's own when there is one.
     pub spec: &'a MdpSpec,
     pub model: &'a BatteryModel,
@@ -108,6 +122,8 @@ pub enum EvalError {
     PolicyShape { got: String, want: String },
     #[error("no test trajectories to evaluate (the dataset's test split is empty)")]
     NoTestTrajectories,
+    #[error("the direct mapping needs the training split; pass it or disable the direct mapping")]
+    NoTrainingSplit,
     #[error("no method to evaluate: enable at least one of RL, UKF, direct mapping")]
     NoMethods,
     #[error(transparent)]
@@ -192,13 +208,13 @@ pub fn step_cycle<'a>(trajs: &'a [&'a Trajectory]) -> impl Fn(usize) -> (&'a Tra
     }
 }
 
-/// Runs a pure-Rust network as a calibrator on the test trajectories (all cores).
-fn run_net(input: &EvalInput, net: &PolicyNet, test: &[usize]) -> Vec<TrajEstimates> {
-    test.par_iter()
+/// Runs a pure-Rust network as a calibrator on trajectories of `ds` (all cores).
+fn run_net(input: &EvalInput, ds: &Dataset, net: &PolicyNet, idx: &[usize]) -> Vec<TrajEstimates> {
+    idx.par_iter()
         .map_init(
             || Scratch::new(net.layout()),
             |scratch, &i| {
-                let traj = &input.ds.trajectories[i];
+                let traj = &ds.trajectories[i];
                 let mut estimates = Vec::with_capacity(traj.len());
                 rollout_calibrator(
                     input.spec,
@@ -233,7 +249,7 @@ pub fn time_net(input: &EvalInput, net: &PolicyNet, trajs: &[&Trajectory], n: us
 }
 
 fn eod_of(input: &EvalInput, est: &[TrajEstimates], dt_s: f64) -> EodMetrics {
-    let trajs: Vec<&Trajectory> = est.iter().map(|e| &input.ds.trajectories[e.index]).collect();
+    let trajs: Vec<&Trajectory> = est.iter().map(|e| &input.test.trajectories[e.index]).collect();
     metrics::eod_metrics(input.model, &trajs, dt_s, |k, step| est[k].estimates[step])
 }
 
@@ -244,28 +260,31 @@ pub fn evaluate(
     progress: &mut dyn FnMut(&str),
 ) -> Result<Evaluation, EvalError> {
     let started = Instant::now();
-    let ds = input.ds;
+    let ds = input.test;
+    let val = input.validation;
     let spec = input.spec;
     let model = input.model;
     let dt_s = ds.def.dt_s;
     let calibrated = spec.actions.calibrated;
-    let params = Param::of(calibrated);
+    let params = params_of(calibrated);
     if !(opts.rl || opts.ukf || opts.direct_mapping) {
         return Err(EvalError::NoMethods);
     }
-    let test = spread_by_load(ds, &ds.test_indices(), opts.test_per_load);
+    let all_test: Vec<usize> = (0..ds.trajectories.len()).collect();
+    let test = spread_by_load(ds, &all_test, opts.test_per_load);
     if test.is_empty() {
         return Err(EvalError::NoTestTrajectories);
     }
-    let train = ds.train_indices();
     let test_trajs: Vec<&Trajectory> = test.iter().map(|&i| &ds.trajectories[i]).collect();
     let test_steps: usize = test_trajs.iter().map(|t| t.len() - 1).sum();
+    let round = |v: Vec<f64>| v.iter().map(|l| (l * 10.0).round() / 10.0).collect::<Vec<_>>();
     progress(&format!(
-        "{}: {} test trajectories ({test_steps} steps) at loads {:?} W; {} training trajectories",
+        "{}: {} test trajectories ({test_steps} steps) at loads {:?} W; validation: {} trajectories at {:?} W",
         ds.def.experiment,
         test.len(),
-        ds.def.test_loads_w().iter().map(|l| (l * 10.0).round() / 10.0).collect::<Vec<_>>(),
-        train.len()
+        round(ds.loads_w()),
+        val.trajectories.len(),
+        round(val.loads_w()),
     ));
     // Timing subset: the first few test trajectories (timing cycles over them).
     let timing_trajs: Vec<&Trajectory> = test_trajs.iter().take(8).copied().collect();
@@ -302,7 +321,7 @@ pub fn evaluate(
                 progress(&format!("RL-LAC not evaluated: {reason}"));
                 not_evaluated.insert("rl_lac".to_string(), reason.clone());
             }
-            PolicyInput::Loaded { file, path } => {
+            PolicyInput::Loaded { file, path, choice } => {
                 if file.experiment != ds.def.experiment {
                     return Err(EvalError::ExperimentMismatch {
                         policy: file.experiment.to_string(),
@@ -317,18 +336,23 @@ pub fn evaluate(
                 }
                 let net = file.net()?;
                 progress(&format!(
-                    "RL-LAC: policy {path} (update {}), {} test trajectories",
+                    "RL-LAC: policy {path} ({choice}, update {}), {} test trajectories",
                     file.update_step,
                     test.len()
                 ));
-                let est = run_net(input, &net, &test);
+                let est = run_net(input, ds, &net, &test);
+                // The same policy on the whole validation split: how far test lands from what was selected on.
+                let all_val: Vec<usize> = (0..val.trajectories.len()).collect();
+                let validation_nrmse_pct = accuracy(calibrated, &run_net(input, val, &net, &all_val), dt_s).nrmse_pct;
                 let step_us = time_net(input, &net, &timing_trajs, opts.timing_steps, true);
                 let mut m = finish(&est, step_us, opts.timing_steps);
                 m.rl = Some(RlInfo {
                     policy_file: path.clone(),
+                    choice: choice.clone(),
                     update_step: file.update_step,
                     hidden: file.layout.hidden.clone(),
                     action: "deterministic tanh(mean), pure-Rust PolicyNet".into(),
+                    validation_nrmse_pct,
                 });
                 progress(&format!("RL-LAC: NRMSE {}", fmt_pv(&m.accuracy.nrmse_pct, params)));
                 methods.rl_lac = Some(m);
@@ -337,18 +361,20 @@ pub fn evaluate(
         }
     }
 
-    // 2. UKF: tuned on training trajectories only, then run on the test trajectories.
+    // 2. UKF: tuned on validation trajectories only, then run on the test trajectories.
     if opts.ukf {
-        let tune_idx =
-            spread_by_load(ds, &train, Some(opts.ukf_tune_trajectories.div_ceil(ds.def.train_loads_w().len().max(1))));
-        let tune_trajs: Vec<&Trajectory> = tune_idx.iter().map(|&i| &ds.trajectories[i]).collect();
+        let all_val: Vec<usize> = (0..val.trajectories.len()).collect();
+        let per_load =
+            (opts.ukf_tune_trajectories > 0).then(|| opts.ukf_tune_trajectories.div_ceil(val.loads_w().len().max(1)));
+        let tune_trajs: Vec<&Trajectory> =
+            spread_by_load(val, &all_val, per_load).into_iter().map(|i| &val.trajectories[i]).collect();
         let cands = opts.ukf_grid.candidates(spec.act_dim()).len();
-        progress(&format!("UKF: tuning {cands} settings on {} training trajectories", tune_trajs.len()));
+        progress(&format!("UKF: tuning {cands} settings on {} validation trajectories", tune_trajs.len()));
         let tuned = ukf::tune(&opts.ukf_grid, &tune_trajs, model, &spec.actions, &spec.scales, dt_s);
         let s = tuned.best;
         progress(&format!(
-            "UKF: chose q_std {:e}, r_std {:e}, p0_std {}, alpha {}, beta {}, kappa {} (train NRMSE {:.3} %)",
-            s.q_std, s.r_std, s.p0_std, s.alpha, s.beta, s.kappa, tuned.best_train_nrmse_pct
+            "UKF: chose q_std {:e}, r_std {:e}, p0_std {}, alpha {}, beta {}, kappa {} (validation NRMSE {:.3} %)",
+            s.q_std, s.r_std, s.p0_std, s.alpha, s.beta, s.kappa, tuned.best_validation_nrmse_pct
         ));
         let cal = UkfCalibrator::new(s, &spec.actions, &spec.scales, dt_s);
         let runs: Vec<(TrajEstimates, UkfCounters)> = test
@@ -396,23 +422,31 @@ pub fn evaluate(
         estimates.push(("ukf", est));
     }
 
-    // 3. Direct mapping: supervised on training pairs, then applied to the test trajectories.
+    // 3. Direct mapping: supervised on training pairs, early-stopped on validation pairs, then applied to the
+    // test trajectories.
     if opts.direct_mapping {
-        let train_trajs: Vec<&Trajectory> = train.iter().map(|&i| &ds.trajectories[i]).collect();
+        let train_ds = input.train.ok_or(EvalError::NoTrainingSplit)?;
+        let train_trajs: Vec<&Trajectory> = train_ds.trajectories.iter().collect();
+        let val_trajs: Vec<&Trajectory> = val.trajectories.iter().collect();
         let pairs = direct::sample_pairs(spec, &train_trajs, opts.direct.max_pairs, opts.direct.seed);
+        let val_pairs = direct::sample_pairs(spec, &val_trajs, opts.direct.max_validation_pairs, opts.direct.seed + 1);
         progress(&format!(
-            "direct mapping: training on {} pairs (up to {} updates or {} s)",
+            "direct mapping: training on {} pairs, early stopping on {} validation pairs (budget {} s)",
             pairs.len(),
-            opts.direct.max_updates,
+            val_pairs.len(),
             opts.direct.time_budget_s
         ));
-        let (net, log) = DirectMap::train(&pairs, &opts.direct)?;
+        let (net, log) = DirectMap::train(&pairs, &val_pairs, &opts.direct)?;
         drop(pairs);
         progress(&format!(
-            "direct mapping: {} updates in {:.1} s, MSE {:.2e} -> {:.2e}",
-            log.updates, log.seconds, log.first_loss, log.final_loss
+            "direct mapping: {} updates in {:.1} s ({}), best validation MSE {:.2e} at update {}",
+            log.updates,
+            log.seconds,
+            log.stopped_by.replace('_', " "),
+            log.best_validation_loss,
+            log.best_update
         ));
-        let predict = |idx: &[usize]| -> Result<Vec<TrajEstimates>, EvalError> {
+        let predict = |ds: &Dataset, idx: &[usize]| -> Result<Vec<TrajEstimates>, EvalError> {
             idx.iter()
                 .map(|&i| {
                     let traj = &ds.trajectories[i];
@@ -423,13 +457,14 @@ pub fn evaluate(
                 })
                 .collect()
         };
-        let est = predict(&test)?;
+        let est = predict(ds, &test)?;
+        let all_train: Vec<usize> = (0..train_ds.trajectories.len()).collect();
         let train_eval = spread_by_load(
-            ds,
-            &train,
-            Some(opts.direct_train_eval_trajectories.div_ceil(ds.def.train_loads_w().len().max(1))),
+            train_ds,
+            &all_train,
+            Some(opts.direct_train_eval_trajectories.div_ceil(train_ds.loads_w().len().max(1))),
         );
-        let train_nrmse = accuracy(calibrated, &predict(&train_eval)?, dt_s).nrmse_pct;
+        let train_nrmse = accuracy(calibrated, &predict(train_ds, &train_eval)?, dt_s).nrmse_pct;
         // Timing in tch: batch of one, one intra-op thread.
         let threads = tch::get_num_threads();
         tch::set_num_threads(1);
@@ -492,12 +527,14 @@ pub fn evaluate(
         quick: opts.quick,
         test_trajectories: test.len(),
         test_steps,
-        test_loads_w: ds.def.test_loads_w(),
+        test_loads_w: ds.loads_w(),
+        validation_trajectories: val.trajectories.len(),
+        validation_loads_w: val.loads_w(),
         test_eod_s: [
             test_trajs.iter().map(|t| t.eod_s(dt_s)).fold(f64::INFINITY, f64::min),
             test_trajs.iter().map(|t| t.eod_s(dt_s)).fold(0.0, f64::max),
         ],
-        train_trajectories: train.len(),
+        train_trajectories: input.train.map_or(0, |t| t.trajectories.len()),
         x_hat: X_HAT_NOTE.into(),
         methods,
         not_evaluated,
@@ -516,11 +553,8 @@ fn fmt_pv(v: &ParamValues, params: &[Param]) -> String {
 }
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), EvalError> {
-    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-    std::fs::write(&tmp, bytes).and_then(|_| std::fs::rename(&tmp, path)).map_err(|source| {
-        let _ = std::fs::remove_file(&tmp);
-        EvalError::Write { path: path.to_path_buf(), source }
-    })
+    bcal_common::fsutil::write_atomic(path, bytes)
+        .map_err(|source| EvalError::Write { path: path.to_path_buf(), source })
 }
 
 /// Writes the figures, report.json and report.md into `dir`; `text = None` detects the font. Returns the
@@ -573,19 +607,27 @@ pub fn write_outputs(eval: &mut Evaluation, dir: &Path, text: Option<bool>) -> R
 mod tests {
     use super::*;
     use bcal_common::config::EnvConfig;
-    use bcal_common::dataset::{generate, Experiment, ExperimentDef, Grid};
+    use bcal_common::dataset::{generate, Experiment, ExperimentDef, Grid, Split, ValidationDef};
     use bcal_common::policy::PolicyLayout;
 
-    fn small(experiment: Experiment) -> (Dataset, MdpSpec) {
+    /// A small version of `experiment`: its training, validation and test splits and the MDP.
+    fn small(experiment: Experiment) -> ([Dataset; 3], MdpSpec) {
         let paper = experiment.definition();
+        let shrink = |g: Grid, n: usize| if g.n > 1 { Grid { n, ..g } } else { g };
         let def = ExperimentDef {
-            q_mobile_c: if paper.q_mobile_c.n > 1 { Grid { n: 3, ..paper.q_mobile_c } } else { paper.q_mobile_c },
-            r_o_ohm: if paper.r_o_ohm.n > 1 { Grid { n: 2, ..paper.r_o_ohm } } else { paper.r_o_ohm },
+            q_mobile_c: shrink(paper.q_mobile_c, 3),
+            r_o_ohm: shrink(paper.r_o_ohm, 2),
+            validation: ValidationDef {
+                q_mobile_c: shrink(paper.validation.q_mobile_c, 2),
+                r_o_ohm: shrink(paper.validation.r_o_ohm, 2),
+                ..paper.validation.clone()
+            },
             ..paper
         };
-        let ds = generate(&def, &BatteryModel::default()).unwrap();
-        let spec = MdpSpec::new(experiment, &EnvConfig::default(), &ds);
-        (ds, spec)
+        let model = BatteryModel::default();
+        let [train, val, test] = Split::ALL.map(|s| generate(&def, &model, s).unwrap());
+        let spec = MdpSpec::new(experiment, &EnvConfig::default(), &train);
+        ([train, val, test], spec)
     }
 
     fn small_opts() -> EvalOptions {
@@ -600,7 +642,9 @@ mod tests {
             direct: DirectMapConfig {
                 hidden: vec![32, 32],
                 max_pairs: 4_000,
+                max_validation_pairs: 1_000,
                 max_updates: 150,
+                validate_every: 50,
                 time_budget_s: 20.0,
                 ..DirectMapConfig::default()
             },
@@ -615,7 +659,7 @@ mod tests {
     #[test]
     fn report_files_are_written_and_parseable_with_a_policy() {
         let dir = tempfile::tempdir().unwrap();
-        let (ds, spec) = small(Experiment::Multi);
+        let ([train, val, test], spec) = small(Experiment::Multi);
         let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: vec![8] };
         let pf = PolicyFile {
             params: vec![0.0; layout.n_params()],
@@ -629,14 +673,16 @@ mod tests {
         let pf = PolicyFile::load(&path).unwrap();
         let curve = TrainingCurve::parse(
             "{\"kind\":\"train\",\"update\":10,\"mean_cost\":3.0,\"critic_loss\":1.0}\n\
-             {\"kind\":\"validation\",\"update\":20,\"val_cost\":0.5,\"val_nrmse_q_pct\":9.0,\"val_nrmse_r_pct\":3.0}\n",
+             {\"kind\":\"validation\",\"update\":20,\"val_tracking_error\":0.5,\"val_nrmse_q_pct\":9.0,\"val_nrmse_r_pct\":3.0}\n",
         );
         let model = BatteryModel::default();
         let input = EvalInput {
-            ds: &ds,
+            test: &test,
+            validation: &val,
+            train: Some(&train),
             spec: &pf.mdp,
             model: &model,
-            policy: PolicyInput::Loaded { file: &pf, path: path.display().to_string() },
+            policy: PolicyInput::Loaded { file: &pf, path: path.display().to_string(), choice: "test policy".into() },
             training_curve: Some(curve),
         };
         let mut lines = Vec::new();
@@ -685,10 +731,12 @@ mod tests {
     #[test]
     fn missing_policy_is_reported_not_fatal_and_textless_plots_are_written() {
         let dir = tempfile::tempdir().unwrap();
-        let (ds, spec) = small(Experiment::SingleQ);
+        let ([_, val, test], spec) = small(Experiment::SingleQ);
         let model = BatteryModel::default();
         let input = EvalInput {
-            ds: &ds,
+            test: &test,
+            validation: &val,
+            train: None,
             spec: &spec,
             model: &model,
             policy: PolicyInput::Missing { reason: "no policy.bcalpol in the run folder".into() },

@@ -9,7 +9,8 @@
 
 use bcal_common::battery::{BatteryModel, Degradation, Load, LoadProfile};
 use bcal_common::dataset::Trajectory;
-use bcal_common::mdp::{model_state_at, Calibrated, NRMSE_RANGE_Q_MOBILE_C, NRMSE_RANGE_R_O_OHM};
+use bcal_common::mdp::{model_state_at, Calibrated};
+pub use bcal_common::nrmse::Param;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -57,65 +58,12 @@ impl ParamValues {
     }
 }
 
-/// One degradation parameter.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Param {
-    QMobile,
-    ROhm,
-}
-
-impl Param {
-    pub fn of(calibrated: Calibrated) -> &'static [Param] {
-        match calibrated {
-            Calibrated::QMobile => &[Param::QMobile],
-            Calibrated::ROhm => &[Param::ROhm],
-            Calibrated::Both => &[Param::QMobile, Param::ROhm],
-        }
-    }
-
-    /// JSON key.
-    pub fn key(self) -> &'static str {
-        match self {
-            Param::QMobile => "q_mobile",
-            Param::ROhm => "r_o",
-        }
-    }
-
-    /// Name as the paper's tables write it.
-    pub fn label(self) -> &'static str {
-        match self {
-            Param::QMobile => "qMobile (Qmax)",
-            Param::ROhm => "Ro",
-        }
-    }
-
-    pub fn unit(self) -> &'static str {
-        match self {
-            Param::QMobile => "C",
-            Param::ROhm => "ohm",
-        }
-    }
-
-    pub fn value(self, d: &Degradation) -> f64 {
-        match self {
-            Param::QMobile => d.q_mobile_c,
-            Param::ROhm => d.r_o_ohm,
-        }
-    }
-
-    /// The Table-1 range of the parameter.
-    pub fn range(self) -> [f64; 2] {
-        match self {
-            Param::QMobile => NRMSE_RANGE_Q_MOBILE_C,
-            Param::ROhm => NRMSE_RANGE_R_O_OHM,
-        }
-    }
-
-    /// Signed error of `est` against `truth` in % of the range.
-    #[inline]
-    pub fn err_pct(self, est: &Degradation, truth: &Degradation) -> f64 {
-        let [lo, hi] = self.range();
-        100.0 * (self.value(est) - self.value(truth)) / (hi - lo)
+/// The calibrated parameters of an experiment.
+pub fn params_of(calibrated: Calibrated) -> &'static [Param] {
+    match calibrated {
+        Calibrated::QMobile => &[Param::QMobile],
+        Calibrated::ROhm => &[Param::ROhm],
+        Calibrated::Both => &Param::BOTH,
     }
 }
 
@@ -188,7 +136,7 @@ pub fn cycle_estimate(t: &TrajEstimates) -> Degradation {
 
 /// Every accuracy metric of one method; `dt_s` turns steps into seconds.
 pub fn accuracy(calibrated: Calibrated, trajs: &[TrajEstimates], dt_s: f64) -> Accuracy {
-    let params = Param::of(calibrated);
+    let params = params_of(calibrated);
     let mut acc = Accuracy {
         convergence: Convergence { within_pct: CONVERGED_WITHIN_PCT, ..Default::default() },
         ..Default::default()

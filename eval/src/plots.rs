@@ -86,7 +86,7 @@ impl TrainingCurve {
                     update,
                     nrmse_q_pct: num("val_nrmse_q_pct"),
                     nrmse_r_pct: num("val_nrmse_r_pct"),
-                    cost: num("val_cost"),
+                    cost: num("val_tracking_error"),
                 }),
                 Some("train") => {
                     c.train.push(TrainPoint { update, mean_cost: num("mean_cost"), critic_loss: num("critic_loss") })
@@ -134,7 +134,7 @@ pub fn write_all(
 ) -> PlotOutcome {
     let text = text.unwrap_or_else(font_available);
     let mut out = PlotOutcome { text, ..Default::default() };
-    let params = Param::of(calibrated);
+    let params = crate::metrics::params_of(calibrated);
     let n_methods = methods.len().max(1);
     let mut figure = |stem: &str, size: (u32, u32), fig: Fig| {
         for ext in ["png", "svg"] {
@@ -390,7 +390,7 @@ fn draw_training<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, tc: &Trainin
             tc.train.iter().filter_map(|v| v.mean_cost.map(|y| (v.update, y))).collect(),
         ),
         (
-            "val cost",
+            "val tracking error",
             RGBColor(148, 103, 189),
             tc.validation.iter().filter_map(|v| v.cost.map(|y| (v.update, y))).collect(),
         ),
@@ -447,7 +447,7 @@ mod tests {
     #[test]
     fn training_curve_parses_and_skips_bad_lines() {
         let text = r#"{"kind":"train","update":100,"critic_loss":0.5,"mean_cost":2.0}
-{"kind":"validation","update":2000,"t_s":30.0,"val_cost":0.1,"val_nrmse_q_pct":4.0,"val_nrmse_r_pct":1.0}
+{"kind":"validation","update":2000,"t_s":30.0,"val_tracking_error":0.1,"val_nrmse_q_pct":4.0,"val_nrmse_r_pct":1.0}
 {"kind":"validation","upd
 {"kind":"other","update":5}
 "#;

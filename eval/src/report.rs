@@ -50,9 +50,14 @@ pub struct DirectMapInfo {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RlInfo {
     pub policy_file: String,
+    /// Which of the run's policies this is (e.g. the best by validation tracking error) and why.
+    pub choice: String,
     pub update_step: u64,
     pub hidden: Vec<usize>,
     pub action: String,
+    /// The same policy on the whole validation split (what it was selected on), %: how far the test
+    /// figure lands from the validation figure.
+    pub validation_nrmse_pct: ParamValues,
 }
 
 /// One method's results.
@@ -116,6 +121,9 @@ pub struct Report {
     /// Steps evaluated per method (every step t = 0 .. len - 2 of every test trajectory).
     pub test_steps: usize,
     pub test_loads_w: Vec<f64>,
+    /// The validation split every choice was made on (UKF settings, early stopping, the delivered policy).
+    pub validation_trajectories: usize,
+    pub validation_loads_w: Vec<f64>,
     /// Shortest and longest true EOD among the test trajectories, s.
     pub test_eod_s: [f64; 2],
     pub train_trajectories: usize,
@@ -202,17 +210,33 @@ pub fn render_markdown(r: &Report) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "# bcal evaluation: {} experiment{}\n", r.experiment, if r.quick { " (quick)" } else { "" });
     let loads: Vec<String> = r.test_loads_w.iter().map(|l| format!("{l:.1}")).collect();
+    let val_loads: Vec<String> = r.validation_loads_w.iter().map(|l| format!("{l:.1}")).collect();
     let _ = writeln!(
         s,
         "Held-out test set: {} trajectories ({} steps per method) at the high loads {} W, never seen in training \
-         ({} training trajectories at lower loads). Every method runs on the same test trajectories. \
-         x_hat during evaluation: {}\n",
+         and never used for a choice. Every choice (UKF settings, the direct mapping's early stopping, which RL \
+         policy is delivered) was made on the validation set: {} trajectories at {} W, a load in neither \
+         training nor test, with parameters off the training grid. Every method runs on the same test \
+         trajectories. x_hat during evaluation: {}\n",
         r.test_trajectories,
         r.test_steps,
         loads.join(", "),
-        r.train_trajectories,
+        r.validation_trajectories,
+        val_loads.join(", "),
         r.x_hat
     );
+    if let Some(rl) = r.methods.rl_lac.as_ref().and_then(|m| m.rl.as_ref()) {
+        let v: Vec<String> =
+            params.iter().map(|p| format!("{} {}", p.label(), f(rl.validation_nrmse_pct.get(*p), 2))).collect();
+        let _ = writeln!(
+            s,
+            "RL-LAC policy: {} (update {}, {}); on the validation set it scores {} NRMSE %.\n",
+            rl.policy_file,
+            rl.update_step,
+            rl.choice,
+            v.join(", ")
+        );
+    }
     for (k, why) in &r.not_evaluated {
         let name = METHODS.iter().find(|m| m.0 == k).map_or(k.as_str(), |m| m.1);
         let _ = writeln!(s, "**{name} was not evaluated:** {why}\n");
@@ -348,14 +372,14 @@ pub fn render_markdown(r: &Report) -> String {
 
     if let Some(u) = r.methods.ukf.as_ref().and_then(|m| m.ukf.as_ref()) {
         let st = &u.settings;
-        let _ = writeln!(s, "\n## UKF settings (tuned on training trajectories only)\n");
+        let _ = writeln!(s, "\n## UKF settings (tuned on validation trajectories only)\n");
         let _ = writeln!(
             s,
-            "Grid search over {} settings on {} training trajectories ({} steps), objective = per-step normalised RMSE \
-             on those trajectories. Chosen: random-walk std q = {:e} (normalised units per step), measurement std \
+            "Grid search over {} settings on {} validation trajectories ({} steps), objective = per-step normalised \
+             RMSE on those trajectories. Chosen: random-walk std q = {:e} (normalised units per step), measurement std \
              r = {:e} (state standard deviations), initial std p0 = {}, Merwe alpha = {}, beta = {}, kappa = {}; prior \
-             mean = {} of the range. Training NRMSE of the chosen setting: {:.3} %. Numerical rescues on the test set: \
-             {} jittered factorisations, {} covariance resets, {} skipped updates.\n",
+             mean = {} of the range. Validation NRMSE of the chosen setting: {:.3} %. Numerical rescues on the test \
+             set: {} jittered factorisations, {} covariance resets, {} skipped updates.\n",
             u.tuning.candidates,
             u.tuning.tuning_trajectories,
             u.tuning.tuning_steps,
@@ -366,18 +390,18 @@ pub fn render_markdown(r: &Report) -> String {
             st.beta,
             st.kappa,
             u.prior_mean,
-            u.tuning.best_train_nrmse_pct,
+            u.tuning.best_validation_nrmse_pct,
             u.counters.jittered,
             u.counters.covariance_resets,
             u.counters.skipped_updates
         );
-        let _ = writeln!(s, "| q_std | r_std | p0_std | alpha | beta | kappa | train NRMSE % |\n| ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+        let _ = writeln!(s, "| q_std | r_std | p0_std | alpha | beta | kappa | validation NRMSE % |\n| ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
         for row in &u.tuning.top {
             let t = &row.settings;
             let _ = writeln!(
                 s,
                 "| {:e} | {:e} | {} | {} | {} | {} | {:.3} |",
-                t.q_std, t.r_std, t.p0_std, t.alpha, t.beta, t.kappa, row.train_nrmse_pct
+                t.q_std, t.r_std, t.p0_std, t.alpha, t.beta, t.kappa, row.validation_nrmse_pct
             );
         }
     }
@@ -387,16 +411,24 @@ pub fn render_markdown(r: &Report) -> String {
             params.iter().map(|p| format!("{} {}", p.label(), f(d.train_nrmse_pct.get(*p), 2))).collect();
         let _ = writeln!(
             s,
-            "Hidden {:?} LeakyReLU, Adam lr {}, batch {}, {} pairs sampled from the training trajectories, {} updates \
-             in {:.1} s; MSE {:.2e} -> {:.2e}. NRMSE % on training trajectories: {}.\n",
+            "Hidden {:?} LeakyReLU, Adam lr {}, batch {}, {} pairs sampled from the training trajectories; budget \
+             {:.0} s (the RL run's), early stopping after {} validations without a better loss on {} validation pairs. \
+             {} updates in {:.1} s, stopped by {}; training MSE {:.2e} -> {:.2e}; weights kept from update {} \
+             (validation MSE {:.2e}). NRMSE % on training trajectories: {}.\n",
             d.config.hidden,
             d.config.lr,
             d.config.batch_size,
             d.training.pairs,
+            d.config.time_budget_s,
+            d.config.patience,
+            d.training.validation_pairs,
             d.training.updates,
             d.training.seconds,
+            d.training.stopped_by.replace('_', " "),
             d.training.first_loss,
             d.training.final_loss,
+            d.training.best_update,
+            d.training.best_validation_loss,
             train.join(", ")
         );
     }
@@ -453,7 +485,7 @@ pub fn reading(r: &Report) -> Vec<String> {
         let ukf_all_small = params.iter().all(|p| ukf.accuracy.nrmse_pct.get(*p).is_some_and(|v| v < 1.0));
         if ukf_all_small {
             out.push(
-                "The UKF sees the full, noise-free seven-state measurement of the simulator and is tuned on it: with \
+                "The UKF sees the full, noise-free seven-state measurement of the simulator and is tuned on validation: with \
                  that information one model step identifies the parameters almost exactly, so a well-set filter is a \
                  hard baseline here. The paper's 19.9 % UKF was a weak baseline, not a property of filtering."
                     .into(),
@@ -473,10 +505,15 @@ pub fn reading(r: &Report) -> Vec<String> {
                 }
             }
             out.push(format!(
-                "The direct mapping trains for a fixed budget here ({} updates in {:.0} s; MSE {:.1e} at the end), the \
-                 paper until its loss converged: more budget (--dm-budget-s) lowers its training error; the gap between \
-                 training and test error above measures extrapolation to the unseen loads.",
-                d.training.updates, d.training.seconds, d.training.final_loss
+                "The direct mapping trained with the RL run's wall-clock budget ({:.0} s) and stopped by {} after {} \
+                 updates in {:.0} s (best validation MSE {:.1e} at update {}); the gap between training and test error \
+                 above measures extrapolation to the unseen loads.",
+                d.config.time_budget_s,
+                d.training.stopped_by.replace('_', " "),
+                d.training.updates,
+                d.training.seconds,
+                d.training.best_validation_loss,
+                d.training.best_update
             ));
         }
     }

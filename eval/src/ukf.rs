@@ -7,7 +7,7 @@
 //! *measured* state x_t under each sigma point's parameters (the same x_hat as the RL evaluation, so the
 //! filter and the policy see the same information). Merwe scaled sigma points (Wan & van der Merwe 2000).
 //! The filter restarts at every trajectory, as in the paper. Q, R, P0 and (alpha, beta, kappa) are chosen by
-//! [`tune`] on training trajectories only.
+//! [`tune`] on validation trajectories only.
 //!
 //! Failure handling: a failed Cholesky of the sigma-point covariance is retried with growing diagonal
 //! jitter, then the covariance is reset to P0; a failed Cholesky of the innovation covariance (or a
@@ -17,9 +17,8 @@
 use bcal_common::battery::{BatteryModel, Degradation, Load};
 use bcal_common::dataset::Trajectory;
 use bcal_common::math::{electro, StateVec, N_STATE};
-use bcal_common::mdp::{
-    model_state_at, state_at, ActionMap, Calibrated, ObsScales, NRMSE_RANGE_Q_MOBILE_C, NRMSE_RANGE_R_O_OHM,
-};
+use bcal_common::mdp::{model_state_at, state_at, ActionMap, Calibrated, ObsScales};
+use bcal_common::nrmse::Param;
 use nalgebra::{Cholesky, SMatrix, SVector};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -220,16 +219,16 @@ pub struct ParamScale {
 
 impl ParamScale {
     fn norm_q(q: f64) -> f64 {
-        (q - NRMSE_RANGE_Q_MOBILE_C[0]) / (NRMSE_RANGE_Q_MOBILE_C[1] - NRMSE_RANGE_Q_MOBILE_C[0])
+        Param::QMobile.normalise(q)
     }
     fn norm_r(r: f64) -> f64 {
-        (r - NRMSE_RANGE_R_O_OHM[0]) / (NRMSE_RANGE_R_O_OHM[1] - NRMSE_RANGE_R_O_OHM[0])
+        Param::ROhm.normalise(r)
     }
     fn q_of(z: f64) -> f64 {
-        NRMSE_RANGE_Q_MOBILE_C[0] + z * (NRMSE_RANGE_Q_MOBILE_C[1] - NRMSE_RANGE_Q_MOBILE_C[0])
+        Param::QMobile.denormalise(z)
     }
     fn r_of(z: f64) -> f64 {
-        NRMSE_RANGE_R_O_OHM[0] + z * (NRMSE_RANGE_R_O_OHM[1] - NRMSE_RANGE_R_O_OHM[0])
+        Param::ROhm.denormalise(z)
     }
 
     /// The degradation of normalised parameters `z` (uncalibrated ones at the experiment's fixed values).
@@ -368,19 +367,20 @@ impl UkfGrid {
     }
 }
 
-/// One tried setting and its training error.
+/// One tried setting and its validation error.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TuneRow {
     pub settings: UkfSettings,
-    /// Per-step normalised RMSE on the tuning trajectories, %, root of the mean over calibrated parameters.
-    pub train_nrmse_pct: f64,
+    /// Per-step normalised RMSE on the tuning (validation) trajectories, %, root of the mean over the
+    /// calibrated parameters.
+    pub validation_nrmse_pct: f64,
 }
 
 /// The result of the search.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TuneResult {
     pub best: UkfSettings,
-    pub best_train_nrmse_pct: f64,
+    pub best_validation_nrmse_pct: f64,
     pub candidates: usize,
     pub tuning_trajectories: usize,
     pub tuning_steps: usize,
@@ -400,23 +400,23 @@ fn sq_err(actions: &ActionMap, est: &Degradation, truth: &Degradation) -> (f64, 
     }
 }
 
-/// Grid search of the filter's settings on `train` trajectories (never test ones), on all cores.
+/// Grid search of the filter's settings on validation trajectories (never test ones), on all cores.
 pub fn tune(
     grid: &UkfGrid,
-    train: &[&Trajectory],
+    validation: &[&Trajectory],
     model: &BatteryModel,
     actions: &ActionMap,
     scales: &ObsScales,
     dt_s: f64,
 ) -> TuneResult {
     let cands = grid.candidates(actions.dim());
-    let steps: usize = train.iter().map(|t| t.len().saturating_sub(1)).sum();
+    let steps: usize = validation.iter().map(|t| t.len().saturating_sub(1)).sum();
     let mut rows: Vec<TuneRow> = cands
         .par_iter()
         .map(|s| {
             let cal = UkfCalibrator::new(*s, actions, scales, dt_s);
             let (mut sum, mut n) = (0.0, 0usize);
-            for traj in train {
+            for traj in validation {
                 cal.run(model, traj, |_, est| {
                     let (e, k) = sq_err(actions, est, &traj.degradation);
                     sum += e;
@@ -424,15 +424,15 @@ pub fn tune(
                 });
             }
             let pct = 100.0 * (sum / n.max(1) as f64).sqrt();
-            TuneRow { settings: *s, train_nrmse_pct: if pct.is_finite() { pct } else { f64::INFINITY } }
+            TuneRow { settings: *s, validation_nrmse_pct: if pct.is_finite() { pct } else { f64::INFINITY } }
         })
         .collect();
-    rows.sort_by(|a, b| a.train_nrmse_pct.total_cmp(&b.train_nrmse_pct));
+    rows.sort_by(|a, b| a.validation_nrmse_pct.total_cmp(&b.validation_nrmse_pct));
     TuneResult {
         best: rows[0].settings,
-        best_train_nrmse_pct: rows[0].train_nrmse_pct,
+        best_validation_nrmse_pct: rows[0].validation_nrmse_pct,
         candidates: rows.len(),
-        tuning_trajectories: train.len(),
+        tuning_trajectories: validation.len(),
         tuning_steps: steps,
         top: rows.iter().take(5).cloned().collect(),
         grid: grid.clone(),
@@ -477,7 +477,7 @@ mod tests {
     }
 
     use bcal_common::config::EnvConfig;
-    use bcal_common::dataset::{generate, simulate_trajectory, Dataset, Experiment, ExperimentDef, Grid};
+    use bcal_common::dataset::{generate, simulate_trajectory, Dataset, Experiment, ExperimentDef, Grid, Split};
     use bcal_common::mdp::MdpSpec;
 
     /// A small data set of `experiment`'s kind (for the observation scales) and its MDP.
@@ -488,7 +488,7 @@ mod tests {
             r_o_ohm: if paper.r_o_ohm.n > 1 { Grid { n: 3, ..paper.r_o_ohm } } else { paper.r_o_ohm },
             ..paper
         };
-        let ds = generate(&def, &BatteryModel::default()).unwrap();
+        let ds = generate(&def, &BatteryModel::default(), Split::Train).unwrap();
         let spec = MdpSpec::new(experiment, &EnvConfig::default(), &ds);
         (ds, spec)
     }

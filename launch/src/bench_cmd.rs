@@ -82,7 +82,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     ));
     let report = bcal_bench::run(&settings, &cache_dir, &spawn, &mut progress)?;
     print!("{}", bcal_bench::render_table(&report));
-    bcal_common::ipc::write_json_atomic(&a.out, &report)
+    bcal_common::fsutil::write_json_atomic(&a.out, &report)
         .with_context(|| format!("cannot write {}", a.out.display()))?;
     println!("\nwrote {}", a.out.display());
     Ok(())

@@ -1,7 +1,7 @@
 //! The `bcal` command line: every subcommand and flag, with the help text users read.
 
 use bcal_common::dataset::Experiment;
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
 /// bcal keeps a Li-ion battery model true to the battery it describes: it simulates the NASA
@@ -81,9 +81,9 @@ pub enum DatasetAction {
 
 #[derive(Args, Debug)]
 pub struct DatasetSelect {
-    /// Which experiment (paper Appendix A).
-    #[arg(long, value_enum, default_value_t = ExperimentArg::All)]
-    pub experiment: ExperimentArg,
+    /// Which experiment (paper Appendix A); all three when left out.
+    #[arg(long, value_enum)]
+    pub experiment: Option<Experiment>,
     /// Cache folder (default: $BCAL_CACHE/datasets or ~/.cache/bcal/datasets).
     #[arg(long)]
     pub cache_dir: Option<PathBuf>,
@@ -92,46 +92,11 @@ pub struct DatasetSelect {
     pub force: bool,
 }
 
-#[derive(Clone, Copy, Debug, ValueEnum, PartialEq, Eq)]
-pub enum ExperimentArg {
-    /// qMobile 4000..7000 C (501 values), Ro fixed, 11 loads 8..16 W.
-    SingleQ,
-    /// Ro 0.1..0.2 ohm (501 values), qMobile fixed, 11 loads 8..16 W.
-    SingleR,
-    /// qMobile (101 values) x Ro (5 values), 9 loads 8..16 W.
-    Multi,
-    /// All three.
-    All,
-}
-
-impl ExperimentArg {
-    pub fn experiments(self) -> Vec<Experiment> {
-        match self {
-            ExperimentArg::SingleQ => vec![Experiment::SingleQ],
-            ExperimentArg::SingleR => vec![Experiment::SingleR],
-            ExperimentArg::Multi => vec![Experiment::Multi],
-            ExperimentArg::All => Experiment::ALL.to_vec(),
-        }
-    }
-}
-
-/// One of the paper's three experiments.
-#[derive(Clone, Copy, Debug, ValueEnum, PartialEq, Eq)]
-pub enum ExperimentChoice {
-    /// qMobile 4000..7000 C (501 values), Ro fixed, 11 loads 8..16 W.
-    SingleQ,
-    /// Ro 0.1..0.2 ohm (501 values), qMobile fixed, 11 loads 8..16 W.
-    SingleR,
-    /// qMobile (101 values) x Ro (5 values), 9 loads 8..16 W.
-    Multi,
-}
-
-impl ExperimentChoice {
-    pub fn experiment(self) -> Experiment {
-        match self {
-            ExperimentChoice::SingleQ => Experiment::SingleQ,
-            ExperimentChoice::SingleR => Experiment::SingleR,
-            ExperimentChoice::Multi => Experiment::Multi,
+impl DatasetSelect {
+    pub fn experiments(&self) -> Vec<Experiment> {
+        match self.experiment {
+            Some(e) => vec![e],
+            None => Experiment::ALL.to_vec(),
         }
     }
 }

@@ -1,14 +1,14 @@
-//! `bcal eval`: evaluate the run's RL-LAC policy against a tuned UKF and a supervised direct mapping on
-//! the held-out (high-load) test trajectories, and write report.json, report.md and the figures into the
-//! run folder. Reads from the run folder when present: policy.bcalpol (the policy and its MDP), config.toml
-//! (experiment and env settings), mdp.json (observation scales) and metrics.jsonl (training curve). Without a
-//! policy the baselines are still evaluated and the report says RL was not.
+//! `bcal eval`: evaluate the run's RL-LAC policy against a UKF and a supervised direct mapping on the
+//! held-out (high-load) test trajectories, and write report.json, report.md and the figures into the run
+//! folder. Reads from the run folder when present: the delivered policy (policy.best.bcalpol, the best by
+//! validation; `--policy-choice` for another), config.toml (experiment, env settings and the training budget
+//! the direct mapping gets too), mdp.json (observation scales) and metrics.jsonl (training curve). Without
+//! a policy the baselines are still evaluated and the report says RL was not.
 
-use crate::cli::ExperimentChoice;
 use anyhow::{bail, Context};
 use bcal_common::battery::BatteryModel;
 use bcal_common::config::TrainConfig;
-use bcal_common::dataset::{self, CacheStatus, Experiment};
+use bcal_common::dataset::{self, Dataset, Experiment, Split};
 use bcal_common::mdp::MdpSpec;
 use bcal_common::policy::PolicyFile;
 use bcal_eval::metrics::Param;
@@ -26,7 +26,7 @@ pub struct EvalArgs {
     pub run: PathBuf,
     /// Experiment to evaluate (default: the policy's, else the run's config.toml, else multi).
     #[arg(long, value_enum)]
-    pub experiment: Option<ExperimentChoice>,
+    pub experiment: Option<Experiment>,
     /// Quick run (well under a minute): 12 test trajectories per load, a small UKF tuning grid and a few
     /// seconds of direct-mapping training.
     #[arg(long)]
@@ -37,16 +37,23 @@ pub struct EvalArgs {
     /// Evaluate the UKF alone (same as --methods ukf).
     #[arg(long)]
     pub ukf_only: bool,
-    /// Policy file (default: RUN/policy.bcalpol).
+    /// Which of the run's policies to evaluate: `best` (the best by the run's `learner.select_by`
+    /// validation score, policy.best.bcalpol), `last` (the weights when training stopped), or the best by a
+    /// given validation score (`best-tracking-error`, `best-nrmse`).
+    #[arg(long, value_enum, default_value_t = PolicyChoice::Best)]
+    pub policy_choice: PolicyChoice,
+    /// Policy file (overrides --policy-choice).
     #[arg(long)]
     pub policy: Option<PathBuf>,
     /// Test trajectories per test load, spread over the parameter grid (default: all; --quick: 12).
     #[arg(long)]
     pub per_load: Option<usize>,
-    /// Cap on the seconds of direct-mapping training (default 150, for 6000 updates; --quick: 8).
+    /// Wall-clock budget of the direct mapping's training, s (default: the run's training budget, so both
+    /// learners get the same time; 900 s without a run config; --quick: 8). Early stopping on the
+    /// validation split usually ends it sooner.
     #[arg(long, value_parser = crate::cli::positive_f64)]
     pub dm_budget_s: Option<f64>,
-    /// Adam updates of the direct mapping (default 6000; --quick: 1500).
+    /// Cap on the direct mapping's Adam updates (default: none).
     #[arg(long)]
     pub dm_updates: Option<usize>,
     /// Dataset cache folder (default: $BCAL_CACHE/datasets or ~/.cache/bcal/datasets).
@@ -58,10 +65,38 @@ pub struct EvalArgs {
 pub enum MethodArg {
     /// The trained RL-LAC policy (needs a policy file).
     Rl,
-    /// The unscented Kalman filter, tuned on training trajectories.
+    /// The unscented Kalman filter, tuned on validation trajectories.
     Ukf,
-    /// The supervised direct mapping (trained here, in tch).
+    /// The supervised direct mapping (trained here, in tch, early-stopped on validation).
     Direct,
+}
+
+/// Which of a run's policy files to evaluate.
+#[derive(Clone, Copy, Debug, ValueEnum, PartialEq, Eq)]
+pub enum PolicyChoice {
+    Best,
+    Last,
+    BestTrackingError,
+    BestNrmse,
+}
+
+impl PolicyChoice {
+    fn file_and_why(self, config: Option<&TrainConfig>) -> (String, String) {
+        use bcal_common::config::SelectBy;
+        use bcal_common::policy::{best_policy_file, POLICY_BEST, POLICY_LAST};
+        let select = config.map(|c| c.learner.select_by);
+        match self {
+            PolicyChoice::Best => (
+                POLICY_BEST.into(),
+                format!("the best by validation {}", select.map_or("score".into(), |s| s.name().replace('-', " "))),
+            ),
+            PolicyChoice::Last => (POLICY_LAST.into(), "the weights when training stopped".into()),
+            PolicyChoice::BestTrackingError => {
+                (best_policy_file(SelectBy::TrackingError), "the best by validation tracking error".into())
+            }
+            PolicyChoice::BestNrmse => (best_policy_file(SelectBy::Nrmse), "the best by validation NRMSE".into()),
+        }
+    }
 }
 
 pub fn run(a: EvalArgs) -> anyhow::Result<()> {
@@ -70,8 +105,16 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(run_dir)
         .with_context(|| format!("cannot create the run folder {}: check the path", run_dir.display()))?;
 
+    let config_path = run_dir.join("config.toml");
+    let config = if config_path.exists() { Some(TrainConfig::from_file(&config_path)?) } else { None };
     // The policy, if there is one: a damaged file is an error, a missing one only skips RL.
-    let policy_path = a.policy.clone().unwrap_or_else(|| run_dir.join("policy.bcalpol"));
+    let (policy_path, choice) = match &a.policy {
+        Some(p) => (p.clone(), "given with --policy".to_string()),
+        None => {
+            let (file, why) = a.policy_choice.file_and_why(config.as_ref());
+            (run_dir.join(file), why)
+        }
+    };
     let policy = if policy_path.exists() {
         Some(
             PolicyFile::load(&policy_path)
@@ -80,10 +123,8 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     } else {
         None
     };
-    let config_path = run_dir.join("config.toml");
-    let config = if config_path.exists() { Some(TrainConfig::from_file(&config_path)?) } else { None };
 
-    let experiment = match (a.experiment.map(|e| e.experiment()), &policy, &config) {
+    let experiment = match (a.experiment, &policy, &config) {
         (Some(e), Some(p), _) if p.experiment != e => bail!(
             "the policy {} was trained on {}, not {e}; drop --experiment or pass --experiment {}",
             policy_path.display(),
@@ -97,16 +138,26 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     };
     println!("evaluating experiment {experiment} in {}", run_dir.display());
 
+    let mut opts = if a.quick { EvalOptions::quick() } else { EvalOptions::full() };
+    let wanted = |m: MethodArg| if a.ukf_only { m == MethodArg::Ukf } else { a.methods.contains(&m) };
+    opts.rl = wanted(MethodArg::Rl);
+    opts.ukf = wanted(MethodArg::Ukf);
+    opts.direct_mapping = wanted(MethodArg::Direct);
+
+    // The splits: test (scored), validation (every choice), training (the direct mapping's pairs and, when
+    // there is no MDP to read, the observation scales).
     let model = BatteryModel::default();
     let cache_dir = a.cache_dir.clone().unwrap_or_else(dataset::default_cache_dir);
-    let (ds, rep) = dataset::load_or_generate(&experiment.definition(), &model, &cache_dir)?;
-    match &rep.status {
-        CacheStatus::Hit => println!("dataset {experiment}: cached ({:.1} s to read)", rep.seconds),
-        CacheStatus::Generated => println!("dataset {experiment}: generated in {:.1} s", rep.seconds),
-        CacheStatus::Regenerated { reason } => {
-            println!("dataset {experiment}: cache was corrupt ({reason}); regenerated in {:.1} s", rep.seconds)
-        }
-    }
+    let def = experiment.definition();
+    let load = |split: Split| -> anyhow::Result<Dataset> {
+        let (ds, rep) = dataset::load_or_generate(&def, &model, &cache_dir, split)?;
+        crate::train_cmd::report_cache(experiment, split, &rep);
+        Ok(ds)
+    };
+    let test = load(Split::Test)?;
+    let validation = load(Split::Validation)?;
+    let needs_train = opts.direct_mapping || policy.is_none();
+    let train = if needs_train { Some(load(Split::Train)?) } else { None };
 
     // The MDP: the policy's own (its scales travel with it), else the run's mdp.json, else derived here.
     let spec = match &policy {
@@ -128,7 +179,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
                 Some(s) => s,
                 None => {
                     let env = config.as_ref().filter(|c| c.experiment == experiment).map(|c| c.env.clone());
-                    MdpSpec::new(experiment, &env.unwrap_or_default(), &ds)
+                    MdpSpec::new(experiment, &env.unwrap_or_default(), train.as_ref().expect("loaded when no policy"))
                 }
             }
         }
@@ -137,19 +188,22 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     let metrics_path = run_dir.join("metrics.jsonl");
     let training_curve = std::fs::read_to_string(&metrics_path).ok().map(|t| TrainingCurve::parse(&t));
 
-    let mut opts = if a.quick { EvalOptions::quick() } else { EvalOptions::full() };
-    let wanted = |m: MethodArg| if a.ukf_only { m == MethodArg::Ukf } else { a.methods.contains(&m) };
-    opts.rl = wanted(MethodArg::Rl);
-    opts.ukf = wanted(MethodArg::Ukf);
-    opts.direct_mapping = wanted(MethodArg::Direct);
     if let Some(k) = a.per_load {
         if k == 0 {
             bail!("--per-load must be at least 1");
         }
         opts.test_per_load = Some(k);
     }
-    if let Some(s) = a.dm_budget_s {
-        opts.direct.time_budget_s = s;
+    // Equal effort: the direct mapping gets the RL run's wall-clock budget unless told otherwise.
+    match (a.dm_budget_s, &config) {
+        (Some(s), _) => opts.direct.time_budget_s = s,
+        (None, Some(c)) if !a.quick && c.learner.time_budget_s > 0.0 => {
+            opts.direct.time_budget_s = c.learner.time_budget_s
+        }
+        _ => {}
+    }
+    if let Some(c) = &config {
+        opts.direct.seed = c.seed;
     }
     if let Some(n) = a.dm_updates {
         if n == 0 {
@@ -159,7 +213,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     }
 
     let policy_input = match &policy {
-        Some(file) => PolicyInput::Loaded { file, path: policy_path.display().to_string() },
+        Some(file) => PolicyInput::Loaded { file, path: policy_path.display().to_string(), choice },
         None => PolicyInput::Missing {
             reason: format!(
                 "no policy file at {}: train one first (bcal train --run {}) or pass --policy FILE",
@@ -168,7 +222,15 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
             ),
         },
     };
-    let input = EvalInput { ds: &ds, spec: &spec, model: &model, policy: policy_input, training_curve };
+    let input = EvalInput {
+        test: &test,
+        validation: &validation,
+        train: train.as_ref(),
+        spec: &spec,
+        model: &model,
+        policy: policy_input,
+        training_curve,
+    };
     let mut eval = bcal_eval::evaluate(&input, &opts, &mut |msg| {
         println!("[{:6.1} s] {msg}", started.elapsed().as_secs_f64());
     })?;

@@ -6,13 +6,12 @@
 //! and action map, shared by every process), metrics.jsonl (learner), checkpoints/, policy.bcalpol, logs/
 //! (one file per process plus supervisor.log), and later the evaluation report.
 
-use crate::cli::ExperimentChoice;
 use crate::supervisor::{self, decide, Decision, Exit, RestartPolicy, Role, Supervised};
 use anyhow::{bail, Context};
 use bcal_common::battery::BatteryModel;
-use bcal_common::config::TrainConfig;
-use bcal_common::dataset::{self, CacheStatus};
-use bcal_common::mdp::{MdpSpec, SplitMix64};
+use bcal_common::config::{Preset, TrainConfig};
+use bcal_common::dataset::{self, CacheStatus, Experiment, Split};
+use bcal_common::mdp::MdpSpec;
 use clap::Args;
 use std::io::{BufRead, IsTerminal, Seek, Write};
 use std::path::{Path, PathBuf};
@@ -20,12 +19,16 @@ use std::time::{Duration, Instant};
 
 #[derive(Args, Debug, Clone)]
 pub struct TrainArgs {
-    /// TOML config file; absent keys take the paper's defaults (see `bcal train --print-config`).
+    /// Starting point of the config: `tuned` (the defaults, measured on the validation split) or `paper`
+    /// (the paper's hyperparameters and MDP).
+    #[arg(long, value_enum, default_value_t = Preset::Tuned)]
+    pub preset: Preset,
+    /// TOML config file; absent keys take the preset's values (see `bcal train --print-config`).
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Experiment to train on (overrides the config's `experiment`).
     #[arg(long, value_enum)]
-    pub experiment: Option<ExperimentChoice>,
+    pub experiment: Option<Experiment>,
     /// Run name: the run folder is runs/<name> (default: <experiment>-<UTC time>).
     #[arg(long)]
     pub name: Option<String>,
@@ -77,12 +80,12 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
         TrainConfig::from_file(&p)?
     } else {
         match &a.config {
-            Some(p) => TrainConfig::from_file(p)?,
-            None => TrainConfig::default(),
+            Some(p) => TrainConfig::from_file_over(p, a.preset)?,
+            None => a.preset.config(),
         }
     };
     if let Some(e) = a.experiment {
-        cfg.experiment = e.experiment();
+        cfg.experiment = e;
     }
     if let Some(b) = a.budget_s {
         cfg.learner.time_budget_s = b;
@@ -110,28 +113,31 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
     // A finished marker from an earlier leg must not end a resumed run at once.
     let _ = std::fs::remove_file(run_dir.join("learner.done"));
 
-    // Warm the dataset cache once so the processes only read it.
+    // Warm the cache of the splits training reads (actors: train, learner: validation) so the processes
+    // only read it; the MDP's observation scales come from the training split.
     let model = BatteryModel::default();
     let cache_dir = dataset::default_cache_dir();
-    let (ds, rep) = dataset::load_or_generate(&v.def, &model, &cache_dir)?;
-    match &rep.status {
-        CacheStatus::Hit => println!("dataset {}: cached ({:.1} s to read)", cfg.experiment, rep.seconds),
-        CacheStatus::Generated => println!("dataset {}: generated in {:.1} s", cfg.experiment, rep.seconds),
-        CacheStatus::Regenerated { reason } => {
-            println!("dataset {}: cache was corrupt ({reason}); regenerated in {:.1} s", cfg.experiment, rep.seconds)
+    let mut train = None;
+    for split in [Split::Train, Split::Validation] {
+        let (ds, rep) = dataset::load_or_generate(&v.def, &model, &cache_dir, split)?;
+        report_cache(cfg.experiment, split, &rep);
+        v.check_dataset(&ds)?;
+        if split == Split::Train {
+            train = Some(ds);
         }
     }
-    v.check_dataset(&ds)?;
     let mdp_path = run_dir.join("mdp.json");
     if !(a.resume && mdp_path.exists()) {
-        let spec = MdpSpec::new(cfg.experiment, &cfg.env, &ds);
+        let spec = MdpSpec::new(cfg.experiment, &cfg.env, train.as_ref().expect("loaded above"));
         write_atomic(&mdp_path, serde_json::to_string_pretty(&spec)?.as_bytes())?;
     }
-    drop(ds);
+    drop(train);
 
     println!(
-        "training {} with {} actor(s) x {} envs, budget {} s / {} updates, run folder {}",
+        "training {} (preset {}{}) with {} actor(s) x {} envs, budget {} s / {} updates, run folder {}",
         cfg.experiment,
+        a.preset.name(),
+        a.config.as_ref().map(|p| format!(" + {}", p.display())).unwrap_or_default(),
         v.actor_count,
         cfg.actors.envs_per_actor,
         cfg.learner.time_budget_s,
@@ -166,7 +172,7 @@ fn resolve_run_dir(a: &TrainArgs) -> anyhow::Result<PathBuf> {
             if a.resume {
                 bail!("--resume needs --run DIR or --name NAME of the run to continue");
             }
-            let exp = a.experiment.map(|e| e.experiment().name().to_string()).unwrap_or_else(|| "run".into());
+            let exp = a.experiment.map(|e| e.name().to_string()).unwrap_or_else(|| "run".into());
             let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH)?.as_secs();
             format!("{exp}-{}", utc_stamp(secs))
         }
@@ -191,18 +197,19 @@ fn utc_stamp(secs: u64) -> String {
 }
 
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
-    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-    let res = (|| -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = res {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(e).with_context(|| format!("cannot write {} (disk full or folder not writable?)", path.display()));
+    bcal_common::fsutil::write_atomic(path, bytes)
+        .with_context(|| format!("cannot write {} (disk full or folder not writable?)", path.display()))
+}
+
+/// One line on what the dataset cache did for a split.
+pub fn report_cache(experiment: Experiment, split: Split, rep: &dataset::LoadReport) {
+    match &rep.status {
+        CacheStatus::Hit => println!("dataset {experiment} {split}: cached ({:.1} s to read)", rep.seconds),
+        CacheStatus::Generated => println!("dataset {experiment} {split}: generated in {:.1} s", rep.seconds),
+        CacheStatus::Regenerated { reason } => {
+            println!("dataset {experiment} {split}: cache was corrupt ({reason}); regenerated in {:.1} s", rep.seconds)
+        }
     }
-    Ok(())
 }
 
 struct Program {
@@ -266,7 +273,7 @@ async fn watch(
     }
 
     let mut progress = Progress::new(&run_dir, budget_s);
-    let mut rng = SplitMix64(std::process::id() as u64);
+    let mut rng = <rand::rngs::SmallRng as rand::SeedableRng>::seed_from_u64(u64::from(std::process::id()));
     let mut pending: Vec<(Instant, Role, u32)> = Vec::new();
     let mut tick = tokio::time::interval(Duration::from_millis(250));
     let mut outcome: Option<anyhow::Result<()>> = None;
@@ -324,7 +331,7 @@ async fn watch(
                         }
                         Decision::Restart => {
                             let n = s.restarts + 1;
-                            let delay = policy.delay(n, rng.unit_f64()).unwrap_or(Duration::ZERO);
+                            let delay = policy.delay(n, rand::Rng::random::<f64>(&mut rng)).unwrap_or(Duration::ZERO);
                             eprintln!("{} exited ({exit:?}); restarting in {:.1} s", s.role.name(), delay.as_secs_f64());
                             pending.push((Instant::now() + delay, s.role, n));
                         }
@@ -448,8 +455,8 @@ impl Progress {
             ),
             None => "waiting for the learner (filling the replay buffer)".to_string(),
         };
-        if let Some(c) = f(&self.last_val, "val_cost") {
-            s += &format!(" | val cost {c:.4}");
+        if let Some(c) = f(&self.last_val, "val_tracking_error") {
+            s += &format!(" | val err {c:.4}");
             if let Some(q) = f(&self.last_val, "val_nrmse_q_pct") {
                 s += &format!(" q {q:.2}%");
             }

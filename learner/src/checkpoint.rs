@@ -4,17 +4,19 @@
 //! `run_dir/checkpoints/LATEST` names the newest complete folder; it is the only thing `--resume` trusts.
 //!
 //! Atomicity: a checkpoint is written into a hidden temporary folder, every file and the folder fsynced,
-//! then renamed to `step-<N>`; only then is `LATEST` replaced (temporary file, fsync, rename). A crash at
+//! then renamed to `step-<N>`; only then is `LATEST` replaced ([`bcal_common::fsutil`]). A crash at
 //! any moment leaves `LATEST` naming an intact folder (or no `LATEST` at all). The two newest step
 //! folders are kept; older ones and stale temporary folders are removed on a best-effort basis.
 //!
 //! What is NOT restored: Adam's moment estimates (they re-warm within a few hundred updates) and
 //! libtorch's random generator (it is reseeded from the config seed and the step). The update counter,
-//! the quarantine counter, all weights, both targets, lambda and beta are restored exactly.
+//! the quarantine counter, the seconds trained, all weights, both targets, lambda and beta are restored
+//! exactly.
 
 use crate::lac::{Lac, LacError};
 use bcal_common::config::{LacConfig, Validated};
 use bcal_common::dataset::Experiment;
+use bcal_common::fsutil::{sync_dir, write_atomic};
 use bcal_common::policy::PolicyLayout;
 use bcal_common::text::shown;
 use std::collections::{BTreeMap, HashMap};
@@ -53,8 +55,11 @@ pub struct CheckpointMeta {
     pub lac: LacConfig,
     /// lr of lambda and beta actually used (`lac.lr_multipliers`, 0 meaning lr / 10, resolved).
     pub lr_multipliers: f64,
-    /// H_target actually used (`lac.target_entropy`, None meaning -4 dim(a), resolved).
+    /// H_target actually used (`lac.target_entropy`, None meaning the per-action default, resolved).
     pub target_entropy: f64,
+    /// Seconds of training before this checkpoint, across restarts (absent in older checkpoints: 0).
+    #[serde(default)]
+    pub trained_s: f64,
     /// CRC32 of every tensor file, by file name.
     pub files: BTreeMap<String, u32>,
 }
@@ -88,14 +93,6 @@ fn fsync_file(path: &Path) -> Result<(), LacError> {
     std::fs::File::open(path).and_then(|f| f.sync_all()).map_err(io_err("fsync", path))
 }
 
-/// Directory fsync makes a rename durable (POSIX); a no-op where directories cannot be opened.
-fn fsync_dir(path: &Path) -> Result<(), LacError> {
-    match std::fs::File::open(path) {
-        Ok(f) => f.sync_all().map_err(io_err("fsync", path)),
-        Err(_) => Ok(()),
-    }
-}
-
 fn crc_of(path: &Path) -> Result<u32, LacError> {
     Ok(crc32fast::hash(&std::fs::read(path).map_err(io_err("read", path))?))
 }
@@ -114,7 +111,7 @@ impl Lac {
                 step_folder_name(self.updates),
                 std::process::id()
             )));
-            let _ = std::fs::remove_file(dir.join(format!(".{LATEST_FILE}.tmp-{}", std::process::id())));
+            let _ = std::fs::remove_file(bcal_common::fsutil::temporary_path(&dir.join(LATEST_FILE)));
         }
         res
     }
@@ -157,6 +154,7 @@ impl Lac {
             lac: self.lac_config.clone(),
             lr_multipliers: self.lr_multipliers,
             target_entropy: self.target_entropy,
+            trained_s: self.trained_s,
             files,
         };
         let path = tmp.join(META_FILE);
@@ -164,7 +162,7 @@ impl Lac {
         std::fs::File::create(&path)
             .and_then(|mut f| f.write_all(&json).and_then(|()| f.sync_all()))
             .map_err(io_err("write", &path))?;
-        fsync_dir(&tmp)?;
+        sync_dir(&tmp).map_err(io_err("fsync", &tmp))?;
 
         // Re-saving a step (e.g. SIGTERM right after a periodic checkpoint, or a fresh run in an old run
         // folder) replaces that folder.
@@ -173,15 +171,10 @@ impl Lac {
             std::fs::remove_dir_all(&folder).map_err(io_err("replace", &folder))?;
         }
         std::fs::rename(&tmp, &folder).map_err(io_err("rename into place", &folder))?;
-        fsync_dir(&dir)?;
+        sync_dir(&dir).map_err(io_err("fsync", &dir))?;
 
         let latest = dir.join(LATEST_FILE);
-        let latest_tmp = dir.join(format!(".{LATEST_FILE}.tmp-{}", std::process::id()));
-        std::fs::File::create(&latest_tmp)
-            .and_then(|mut f| f.write_all(format!("{name}\n").as_bytes()).and_then(|()| f.sync_all()))
-            .map_err(io_err("write", &latest_tmp))?;
-        std::fs::rename(&latest_tmp, &latest).map_err(io_err("rename into place", &latest))?;
-        fsync_dir(&dir)?;
+        write_atomic(&latest, format!("{name}\n").as_bytes()).map_err(io_err("write", &latest))?;
 
         prune(&dir, self.updates);
         Ok(folder)
@@ -267,6 +260,7 @@ impl Lac {
         }
         lac.updates = step;
         lac.quarantined = meta.quarantined;
+        lac.trained_s = meta.trained_s;
         Ok(Some(lac))
     }
 }

@@ -342,6 +342,11 @@ pub struct Lac {
     polyak_pairs: Vec<(Tensor, Tensor)>,
     pub(crate) updates: u64,
     pub(crate) quarantined: u64,
+    /// Seconds of training so far, across restarts (saved in checkpoints): the time budget and the
+    /// learning-rate schedule continue from it after a resume.
+    pub(crate) trained_s: f64,
+    /// Multiplier currently applied to every learning rate (the schedule's value).
+    lr_factor: f64,
 }
 
 impl Lac {
@@ -415,6 +420,8 @@ impl Lac {
             polyak_pairs,
             updates: 0,
             quarantined: 0,
+            trained_s: 0.0,
+            lr_factor: 1.0,
         })
     }
 
@@ -542,6 +549,36 @@ impl Lac {
     /// Completed (not quarantined) updates; continues from the checkpoint after a resume.
     pub fn updates(&self) -> u64 {
         self.updates
+    }
+
+    /// Seconds of training so far, across restarts.
+    pub fn trained_s(&self) -> f64 {
+        self.trained_s
+    }
+
+    /// Sets the seconds trained so far (the process loop's clock); saved with the next checkpoint.
+    pub fn set_trained_s(&mut self, seconds: f64) {
+        self.trained_s = seconds;
+    }
+
+    /// Sets every learning rate to `factor` times its configured start value (the schedule of
+    /// [`bcal_common::config::LacConfig::lr_factor`]): actor and critic from `lac.lr`, lambda and beta
+    /// from the resolved multiplier rate.
+    pub fn set_lr_factor(&mut self, factor: f64) {
+        if factor == self.lr_factor {
+            return;
+        }
+        self.lr_factor = factor;
+        let lr = self.lac_config.lr * factor;
+        self.actor_opt.set_lr(lr);
+        self.critic_opt.set_lr(lr);
+        self.lambda_opt.set_lr(self.lr_multipliers * factor);
+        self.beta_opt.set_lr(self.lr_multipliers * factor);
+    }
+
+    /// The multiplier currently applied to every learning rate.
+    pub fn lr_factor(&self) -> f64 {
+        self.lr_factor
     }
 
     /// Updates skipped because a loss or gradient was not finite (restored from the checkpoint too).

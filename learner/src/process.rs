@@ -1,32 +1,38 @@
-//! The learner process loop (its design note is this header): load or resume the
+//! The learner process loop (its design note is this header and docs/learner.md): load or resume the
 //! LAC learner, publish its weights at once, then
 //!
 //! 1. keep [`PREFETCH`] batch requests open at the replay (the next batch is sampled while an update
 //!    runs; the replay holds a request until its rate limiter admits it),
 //! 2. take a batch -> `lac.update` (zero-copy: the batch is read straight from shared memory),
 //! 3. every `learner.weights_every` updates publish the actor's weights (history 1),
-//! 4. every `learner.checkpoint_every` updates checkpoint and write `policy.bcalpol`,
-//! 5. every `learner.validate_every` updates run the held-out validation,
-//! 6. about once a second append a `train` line to `metrics.jsonl`,
+//! 4. every `learner.checkpoint_every` updates checkpoint and write `policy.bcalpol` (the latest weights),
+//! 5. every `learner.validate_every` updates score the policy on the validation split and keep the best
+//!    policy by each score (`policy.best-tracking-error.bcalpol`, `policy.best-nrmse.bcalpol`, and
+//!    `policy.best.bcalpol` by `learner.select_by`): what a run delivers is its best validated policy,
+//!    not whichever one was current when the budget ran out,
+//! 6. set every learning rate by the schedule (`lac.lr_schedule`) at the run's progress,
+//! 7. about once a second append a `train` line to `metrics.jsonl`,
 //!
 //! until `learner.max_updates` or `learner.time_budget_s` (final checkpoint, policy file, validation,
 //! then `learner.done`) or SIGTERM/SIGINT (checkpoint and policy file, no `learner.done`). Every way out
-//! of the loop is a clean exit 0.
+//! of the loop is a clean exit 0. Training time and the best scores survive a restart: the time budget
+//! counts seconds trained across restarts, and the best scores are read back from `metrics.jsonl`.
 //!
-//! Validation sees the true parameters of the test trajectories: it is evaluation, never a gradient.
+//! The learner reads only the validation split (never training or test data). Validation reads the true
+//! parameters of its trajectories for the NRMSE score: it is evaluation, never a gradient.
 
+use crate::{Lac, UpdateMetrics};
 use anyhow::Context;
 use bcal_common::battery::BatteryModel;
-use bcal_common::config::{TrainConfig, Validated};
-use bcal_common::dataset::{default_cache_dir, load_or_generate, Dataset};
+use bcal_common::config::{SelectBy, TrainConfig, Validated};
+use bcal_common::dataset::{default_cache_dir, load_or_generate, Dataset, Split};
 use bcal_common::ipc::{
     self, BatchClient, BatchPending, IpcError, Role, RunIpc, StatusSubscriber, UpdateConnections, WeightsPublisher,
     OPEN_TIMEOUT,
 };
-use bcal_common::mdp::{validate_policy, MdpSpec};
-use bcal_common::policy::{PolicyLayout, PolicyNet};
+use bcal_common::mdp::{validate_policy, MdpSpec, PolicyScore};
+use bcal_common::policy::{best_policy_file, PolicyLayout, PolicyNet, POLICY_BEST, POLICY_LAST};
 use bcal_common::wire::{BatchRequest, ReplayCounters, WeightsHeader};
-use bcal_learner::{Lac, UpdateMetrics};
 use serde_json::{json, Map, Value};
 use std::collections::VecDeque;
 use std::io::Write;
@@ -136,14 +142,24 @@ impl MetricsLog {
     }
 }
 
+/// The lowest validation score seen under one selection rule, and at which update.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Best {
+    score: f64,
+    update: u64,
+}
+
 /// Everything the loop needs besides the learner itself.
 struct Ctx {
     run_dir: PathBuf,
     cfg: Validated,
     spec: MdpSpec,
     model: BatteryModel,
-    ds: Dataset,
+    /// The validation split (the learner reads no other).
+    val: Dataset,
     val_trajectories: Vec<usize>,
+    /// Best score so far under each [`SelectBy`], in `SelectBy::ALL` order.
+    best: [Option<Best>; 2],
 }
 
 impl Ctx {
@@ -174,26 +190,77 @@ impl Ctx {
                 self.run_dir.join("checkpoints").display()
             )
         })?;
-        let path = self.run_dir.join("policy.bcalpol");
-        lac.policy_file(self.spec.clone(), self.cfg.config.experiment)
-            .save(&path)
-            .with_context(|| format!("policy file {}", path.display()))?;
-        Ok(())
+        self.save_policy(lac, POLICY_LAST)
     }
 
-    fn validation_line(&self, lac: &Lac, log: &MetricsLog) -> anyhow::Result<Map<String, Value>> {
+    fn save_policy(&self, lac: &Lac, name: &str) -> anyhow::Result<()> {
+        let path = self.run_dir.join(name);
+        lac.policy_file(self.spec.clone(), self.cfg.config.experiment)
+            .save(&path)
+            .with_context(|| format!("policy file {}", path.display()))
+    }
+
+    /// Scores the current policy on the validation split, keeps the best policy by each score, and
+    /// returns the `validation` line for metrics.jsonl.
+    fn validate(&mut self, lac: &Lac, log: &MetricsLog) -> anyhow::Result<Map<String, Value>> {
         let net = PolicyNet::from_flat(lac.layout().clone(), lac.actor_flat_params()).context("validation policy")?;
-        let (cost, q, r) = validate_policy(&self.spec, &self.model, &self.ds, &self.val_trajectories, &net);
+        let score = validate_policy(&self.spec, &self.model, &self.val, &self.val_trajectories, &net);
         let mut line = Map::new();
         line.insert("kind".into(), json!("validation"));
         line.insert("t_s".into(), json!(log.t_s()));
         line.insert("update".into(), json!(lac.updates()));
-        line.insert("val_cost".into(), json!(cost));
-        line.insert("val_nrmse_q_pct".into(), json!(q));
-        line.insert("val_nrmse_r_pct".into(), json!(r));
+        line.insert("val_tracking_error".into(), json!(score.tracking_error));
+        line.insert("val_nrmse_q_pct".into(), json!(score.nrmse_q_pct));
+        line.insert("val_nrmse_r_pct".into(), json!(score.nrmse_r_pct));
         line.insert("val_trajectories".into(), json!(self.val_trajectories.len()));
+        for (k, select) in SelectBy::ALL.into_iter().enumerate() {
+            let s = score.by(select);
+            if s.is_finite() && self.best[k].is_none_or(|b| s < b.score) {
+                self.best[k] = Some(Best { score: s, update: lac.updates() });
+                self.save_policy(lac, &best_policy_file(select))?;
+                if select == self.cfg.config.learner.select_by {
+                    self.save_policy(lac, POLICY_BEST)?;
+                }
+                line.insert(format!("best_{}", select.name().replace('-', "_")), json!(true));
+            }
+        }
         Ok(line)
     }
+}
+
+/// The best score under each selection rule among the validation lines of an existing metrics.jsonl (a
+/// resumed learner keeps comparing against them).
+fn best_from_log(text: &str) -> [Option<Best>; 2] {
+    let mut best = [None; 2];
+    for v in text.lines().filter_map(|l| serde_json::from_str::<Value>(l).ok()) {
+        if v.get("kind").and_then(Value::as_str) != Some("validation") {
+            continue;
+        }
+        let f = |k: &str| v.get(k).and_then(Value::as_f64);
+        let (Some(e), Some(q), Some(r), Some(update)) = (
+            f("val_tracking_error"),
+            f("val_nrmse_q_pct"),
+            f("val_nrmse_r_pct"),
+            v.get("update").and_then(Value::as_u64),
+        ) else {
+            continue;
+        };
+        let score = PolicyScore { tracking_error: e, nrmse_q_pct: q, nrmse_r_pct: r };
+        for (k, select) in SelectBy::ALL.into_iter().enumerate() {
+            let s = score.by(select);
+            if best[k].is_none_or(|b: Best| s < b.score) {
+                best[k] = Some(Best { score: s, update });
+            }
+        }
+    }
+    best
+}
+
+/// Progress of the run in [0, 1]: the larger of the update and time fractions of the budget.
+fn progress(l: &bcal_common::config::LearnerConfig, updates: u64, trained_s: f64) -> f64 {
+    let by_updates = if l.max_updates > 0 { updates as f64 / l.max_updates as f64 } else { 0.0 };
+    let by_time = if l.time_budget_s > 0.0 { trained_s / l.time_budget_s } else { 0.0 };
+    by_updates.max(by_time).min(1.0)
 }
 
 fn read_config(run_dir: &Path) -> anyhow::Result<Validated> {
@@ -232,11 +299,12 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
     let cfg = read_config(&args.run_dir)?;
     let spec = read_mdp(&args.run_dir)?;
     let model = BatteryModel::default();
-    let (ds, _) = load_or_generate(&cfg.def, &model, &default_cache_dir()).context("dataset")?;
-    cfg.check_dataset(&ds)?;
+    let (val, _) =
+        load_or_generate(&cfg.def, &model, &default_cache_dir(), Split::Validation).context("validation set")?;
+    cfg.check_dataset(&val)?;
     let layout =
         PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: cfg.config.lac.hidden.clone() };
-    let seed = cfg.config.seed ^ ipc::fnv1a64(b"learner");
+    let seed = cfg.config.seed ^ bcal_common::hash::fnv1a64(b"learner");
     let mut lac = match args.resume {
         true => match Lac::load_latest(&cfg, layout.clone(), &args.run_dir).context("--resume")? {
             Some(lac) => lac,
@@ -265,13 +333,14 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
     };
     let l = cfg.config.learner.clone();
     let batch_size = cfg.config.lac.batch_size;
-    let ctx = Ctx {
+    let mut ctx = Ctx {
         run_dir: args.run_dir.clone(),
-        val_trajectories: ds.spread_test_indices(l.validate_trajectories),
+        val_trajectories: val.spread_indices(l.validate_trajectories),
+        best: best_from_log(&std::fs::read_to_string(args.run_dir.join("metrics.jsonl")).unwrap_or_default()),
         cfg,
         spec,
         model,
-        ds,
+        val,
     };
 
     let run = RunIpc::new(&args.run_dir, &ctx.cfg)?;
@@ -298,11 +367,13 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
     start.insert("resumed".into(), json!(args.resume && lac.updates() > 0));
     log.write(&start)?;
     if l.validate_every > 0 {
-        let line = ctx.validation_line(&lac, &log)?;
+        let line = ctx.validate(&lac, &log)?;
         log.write(&line)?;
     }
 
     let started = Instant::now();
+    let trained_before_s = lac.trained_s();
+    let lac_cfg = ctx.cfg.config.lac.clone();
     let mut in_flight: VecDeque<BatchPending> = VecDeque::new();
     let mut request_seq = 0u64;
     let mut counters = ReplayCounters::default();
@@ -347,6 +418,8 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
             if transitions.len() != batch_size {
                 anyhow::bail!("the replay served {} transitions for a batch of {batch_size}", transitions.len());
             }
+            let trained_s = trained_before_s + started.elapsed().as_secs_f64();
+            lac.set_lr_factor(lac_cfg.lr_factor(progress(&l, lac.updates(), trained_s)));
             let metrics = lac.update(transitions)?;
             drop(batch);
             in_flight.pop_front();
@@ -358,11 +431,12 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
                 last_published = updates;
             }
             if updates >= last_checkpoint + l.checkpoint_every {
+                lac.set_trained_s(trained_before_s + started.elapsed().as_secs_f64());
                 ctx.checkpoint(&lac)?;
                 last_checkpoint = updates;
             }
             if l.validate_every > 0 && updates >= last_validation + l.validate_every {
-                let line = ctx.validation_line(&lac, &log)?;
+                let line = ctx.validate(&lac, &log)?;
                 log.write(&line)?;
                 last_validation = updates;
             }
@@ -386,6 +460,7 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
             line.insert("dropped".into(), json!(counters.dropped_total));
             line.insert("replay_size".into(), json!(counters.size));
             line.insert("batches_lost".into(), json!(batches_lost));
+            line.insert("lr_factor".into(), json!(lac.lr_factor()));
             window.drain_into(&mut line);
             log.write(&line)?;
             last_line = (Instant::now(), updates, counters.received_total);
@@ -394,30 +469,40 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
         if l.max_updates > 0 && lac.updates() >= l.max_updates {
             break Some("max_updates");
         }
-        if l.time_budget_s > 0.0 && started.elapsed().as_secs_f64() >= l.time_budget_s {
+        if l.time_budget_s > 0.0 && trained_before_s + started.elapsed().as_secs_f64() >= l.time_budget_s {
             break Some("time_budget");
         }
     };
 
     // Open requests are abandoned: the replay sees the learner disconnect and drops them.
     drop(in_flight);
+    lac.set_trained_s(trained_before_s + started.elapsed().as_secs_f64());
     ctx.checkpoint(&lac)?;
     let updates = lac.updates();
     match finished {
         Some(reason) => {
             ctx.publish_weights(&lac, &weights_pub)?;
             if l.validate_every > 0 && updates != last_validation {
-                let line = ctx.validation_line(&lac, &log)?;
+                let line = ctx.validate(&lac, &log)?;
                 log.write(&line)?;
             }
+            let best: Map<String, Value> = SelectBy::ALL
+                .iter()
+                .zip(&ctx.best)
+                .filter_map(|(s, b)| b.map(|b| (s.name().to_string(), json!({"score": b.score, "update": b.update}))))
+                .collect();
             let done = json!({
                 "reason": reason,
                 "updates": updates,
                 "elapsed_s": started.elapsed().as_secs_f64(),
+                "trained_s": lac.trained_s(),
+                "select_by": ctx.cfg.config.learner.select_by.name(),
+                "best_validation": best,
                 "unix_time_s": ipc::unix_time_s(),
             });
             let path = args.run_dir.join("learner.done");
-            ipc::write_json_atomic(&path, &done).with_context(|| format!("cannot write {}", path.display()))?;
+            bcal_common::fsutil::write_json_atomic(&path, &done)
+                .with_context(|| format!("cannot write {}", path.display()))?;
             Ok(Outcome::Finished { reason, updates })
         }
         None => Ok(Outcome::Stopped { updates }),
@@ -428,8 +513,9 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
 mod tests {
     use super::*;
     use bcal_common::config::EnvConfig;
-    use bcal_common::dataset::{generate, Experiment, ExperimentDef, Grid};
+    use bcal_common::dataset::{generate, Experiment, ExperimentDef, Grid, ValidationDef};
 
+    /// A small validation split and the MDP of its experiment's (small) training split.
     fn tiny() -> (Dataset, MdpSpec, BatteryModel) {
         let def = ExperimentDef {
             experiment: Experiment::Multi,
@@ -437,37 +523,27 @@ mod tests {
             r_o_ohm: Grid { start: 0.1, end: 0.2, n: 2 },
             loads_w: Grid { start: 8.0, end: 16.0, n: 9 },
             n_test_loads: 3,
+            validation: ValidationDef {
+                loads_w: vec![13.5],
+                q_mobile_c: Grid { start: 4500.0, end: 6500.0, n: 3 },
+                r_o_ohm: Grid::single(0.15),
+            },
             dt_s: 1.0,
             max_steps: 100_000,
         };
         let model = BatteryModel::default();
-        let ds = generate(&def, &model).unwrap();
-        let spec = MdpSpec::new(Experiment::Multi, &EnvConfig::default(), &ds);
-        (ds, spec, model)
-    }
-
-    #[test]
-    fn validation_trajectories_are_test_trajectories_spread_evenly() {
-        let (ds, _, _) = tiny();
-        let n_test = ds.test().count();
-        assert_eq!(n_test, 12);
-        let v = ds.spread_test_indices(4);
-        assert_eq!(v.len(), 4);
-        assert!(v.iter().all(|i| ds.def.is_test_load(ds.trajectories[*i].load_w)));
-        assert!(v.windows(2).all(|w| w[0] < w[1]), "{v:?}");
-        // Spread: 4 of 12 are every third test trajectory.
-        let test: Vec<usize> =
-            (0..ds.trajectories.len()).filter(|i| ds.def.is_test_load(ds.trajectories[*i].load_w)).collect();
-        assert_eq!(v, vec![test[0], test[3], test[6], test[9]]);
-        assert_eq!(ds.spread_test_indices(100).len(), 12);
+        let train = generate(&def, &model, Split::Train).unwrap();
+        let val = generate(&def, &model, Split::Validation).unwrap();
+        let spec = MdpSpec::new(Experiment::Multi, &EnvConfig::default(), &train);
+        (val, spec, model)
     }
 
     #[test]
     fn validation_of_a_policy_that_outputs_the_truth_is_near_perfect() {
         // A network whose output ignores the observation: zero weights, bias = atanh(action of the truth).
-        let (ds, spec, model) = tiny();
-        let val = ds.spread_test_indices(1);
-        let traj = &ds.trajectories[val[0]];
+        let (val, spec, model) = tiny();
+        let idx = val.spread_indices(1);
+        let traj = &val.trajectories[idx[0]];
         let truth = spec.actions.to_action(&traj.degradation);
         let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: 2, hidden: vec![4] };
         let mut p = vec![0f32; layout.n_params()];
@@ -476,9 +552,28 @@ mod tests {
         p[mean_bias] = truth[0].clamp(-0.999_999, 0.999_999).atanh();
         p[mean_bias + 1] = truth[1].clamp(-0.999_999, 0.999_999).atanh();
         let net = PolicyNet::from_flat(layout, p).unwrap();
-        let (cost, q, r) = validate_policy(&spec, &model, &ds, &val, &net);
-        assert!(q < 0.01 && r < 0.01, "{q} {r}");
-        assert!(cost < 1e-2, "{cost}");
+        let s = validate_policy(&spec, &model, &val, &idx, &net);
+        assert!(s.nrmse_q_pct < 0.01 && s.nrmse_r_pct < 0.01, "{s:?}");
+        assert!(s.tracking_error < 1e-2, "{s:?}");
+    }
+
+    #[test]
+    fn best_scores_are_read_back_from_the_log_and_progress_follows_the_budget() {
+        let log = "{\"kind\":\"train\",\"update\":5}\n\
+                   {\"kind\":\"validation\",\"update\":10,\"val_tracking_error\":0.5,\"val_nrmse_q_pct\":4.0,\"val_nrmse_r_pct\":2.0}\n\
+                   {\"kind\":\"validation\",\"update\":20,\"val_tracking_error\":0.4,\"val_nrmse_q_pct\":5.0,\"val_nrmse_r_pct\":3.0}\n\
+                   not json\n";
+        let best = best_from_log(log);
+        assert_eq!(best[0], Some(Best { score: 0.4, update: 20 }), "tracking error");
+        assert_eq!(best[1], Some(Best { score: 3.0, update: 10 }), "mean NRMSE");
+        assert_eq!(best_from_log(""), [None, None]);
+        let mut l =
+            bcal_common::config::LearnerConfig { max_updates: 1000, time_budget_s: 100.0, ..Default::default() };
+        assert_eq!(progress(&l, 500, 10.0), 0.5);
+        assert_eq!(progress(&l, 100, 80.0), 0.8);
+        assert_eq!(progress(&l, 5000, 0.0), 1.0);
+        l.max_updates = 0;
+        assert_eq!(progress(&l, 5000, 25.0), 0.25);
     }
 
     #[test]

@@ -5,7 +5,7 @@
 
 use bcal_common::config::{EnvConfig, TrainConfig, Validated};
 use bcal_common::dataset::Experiment;
-use bcal_common::mdp::{ActionMap, MdpSpec, ObsScales, ObservationKind, SplitMix64};
+use bcal_common::mdp::{ActionMap, MdpSpec, ObsScales, ObservationKind};
 use bcal_common::policy::{PolicyFile, PolicyLayout};
 use bcal_common::wire::Transition;
 use bcal_learner::checkpoint::{CHECKPOINTS_DIR, LATEST_FILE};
@@ -23,25 +23,13 @@ fn layout(act_dim: usize, hidden: &[usize]) -> PolicyLayout {
     PolicyLayout { obs_dim: 15, act_dim, hidden: hidden.to_vec() }
 }
 
-fn batch(rng: &mut SplitMix64, n: usize) -> Vec<Transition> {
-    (0..n)
-        .map(|_| {
-            let mut t = Transition::default();
-            for k in 0..15 {
-                t.obs[k] = rng.normal() as f32;
-                t.next_obs[k] = rng.normal() as f32;
-            }
-            t.action[0] = (rng.unit_f64() * 2.0 - 1.0) as f32;
-            t.cost = rng.unit_f64() as f32;
-            t
-        })
-        .collect()
+fn batch(seed: u64, n: usize) -> Vec<Transition> {
+    Transition::synthetic_batch(seed, n, 15, 1)
 }
 
 fn trained(cfg: &Validated, layout: PolicyLayout, updates: usize) -> (Lac, Vec<Transition>) {
     let mut lac = Lac::new(cfg, layout, 9).unwrap();
-    let mut rng = SplitMix64(10);
-    let b = batch(&mut rng, 32);
+    let b = batch(10, 32);
     for _ in 0..updates {
         lac.update(&b).unwrap();
     }

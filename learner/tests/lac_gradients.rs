@@ -6,7 +6,6 @@
 
 use bcal_common::config::{TrainConfig, Validated};
 use bcal_common::dataset::Experiment;
-use bcal_common::mdp::SplitMix64;
 use bcal_common::policy::PolicyLayout;
 use bcal_common::wire::Transition;
 use bcal_learner::{Lac, LacError};
@@ -18,27 +17,15 @@ fn setup() -> (Validated, PolicyLayout) {
     (c.validate().unwrap(), PolicyLayout { obs_dim: 5, act_dim: 2, hidden: vec![16, 16] })
 }
 
-fn batch(rng: &mut SplitMix64, n: usize) -> Vec<Transition> {
-    (0..n)
-        .map(|_| {
-            let mut t = Transition::default();
-            for k in 0..5 {
-                t.obs[k] = rng.normal() as f32;
-                t.next_obs[k] = rng.normal() as f32;
-            }
-            t.action[0] = (rng.unit_f64() * 2.0 - 1.0) as f32;
-            t.action[1] = (rng.unit_f64() * 2.0 - 1.0) as f32;
-            t.cost = rng.unit_f64() as f32;
-            t
-        })
-        .collect()
+fn batch(seed: u64, n: usize) -> Vec<Transition> {
+    Transition::synthetic_batch(seed, n, 5, 2)
 }
 
 #[test]
 fn lyapunov_decrease_reaches_the_actor_through_the_sampled_next_action() {
     let (cfg, layout) = setup();
     let mut lac = Lac::new(&cfg, layout, 1).unwrap();
-    let b = batch(&mut SplitMix64(2), 32);
+    let b = batch(2, 32);
     let before = lac.actor_flat_params();
     let (actor, critic) = lac.lyapunov_decrease_grad_norms(&b, false).unwrap();
     assert!(actor > 1e-6, "l_delta must train the actor, actor gradient norm {actor}");
@@ -54,8 +41,7 @@ fn lyapunov_decrease_reaches_the_actor_through_the_sampled_next_action() {
 fn a_non_finite_loss_is_quarantined_and_changes_nothing() {
     let (cfg, layout) = setup();
     let mut lac = Lac::new(&cfg, layout, 3).unwrap();
-    let mut rng = SplitMix64(4);
-    let mut b = batch(&mut rng, 16);
+    let mut b = batch(4, 16);
     // Finite inputs whose squared error overflows f32: the critic loss is inf.
     b[3].cost = 3.0e38;
     let (params, l_before) = (lac.actor_flat_params(), lac.lyapunov_values(&b).unwrap());
@@ -65,7 +51,7 @@ fn a_non_finite_loss_is_quarantined_and_changes_nothing() {
     assert_eq!(lac.lyapunov_values(&b).unwrap(), l_before);
     assert_eq!((lac.updates(), lac.quarantined()), (0, 1));
     // Training continues on good data.
-    let m = lac.update(&batch(&mut rng, 16)).unwrap();
+    let m = lac.update(&batch(5, 16)).unwrap();
     assert!(!m.quarantined && m.critic_loss.is_finite());
     assert_eq!((lac.updates(), lac.quarantined()), (1, 1));
     assert_ne!(lac.actor_flat_params(), params);
@@ -75,7 +61,7 @@ fn a_non_finite_loss_is_quarantined_and_changes_nothing() {
 fn invalid_batches_are_errors_naming_the_problem() {
     let (cfg, layout) = setup();
     let mut lac = Lac::new(&cfg, layout, 5).unwrap();
-    let good = batch(&mut SplitMix64(6), 8);
+    let good = batch(6, 8);
     assert!(matches!(lac.update(&[]), Err(LacError::EmptyBatch)));
     let mut b = good.clone();
     b[2].next_obs[4] = f32::NAN;

@@ -5,10 +5,11 @@
 
 use bcal_common::config::TrainConfig;
 use bcal_common::dataset::Experiment;
-use bcal_common::mdp::SplitMix64;
 use bcal_common::policy::PolicyLayout;
 use bcal_common::wire::Transition;
 use bcal_learner::Lac;
+use rand::rngs::SmallRng;
+use rand::{Rng, SeedableRng};
 
 const OBS: usize = 3;
 const UPDATES: usize = 1500;
@@ -17,11 +18,11 @@ fn best_action(obs: &[f32]) -> f32 {
     0.6 * obs[0]
 }
 
-fn uniform(rng: &mut SplitMix64) -> f32 {
-    (rng.unit_f64() * 2.0 - 1.0) as f32
+fn uniform(rng: &mut SmallRng) -> f32 {
+    rng.random_range(-1.0..=1.0)
 }
 
-fn batch(rng: &mut SplitMix64, n: usize) -> Vec<Transition> {
+fn batch(rng: &mut SmallRng, n: usize) -> Vec<Transition> {
     (0..n)
         .map(|_| {
             let mut t = Transition::default();
@@ -58,7 +59,7 @@ fn lac_learns_the_low_cost_action_on_a_toy_mdp() {
     let cfg = c.validate().unwrap();
     let mut lac = Lac::new(&cfg, PolicyLayout { obs_dim: OBS, act_dim: 1, hidden: vec![32, 32] }, 42).unwrap();
 
-    let mut rng = SplitMix64(43);
+    let mut rng = SmallRng::seed_from_u64(43);
     let test_obs: Vec<f32> = (0..512 * OBS).map(|_| uniform(&mut rng)).collect();
     let error_before = action_error(&lac, &test_obs);
     let mut critic_losses = Vec::with_capacity(UPDATES);

@@ -4,7 +4,6 @@
 
 use bcal_common::config::TrainConfig;
 use bcal_common::dataset::Experiment;
-use bcal_common::mdp::SplitMix64;
 use bcal_common::policy::PolicyLayout;
 use bcal_common::wire::Transition;
 use bcal_learner::Lac;
@@ -12,23 +11,12 @@ use bcal_learner::Lac;
 #[test]
 #[ignore = "measurement; run with --ignored --nocapture"]
 fn updates_per_second_paper_networks_batch_256() {
-    let mut rng = SplitMix64(1);
-    let batch: Vec<Transition> = (0..256)
-        .map(|_| {
-            let mut t = Transition::default();
-            for k in 0..15 {
-                t.obs[k] = rng.normal() as f32;
-                t.next_obs[k] = rng.normal() as f32;
-            }
-            t.action[0] = (rng.unit_f64() * 2.0 - 1.0) as f32;
-            t.action[1] = (rng.unit_f64() * 2.0 - 1.0) as f32;
-            t.cost = rng.unit_f64() as f32;
-            t
-        })
-        .collect();
+    let batch = Transition::synthetic_batch(1, 256, 15, 2);
     for threads in [1, 2] {
         let mut c = TrainConfig { experiment: Experiment::Multi, ..Default::default() };
         c.learner.torch_threads = threads;
+        // The paper's networks, not the config's default widths: the layout must match lac.hidden.
+        c.lac.hidden = vec![256; 3];
         let cfg = c.validate().unwrap();
         let mut lac = Lac::new(&cfg, PolicyLayout { obs_dim: 15, act_dim: 2, hidden: vec![256; 3] }, 1).unwrap();
         for _ in 0..30 {

@@ -268,7 +268,7 @@ pub fn run(run_dir: &Path) -> Result<ReplayReport, ReplayError> {
         }
     };
     let write = |r: &ReplayReport| {
-        ipc::write_json_atomic(&report_path, r)
+        bcal_common::fsutil::write_json_atomic(&report_path, r)
             .map_err(|source| ReplayError::Write { path: report_path.clone(), source })
     };
     write(&make_report(&store, "running", &st))?;

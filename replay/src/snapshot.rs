@@ -98,7 +98,7 @@ impl Snapshot {
         ]
     }
 
-    /// Writes the snapshot atomically (temporary file, fsync, rename, fsync of the folder).
+    /// Writes the snapshot atomically ([`bcal_common::fsutil`]).
     pub fn save(&self, path: &Path) -> Result<(), SnapshotError> {
         let werr = |source| SnapshotError::Write { path: path.to_path_buf(), source };
         let dir = path.parent().unwrap_or(Path::new("."));
@@ -118,20 +118,11 @@ impl Snapshot {
         head.extend_from_slice(&crc.finalize().to_le_bytes());
         debug_assert_eq!(head.len(), HEADER_LEN);
 
-        let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-        let res = (|| {
-            let mut f = std::fs::File::create(&tmp)?;
+        bcal_common::fsutil::write_atomic_with(path, |f| {
             f.write_all(&head)?;
-            f.write_all(body)?;
-            f.sync_all()?;
-            std::fs::rename(&tmp, path)?;
-            std::fs::File::open(dir)?.sync_all()
-        })();
-        if let Err(source) = res {
-            let _ = std::fs::remove_file(&tmp);
-            return Err(werr(source));
-        }
-        Ok(())
+            f.write_all(body)
+        })
+        .map_err(werr)
     }
 
     /// Reads and checks a snapshot (magic, versions, sizes, CRC); every refusal says why.
@@ -293,7 +284,7 @@ mod tests {
         let first = Snapshot::of(&store_with(4, 10));
         first.save(&p).unwrap();
         // The temporary file cannot be created where a folder of that name stands.
-        std::fs::create_dir(p.with_extension(format!("tmp{}", std::process::id()))).unwrap();
+        std::fs::create_dir(bcal_common::fsutil::temporary_path(&p)).unwrap();
         let e = Snapshot::of(&store_with(8, 10)).save(&p).unwrap_err();
         assert!(matches!(e, SnapshotError::Write { .. }) && e.to_string().contains("previous snapshot is kept"), "{e}");
         assert_eq!(Snapshot::load(&p).unwrap(), first);

@@ -3,8 +3,9 @@
 //! accounting. [`ReplayStore`] ties them together; `process` only moves messages in and out.
 
 use bcal_common::config::ReplayConfig;
-use bcal_common::mdp::SplitMix64;
 use bcal_common::wire::{ReplayCounters, Transition, TransitionBatchHeader};
+use rand::rngs::SmallRng;
+use rand::{Rng, SeedableRng};
 use std::collections::HashMap;
 
 /// Fixed-capacity FIFO of transitions: once full, each insert overwrites the oldest.
@@ -67,10 +68,10 @@ impl RingBuffer {
     }
 
     /// Fills `out` with transitions drawn uniformly with replacement (DDPG/SAC/LAC replay).
-    pub fn sample_into(&self, rng: &mut SplitMix64, out: &mut [Transition]) {
+    pub fn sample_into(&self, rng: &mut impl Rng, out: &mut [Transition]) {
         assert!(!self.items.is_empty(), "sampling an empty buffer");
         for o in out.iter_mut() {
-            *o = self.items[rng.below(self.items.len())];
+            *o = self.items[rng.random_range(0..self.items.len())];
         }
     }
 }
@@ -201,7 +202,7 @@ pub struct ReplayStore {
     pub limiter: RateLimiter,
     pub tracker: DropTracker,
     pub counters: ReplayCounters,
-    rng: SplitMix64,
+    rng: SmallRng,
 }
 
 impl ReplayStore {
@@ -211,7 +212,7 @@ impl ReplayStore {
             limiter: RateLimiter::from_config(cfg, batch),
             tracker: DropTracker::default(),
             counters: ReplayCounters::default(),
-            rng: SplitMix64(seed),
+            rng: SmallRng::seed_from_u64(seed),
         }
     }
 
@@ -275,7 +276,7 @@ mod tests {
         costs = (0..3).map(|i| r.get(i).cost).collect();
         assert_eq!(costs, vec![3.0, 4.0, 5.0]);
         // Uniform sampling only ever returns what is held, and reaches every slot.
-        let mut rng = SplitMix64(1);
+        let mut rng = SmallRng::seed_from_u64(1);
         let mut out = vec![Transition::default(); 3000];
         r.sample_into(&mut rng, &mut out);
         for want in [3.0, 4.0, 5.0] {

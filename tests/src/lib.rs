@@ -11,7 +11,7 @@
 
 use bcal_common::battery::BatteryModel;
 use bcal_common::config::{TrainConfig, Validated};
-use bcal_common::dataset::{default_cache_dir, load_or_generate, Dataset};
+use bcal_common::dataset::{default_cache_dir, load_or_generate, Dataset, Split};
 use bcal_common::mdp::MdpSpec;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
@@ -24,6 +24,7 @@ pub struct RunFolder {
     pub config: TrainConfig,
     pub validated: Validated,
     pub mdp: MdpSpec,
+    /// The experiment's training split (the MDP's scales come from it).
     pub dataset: Dataset,
 }
 
@@ -34,7 +35,8 @@ impl RunFolder {
         let dir = tempfile::Builder::new().prefix("bcal-test-").tempdir().expect("temp run folder");
         std::fs::write(dir.path().join("config.toml"), config.to_toml()).expect("write config.toml");
         let (dataset, _) =
-            load_or_generate(&validated.def, &BatteryModel::default(), &default_cache_dir()).expect("dataset");
+            load_or_generate(&validated.def, &BatteryModel::default(), &default_cache_dir(), Split::Train)
+                .expect("dataset");
         let mdp = MdpSpec::new(config.experiment, &config.env, &dataset);
         std::fs::write(dir.path().join("mdp.json"), serde_json::to_string_pretty(&mdp).unwrap()).unwrap();
         std::fs::create_dir_all(dir.path().join("logs")).unwrap();

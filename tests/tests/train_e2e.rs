@@ -82,17 +82,18 @@ fn two_actors_replay_and_learner_train_and_stop_cleanly() {
         train[train.len() / 2..].iter().map(|v| v["critic_loss"].as_f64().unwrap()).collect();
     second_half.sort_by(f64::total_cmp);
     let late = second_half[second_half.len() / 2];
-    let (c0, c1) = (val[0]["val_cost"].as_f64().unwrap(), val[val.len() - 1]["val_cost"].as_f64().unwrap());
+    let (c0, c1) =
+        (val[0]["val_tracking_error"].as_f64().unwrap(), val[val.len() - 1]["val_tracking_error"].as_f64().unwrap());
     eprintln!(
         "updates {} critic loss {early:.4} -> {late:.4}; held-out cost {c0:.4} -> {c1:.4}; published {published}",
         val[val.len() - 1]["update"]
     );
-    let curve: Vec<String> = val.iter().map(|v| format!("{:.3}", v["val_cost"].as_f64().unwrap())).collect();
+    let curve: Vec<String> = val.iter().map(|v| format!("{:.3}", v["val_tracking_error"].as_f64().unwrap())).collect();
     eprintln!("held-out cost curve: {}", curve.join(" "));
     assert!(late < early, "critic loss did not fall: {early} -> {late}");
     // The policy still wanders late in a short run: judge the median of the last five validations.
     let mut tail: Vec<f64> =
-        val[val.len().saturating_sub(5)..].iter().map(|v| v["val_cost"].as_f64().unwrap()).collect();
+        val[val.len().saturating_sub(5)..].iter().map(|v| v["val_tracking_error"].as_f64().unwrap()).collect();
     tail.sort_by(f64::total_cmp);
     let median = tail[tail.len() / 2];
     assert!(median < 0.6 * c0, "held-out cost {c0} -> median of the last validations {median} (final {c1})");
