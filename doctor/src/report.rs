@@ -73,16 +73,24 @@ pub fn markdown(d: &Diagnosis) -> String {
         "Per-cycle parameters (calibrated on every cycle by the same bounded least squares, held-out cycles \
          included, as a calibrator would): {}. Per-cycle parameters beyond qMobile and Ro are penalised in the \
          ranking score as the BIC counts them (m per cycle over C held-out cycles and N held-out samples multiply \
-         the RMSE by exp(m C ln N / 2N)); each shared parameter costs {} of the RMSE.\n",
+         the RMSE by exp(m C ln N / 2N)), but by no less than 1 + {} m; each shared parameter costs {} of the \
+         RMSE.\n",
         per_cycle.join(", "),
+        d.settings.min_cycle_penalty,
         d.settings.penalty_per_param
+    );
+    let _ = writeln!(
+        o,
+        "A cause is named when its held-out gain reaches {} %, over the fit window or over the fit window and the \
+         rest before the load (which no parameter is calibrated on; the model predicts it from full charge).\n",
+        d.settings.min_gain_pct
     );
     let _ = writeln!(o, "## Candidates (fitted on training cycles, judged on held-out cycles)\n");
     let _ = writeln!(
         o,
-        "| rank | cause | shared params | per-cycle params | train RMSE mV | held-out RMSE mV | gain % | score mV | removes |"
+        "| rank | cause | shared params | per-cycle params | train RMSE mV | held-out RMSE mV | gain % | gain with rest % | score mV | removes |"
     );
-    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for (k, c) in d.candidates.iter().enumerate() {
         let params = c.params.iter().map(|(k, v)| format!("{k} = {v:.4}")).collect::<Vec<_>>().join(", ");
         let removes = c.removes.as_ref().map_or(String::new(), |e| {
@@ -93,7 +101,7 @@ pub fn markdown(d: &Diagnosis) -> String {
         });
         let _ = writeln!(
             o,
-            "| {} | `{}` | {} | {} | {:.2} | {:.2} | {:.1} | {:.2} | {} |",
+            "| {} | `{}` | {} | {} | {:.2} | {:.2} | {:.1} | {:.1} | {:.2} | {} |",
             k + 1,
             c.cause,
             if params.is_empty() { "-".to_string() } else { params },
@@ -101,6 +109,7 @@ pub fn markdown(d: &Diagnosis) -> String {
             c.train_rmse_mv,
             c.heldout_rmse_mv,
             c.gain_pct,
+            c.record_gain_pct,
             c.score_mv,
             removes
         );
@@ -155,14 +164,17 @@ pub fn markdown(d: &Diagnosis) -> String {
     let s = &d.settings;
     let _ = writeln!(
         o,
-        "\nSettings: simulator step <= {} s, load above {} A, fit floor {} V, naming gain >= {} %, step gain >= {} %, \
-         penalty {} per parameter, noise factor {}, at most {} causes.",
+        "\nSettings: simulator step <= {} s, load above {} A, fit floor {} V, samples within {} s of a load step left \
+         out, naming gain >= {} %, step gain >= {} %, penalty {} per shared and at least {} per per-cycle parameter, \
+         noise factor {}, at most {} causes.",
         s.dt_max_s,
         s.load_threshold_a,
         s.v_floor_v,
+        s.settle_s,
         s.min_gain_pct,
         s.min_step_gain_pct,
         s.penalty_per_param,
+        s.min_cycle_penalty,
         s.noise_factor,
         s.max_causes
     );

@@ -122,7 +122,7 @@ fn truncated_records_are_flagged_and_kept_out_of_the_fits() {
     let mut records: Vec<_> = (1..=3)
         .map(|c| {
             let rows = record(&truth, c, LoadKind::Cc, &mut rng);
-            to_discharge(c, &rows)
+            to_discharge(c, truth.ambient_c, &rows)
         })
         .collect();
     // Cut cycle 2 while still under load: no cut-off, no relaxation.
@@ -141,12 +141,12 @@ fn truncated_records_are_flagged_and_kept_out_of_the_fits() {
     assert!(full.capacity_ah.is_some_and(|c| c > 0.5), "{full:?}");
 }
 
-fn to_discharge(cycle: u32, rows: &[(f64, f64, f64, f64)]) -> bcal_doctor::Discharge {
+fn to_discharge(cycle: u32, ambient_c: f64, rows: &[(f64, f64, f64, f64)]) -> bcal_doctor::Discharge {
     bcal_doctor::Discharge {
         cell: "synthetic".into(),
         cycle,
         source: format!("cycle{cycle}.csv").into(),
-        ambient_k: common::AMBIENT_C + 273.15,
+        ambient_k: ambient_c + 273.15,
         time_s: rows.iter().map(|r| r.0).collect(),
         voltage_v: rows.iter().map(|r| r.1).collect(),
         current_a: rows.iter().map(|r| r.2).collect(),

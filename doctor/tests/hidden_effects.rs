@@ -1,30 +1,20 @@
-//! The hidden-effect suite: each test generates "measured" data with ONE effect drawn at random within
-//! physical ranges (seeded), hands the doctor only the data, and asserts that it names that cause first
-//! and that the extended model beats the base on held-out cycles. `none` is the control; `current_gain`
-//! shows why a current-sensor gain cannot be told from the capacity and resistance the doctor calibrates.
+//! The hidden-effect suite: each test draws a synthetic cell with ONE effect (from the independent
+//! generator in `common`, truths drawn from continuous physical ranges, one fixed seed per cause), hands
+//! the doctor only the data, and asserts that it names that cause first and that the extended model
+//! beats the base on held-out cycles, down to about the sensor noise. `none` is the control;
+//! `current_gain` shows why a current-sensor gain cannot be told from the capacity and resistance the
+//! doctor calibrates. More seeds per cause: the soak run in `soak.rs`.
 
 mod common;
 
-use bcal_doctor::diagnose;
-use common::{config, write_and_read, Truth, N_TRAIN, PLAN};
-use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
+use common::{cell, diagnose_cell, Effect, Truth, CYCLES, NOISE_V};
 
-fn sign(rng: &mut StdRng) -> f64 {
-    if rng.random_bool(0.5) {
-        1.0
-    } else {
-        -1.0
-    }
-}
+/// The seed of every CI case (the soak run reports seeds 1-8; thresholds were chosen on 100-104).
+const SEED: u64 = 1;
 
-/// Generates the plan's cycles with `truth`, runs the doctor, checks the verdict and the gain.
-fn assert_named(truth: &Truth, seed: u64, want: &str) -> bcal_doctor::Diagnosis {
-    let mut rng = StdRng::seed_from_u64(seed ^ 0x5eed);
-    let dir = tempfile::tempdir().unwrap();
-    let records = write_and_read(dir.path(), truth, &PLAN, &mut rng);
-    let (train, held) = records.split_at(N_TRAIN);
-    let diag = diagnose(&config(), train, held).unwrap();
+/// Runs the doctor on the cell hiding `want`, checks the verdict and the held-out gain.
+fn assert_named(want: &str) -> (Truth, bcal_doctor::Diagnosis) {
+    let (truth, diag) = diagnose_cell(want, SEED);
     let table: Vec<String> = diag
         .candidates
         .iter()
@@ -45,72 +35,81 @@ fn assert_named(truth: &Truth, seed: u64, want: &str) -> bcal_doctor::Diagnosis 
         );
         // The repaired model should come down to about the sensor noise (3 mV).
         assert!(
-            diag.extended.heldout_rmse_mv < 2.0 * 1000.0 * common::NOISE_V,
+            diag.extended.heldout_rmse_mv < 2.0 * 1000.0 * NOISE_V,
             "extended {:.2} mV",
             diag.extended.heldout_rmse_mv
         );
     }
-    diag
+    (truth, diag)
 }
 
 #[test]
 fn none_control_is_named_none() {
-    let mut rng = StdRng::seed_from_u64(1);
-    let truth = Truth::aged(&mut rng);
-    let diag = assert_named(&truth, 1, "none");
+    let (_, diag) = assert_named("none");
     assert!(diag.extended.causes.is_empty());
 }
 
 #[test]
 fn thermal() {
-    let mut rng = StdRng::seed_from_u64(2);
-    let mut truth = Truth::aged(&mut rng);
-    // Self-heating of 8-20 K (heat-exchange time 600-1200 s) with Arrhenius resistance, Ea/R 1500-4000 K.
-    truth.ext.temperature_driven = true;
-    truth.ext.tau_thermal_s = rng.random_range(600.0..1200.0);
-    truth.ext.ro_activation_k = rng.random_range(1500.0..4000.0);
-    assert_named(&truth, 2, "thermal");
+    assert_named("thermal");
 }
 
 #[test]
 fn ocv() {
-    let mut rng = StdRng::seed_from_u64(3);
-    let mut truth = Truth::aged(&mut rng);
-    // An OCV curve off by 10-30 mV in shape (Legendre degrees 1-3 of the positive electrode's lithiation).
-    truth.ext.ocv_legendre_v = [
-        sign(&mut rng) * rng.random_range(0.01..0.03),
-        sign(&mut rng) * rng.random_range(0.01..0.03),
-        sign(&mut rng) * rng.random_range(0.005..0.02),
-    ];
-    assert_named(&truth, 3, "ocv");
+    assert_named("ocv");
 }
 
 #[test]
 fn diffusion() {
-    let mut rng = StdRng::seed_from_u64(4);
-    let mut truth = Truth::aged(&mut rng);
-    // Slower bulk-surface diffusion of an aged cell: 2.5e7-7e7 s against the model's 7e6 s.
-    truth.ext.t_diffusion_s = (rng.random_range(2.5e7f64.ln()..7e7f64.ln())).exp();
-    assert_named(&truth, 4, "diffusion");
+    assert_named("diffusion");
 }
 
 #[test]
 fn extra_polarization() {
-    let mut rng = StdRng::seed_from_u64(5);
-    let mut truth = Truth::aged(&mut rng);
-    // A second RC branch: 30-80 mohm, 100-600 s.
-    truth.ext.rc_r_ohm = rng.random_range(0.03..0.08);
-    truth.ext.rc_tau_s = (rng.random_range(100f64.ln()..600f64.ln())).exp();
-    assert_named(&truth, 5, "extra_polarization");
+    assert_named("extra_polarization");
 }
 
 #[test]
 fn voltage_offset() {
-    let mut rng = StdRng::seed_from_u64(6);
-    let mut truth = Truth::aged(&mut rng);
-    // A voltage-sensor bias of 15-40 mV either way.
-    truth.ext.voltage_offset_v = sign(&mut rng) * rng.random_range(0.015..0.04);
-    assert_named(&truth, 6, "voltage_offset");
+    assert_named("voltage_offset");
+}
+
+/// Per-cycle stoichiometry drifting over the cycles: the doctor's per-cycle shifts follow the truth's drift
+/// on every cycle (held-out ones included, where it is largest), and its qMobile is the truth's electrode
+/// capacity times the negative electrode's shifted span.
+#[test]
+fn electrode_balance() {
+    let (truth, diag) = assert_named("electrode_balance");
+    let Effect::ElectrodeBalance { xp, xn } = truth.effect else { panic!("a balance truth") };
+    let fits: Vec<_> = diag.extended.train_cycles.iter().chain(&diag.extended.heldout_cycles).collect();
+    assert_eq!(fits.len(), CYCLES);
+    for c in &fits {
+        let k = c.cycle as usize - 1;
+        let (got_p, got_n) = (c.extra["xp_shift"], c.extra["xn_shift"]);
+        assert!((got_p - xp[k]).abs() < 0.015, "cycle {}: xp shift {got_p:.4} vs truth {:.4}", c.cycle, xp[k]);
+        assert!((got_n - xn[k]).abs() < 0.015, "cycle {}: xn shift {got_n:.4} vs truth {:.4}", c.cycle, xn[k]);
+        let q_c = truth.cell(c.cycle).q_max_c * (cell::nasa::XN_MAX + xn[k] - cell::nasa::XN_MIN);
+        assert!((c.q_mobile_c / q_c - 1.0).abs() < 0.03, "cycle {}: qMobile {:.0} vs {q_c:.0}", c.cycle, c.q_mobile_c);
+    }
+    // The drift itself, first cycle to last, within a quarter of the truth's.
+    let drift = |v: &dyn Fn(usize) -> f64| v(CYCLES - 1) - v(0);
+    let got_drift = drift(&|k| fits[k].extra["xp_shift"]);
+    assert!((got_drift / drift(&|k| xp[k]) - 1.0).abs() < 0.25, "xp drift {got_drift:.4} vs {:.4}", drift(&|k| xp[k]));
+}
+
+/// Exchange currents falling over the cycles: the doctor's per-cycle kinetics factor follows them (within
+/// 25 % on every cycle) and falls with them.
+#[test]
+fn charge_transfer() {
+    let (truth, diag) = assert_named("charge_transfer");
+    let Effect::ChargeTransfer { scale } = truth.effect else { panic!("a kinetics truth") };
+    let fits: Vec<_> = diag.extended.train_cycles.iter().chain(&diag.extended.heldout_cycles).collect();
+    assert_eq!(fits.len(), CYCLES);
+    for c in &fits {
+        let (got, want) = (c.extra["kinetics_scale"], scale[c.cycle as usize - 1]);
+        assert!((got / want - 1.0).abs() < 0.25, "cycle {}: kinetics {got:.4} vs truth {want:.4}", c.cycle);
+    }
+    assert!(fits[CYCLES - 1].extra["kinetics_scale"] < 0.5 * fits[0].extra["kinetics_scale"]);
 }
 
 /// A current-sensor gain g is not identifiable from voltage when qMobile and Ro are free per cycle: the
@@ -119,26 +118,19 @@ fn voltage_offset() {
 /// rightly does not name `current_gain`; the gain lands in the fitted capacity and resistance instead.
 #[test]
 fn current_gain() {
-    let mut rng = StdRng::seed_from_u64(7);
-    let mut truth = Truth::aged(&mut rng);
-    let gain = 1.0 + sign(&mut rng) * rng.random_range(0.04..0.10);
-    truth.ext.current_gain = gain;
-    let mut data_rng = StdRng::seed_from_u64(7 ^ 0x5eed);
-    let dir = tempfile::tempdir().unwrap();
-    let records = write_and_read(dir.path(), &truth, &PLAN, &mut data_rng);
-    let (train, held) = records.split_at(N_TRAIN);
-    let diag = diagnose(&config(), train, held).unwrap();
+    let (truth, diag) = diagnose_cell("current_gain", SEED);
+    let Effect::CurrentGain { gain } = truth.effect else { panic!("a gain truth") };
     // The base model already fits to the noise floor ...
-    assert!(diag.base.heldout_rmse_mv < 1.3 * 1000.0 * common::NOISE_V, "base {:.2} mV", diag.base.heldout_rmse_mv);
+    assert!(diag.base.heldout_rmse_mv < 1.3 * 1000.0 * NOISE_V, "base {:.2} mV", diag.base.heldout_rmse_mv);
     // ... so the gain candidate buys nothing and is not named,
     let gain_candidate = diag.candidates.iter().find(|c| c.cause == "current_gain").unwrap();
     assert!(gain_candidate.gain_pct < diag.settings.min_gain_pct, "{gain_candidate:?}");
     assert_ne!(diag.cause, "current_gain");
     // ... because the base fit moved the gain into qMobile and Ro.
     for c in &diag.base.train_cycles {
-        let true_d = truth.degradation(c.cycle);
-        let q_ratio = c.q_mobile_c / true_d.q_mobile_c;
-        let r_ratio = c.r_o_ohm / true_d.r_o_ohm;
+        let (q, r) = truth.degradation(c.cycle);
+        let q_ratio = c.q_mobile_c / q;
+        let r_ratio = c.r_o_ohm / r;
         assert!((q_ratio / gain - 1.0).abs() < 0.02, "cycle {}: q ratio {q_ratio:.4} vs gain {gain:.4}", c.cycle);
         assert!(
             (r_ratio * gain - 1.0).abs() < 0.06,
