@@ -2,21 +2,28 @@
 # bcal's main job: set up libtorch if missing, build, train the calibrator on the default config within a
 # time budget, evaluate it against the UKF and the direct mapping, and print the report.
 #
-#   launch/run.sh [--experiment single-q|single-r|multi] [--budget-s SECONDS] [--actors N] [--name NAME]
+#   launch/run.sh [--experiment single-q|single-r|multi] [--preset tuned|paper] [--budget-s SECONDS]
+#                 [--seeds N] [--actors N] [--name NAME]
 #
-# Defaults: experiment multi, budget 900 s, one actor per core, run folder runs/<experiment>-<time>.
+# Defaults: experiment multi, preset tuned, budget 900 s, one seed, one actor per core, run folder
+# runs/<experiment>-<time>. With --seeds N (N >= 2) it trains and evaluates seeds 1..N into
+# runs/<name>-s<k> and prints their summary (mean, spread and every run's value) from runs/<name>-summary/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 experiment=multi
+preset=tuned
 budget_s=900
+seeds=1
 actors=""
 name=""
-usage() { sed -n '2,7p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,10p' "$0" | sed 's/^# \{0,1\}//'; }
 while [ $# -gt 0 ]; do
   case "$1" in
     --experiment) experiment="${2:?--experiment needs a value}"; shift 2 ;;
+    --preset) preset="${2:?--preset needs a value}"; shift 2 ;;
     --budget-s) budget_s="${2:?--budget-s needs a value}"; shift 2 ;;
+    --seeds) seeds="${2:?--seeds needs a value}"; shift 2 ;;
     --actors) actors="${2:?--actors needs a value}"; shift 2 ;;
     --name) name="${2:?--name needs a value}"; shift 2 ;;
     -h|--help) usage; exit 0 ;;
@@ -24,7 +31,9 @@ while [ $# -gt 0 ]; do
   esac
 done
 case "$experiment" in single-q|single-r|multi) ;; *) echo "run.sh: --experiment must be single-q, single-r or multi" >&2; exit 2 ;; esac
-[ -n "$name" ] || name="$experiment-$(date -u +%Y%m%d-%H%M%S)"
+case "$preset" in tuned|paper) ;; *) echo "run.sh: --preset must be tuned or paper" >&2; exit 2 ;; esac
+case "$seeds" in ''|*[!0-9]*|0) echo "run.sh: --seeds must be a whole number >= 1" >&2; exit 2 ;; esac
+[ -n "$name" ] || name="$experiment-$preset-$(date -u +%Y%m%d-%H%M%S)"
 
 echo "== libtorch"
 bash launch/setup-libtorch.sh
@@ -33,16 +42,29 @@ cargo build --release --bins --workspace
 bin=target/release
 echo "== data set"
 "$bin/bcal" dataset generate --experiment "$experiment"
-echo "== train ($experiment, budget ${budget_s} s)"
 actor_args=()
 [ -z "$actors" ] || actor_args=(--actors "$actors")
-"$bin/bcal" train --experiment "$experiment" --budget-s "$budget_s" "${actor_args[@]}" --name "$name"
-run="runs/$name"
-echo "== evaluate"
-"$bin/bcal" eval --run "$run" --experiment "$experiment"
+
+runs=()
+for seed in $(seq 1 "$seeds"); do
+  run_name="$name"
+  [ "$seeds" = 1 ] || run_name="$name-s$seed"
+  echo "== train ($experiment, preset $preset, seed $seed, budget ${budget_s} s)"
+  "$bin/bcal" train --experiment "$experiment" --preset "$preset" --seed "$seed" --budget-s "$budget_s" \
+    "${actor_args[@]}" --name "$run_name"
+  echo "== evaluate (seed $seed)"
+  "$bin/bcal" eval --run "runs/$run_name" --experiment "$experiment"
+  runs+=("runs/$run_name")
+done
 echo
-if [ -f "$run/report.md" ]; then
-  cat "$run/report.md"
+if [ "$seeds" = 1 ]; then
+  run="${runs[0]}"
+  if [ -f "$run/report.md" ]; then
+    cat "$run/report.md"
+  fi
+  echo
+  echo "report: $run/report.md (and report.json, plots/)"
+else
+  "$bin/bcal" summarize "${runs[@]}" --out "runs/$name-summary"
+  echo "reports: ${runs[*]/%//report.md}; summary: runs/$name-summary/summary.md"
 fi
-echo
-echo "report: $run/report.md (and report.json, plots/)"

@@ -1,15 +1,17 @@
 //! An actor's environments stepped in lockstep with one policy: each step observes every environment,
-//! draws a stochastic action (squashed Gaussian) and appends one [`Transition`] per environment. No IPC
-//! here, so a unit test can step it directly.
+//! draws a stochastic action (squashed Gaussian) and appends one [`Transition`] per environment. The
+//! environments are the paper's (windows of training trajectories) or the measured-only setting's
+//! (simulated cells read through a sensor), as the run's task says. No IPC here, so a unit test can step it.
 
 use bcal_common::battery::BatteryModel;
 use bcal_common::dataset::Dataset;
 use bcal_common::hash::fnv1a64;
 use bcal_common::mdp::{CalibrationEnv, MdpSpec};
+use bcal_common::measured::env::{MeasuredEnv, MeasuredSpec};
 use bcal_common::policy::{PolicyNet, Scratch};
 use bcal_common::wire::{Transition, MAX_ACT, MAX_OBS};
 use rand::rngs::SmallRng;
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 
 /// The seed of one random stream of one actor: distinct per (run seed, actor id, stream), reproducible.
@@ -21,9 +23,18 @@ pub fn actor_seed(run_seed: u64, actor_id: u32, stream: &str) -> u64 {
     fnv1a64(&bytes)
 }
 
-/// N environments, their random streams and the policy's scratch space.
+/// The environments of one task (one per actor process).
+#[allow(clippy::large_enum_variant)]
+enum Kind {
+    /// The paper's setting: windows of training trajectories (which the actor owns).
+    Paper { spec: MdpSpec, model: BatteryModel, train: Dataset, envs: Vec<CalibrationEnv> },
+    /// The measured-only setting: simulated cells read through the sensor, drawn on the fly.
+    Measured { spec: MeasuredSpec, envs: Vec<MeasuredEnv> },
+}
+
+/// N environments of one task, their random streams and the policy's scratch space.
 pub struct ActorEnvs {
-    envs: Vec<CalibrationEnv>,
+    kind: Kind,
     env_rng: SmallRng,
     noise_rng: SmallRng,
     scratch: Scratch,
@@ -32,12 +43,12 @@ pub struct ActorEnvs {
 }
 
 impl ActorEnvs {
-    /// `n_envs` environments on the trajectories of `train` (the training split); `policy_scratch` sized
-    /// for the policy's layout.
-    pub fn new(
-        spec: &MdpSpec,
-        model: &BatteryModel,
-        train: &Dataset,
+    /// `n_envs` paper environments on the trajectories of `train` (the training split); `policy_scratch`
+    /// sized for the policy's layout.
+    pub fn paper(
+        spec: MdpSpec,
+        model: BatteryModel,
+        train: Dataset,
         n_envs: usize,
         seeds: (u64, u64),
         policy_scratch: Scratch,
@@ -45,48 +56,70 @@ impl ActorEnvs {
         assert!(!train.trajectories.is_empty(), "no training trajectories");
         assert!(spec.obs_dim() <= MAX_OBS && spec.act_dim() <= MAX_ACT, "MDP larger than the wire types");
         let mut env_rng = SmallRng::seed_from_u64(seeds.0);
-        let envs = (0..n_envs).map(|_| CalibrationEnv::new(spec, model, train, &mut env_rng)).collect();
+        let envs = (0..n_envs).map(|_| CalibrationEnv::new(&spec, &model, &train, &mut env_rng)).collect();
+        let (obs_dim, act_dim) = (spec.obs_dim(), spec.act_dim());
         Self {
-            envs,
+            kind: Kind::Paper { spec, model, train, envs },
             env_rng,
             noise_rng: SmallRng::seed_from_u64(seeds.1),
             scratch: policy_scratch,
-            obs_dim: spec.obs_dim(),
-            act_dim: spec.act_dim(),
+            obs_dim,
+            act_dim,
+        }
+    }
+
+    /// `n_envs` measured-only environments, each on its own stream of random training cells.
+    pub fn measured(spec: MeasuredSpec, n_envs: usize, seeds: (u64, u64), policy_scratch: Scratch) -> Self {
+        assert!(spec.obs_dim() <= MAX_OBS && spec.act_dim() <= MAX_ACT, "MDP larger than the wire types");
+        let mut env_rng = SmallRng::seed_from_u64(seeds.0);
+        let envs = (0..n_envs).map(|_| MeasuredEnv::new(&spec, env_rng.random())).collect();
+        let (obs_dim, act_dim) = (spec.obs_dim(), spec.act_dim());
+        Self {
+            kind: Kind::Measured { spec, envs },
+            env_rng,
+            noise_rng: SmallRng::seed_from_u64(seeds.1),
+            scratch: policy_scratch,
+            obs_dim,
+            act_dim,
         }
     }
 
     pub fn len(&self) -> usize {
-        self.envs.len()
+        match &self.kind {
+            Kind::Paper { envs, .. } => envs.len(),
+            Kind::Measured { envs, .. } => envs.len(),
+        }
     }
 
     pub fn is_empty(&self) -> bool {
-        self.envs.is_empty()
+        self.len() == 0
     }
 
     /// One lockstep step: appends `self.len()` transitions to `out`.
-    pub fn step(
-        &mut self,
-        spec: &MdpSpec,
-        model: &BatteryModel,
-        ds: &Dataset,
-        policy: &PolicyNet,
-        out: &mut Vec<Transition>,
-    ) {
+    pub fn step(&mut self, policy: &PolicyNet, out: &mut Vec<Transition>) {
         let (od, ad) = (self.obs_dim, self.act_dim);
-        for env in &mut self.envs {
+        let n = self.len();
+        for k in 0..n {
             let mut t = Transition::default();
-            env.observe(spec, ds, &mut t.obs[..od]);
+            match &self.kind {
+                Kind::Paper { spec, train, envs, .. } => envs[k].observe(spec, train, &mut t.obs[..od]),
+                Kind::Measured { envs, .. } => envs[k].observe(&mut t.obs[..od]),
+            }
             let noise = &mut self.noise_rng;
             policy.act_stochastic(
                 &t.obs[..od],
                 &mut self.scratch,
-                || rand::Rng::sample(noise, StandardNormal),
+                || noise.sample(StandardNormal),
                 &mut t.action[..ad],
             );
-            let s = env.step(spec, model, ds, &t.action[..ad], &mut t.next_obs[..od], &mut self.env_rng);
+            let s = match &mut self.kind {
+                Kind::Paper { spec, model, train, envs } => {
+                    envs[k].step(spec, model, train, &t.action[..ad], &mut t.next_obs[..od], &mut self.env_rng)
+                }
+                Kind::Measured { spec, envs } => envs[k].step(spec, &t.action[..ad], &mut t.next_obs[..od]),
+            };
             t.cost = s.cost as f32;
-            // Window ends are time limits, not terminal states: the learner bootstraps through them.
+            // Window and episode ends are time limits, not terminal states: the learner bootstraps through them.
             t.terminal = 0.0;
             out.push(t);
         }
@@ -126,10 +159,10 @@ mod tests {
         let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: vec![8, 8] };
         let params: Vec<f32> = (0..layout.n_params()).map(|i| ((i % 7) as f32 - 3.0) * 0.05).collect();
         let policy = PolicyNet::from_flat(layout.clone(), params).unwrap();
-        let mut envs = ActorEnvs::new(&spec, &model, &ds, 5, (1, 2), Scratch::new(&layout));
+        let mut envs = ActorEnvs::paper(spec.clone(), model, ds, 5, (1, 2), Scratch::new(&layout));
         let mut out = Vec::new();
         for _ in 0..40 {
-            envs.step(&spec, &model, &ds, &policy, &mut out);
+            envs.step(&policy, &mut out);
         }
         assert_eq!(out.len(), 200);
         assert!(out.iter().all(|t| t.is_finite() && t.cost >= 0.0));
@@ -138,5 +171,21 @@ mod tests {
         assert!(out.iter().all(|t| t.obs[spec.obs_dim()..].iter().all(|v| *v == 0.0)));
         // Exploration: actions differ between steps of the same env.
         assert_ne!(out[0].action, out[5].action);
+    }
+
+    #[test]
+    fn measured_envs_yield_finite_transitions_from_readings_only() {
+        let spec = MeasuredSpec::default();
+        let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: 2, hidden: vec![8] };
+        let params: Vec<f32> = (0..layout.n_params()).map(|i| ((i % 5) as f32 - 2.0) * 0.05).collect();
+        let policy = PolicyNet::from_flat(layout.clone(), params).unwrap();
+        let mut envs = ActorEnvs::measured(spec.clone(), 4, (3, 4), Scratch::new(&layout));
+        let mut out = Vec::new();
+        for _ in 0..50 {
+            envs.step(&policy, &mut out);
+        }
+        assert_eq!(out.len(), 200);
+        assert!(out.iter().all(|t| t.is_finite() && t.cost >= 0.0));
+        assert!(out.iter().all(|t| t.obs[spec.obs_dim()..].iter().all(|v| *v == 0.0)));
     }
 }

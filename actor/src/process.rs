@@ -16,8 +16,8 @@ use bcal_common::battery::BatteryModel;
 use bcal_common::config::{ConfigError, TrainConfig, Validated};
 use bcal_common::dataset::{default_cache_dir, load_or_generate, DatasetError, Split};
 use bcal_common::ipc::{self, IpcError, Role, RunIpc, StatusSubscriber, WeightsSubscriber, OPEN_TIMEOUT};
-use bcal_common::mdp::MdpSpec;
 use bcal_common::policy::{PolicyLayout, PolicyNet, Scratch};
+use bcal_common::task::Task;
 use bcal_common::wire::{monotonic_ns, ReplayStatus, Transition, TransitionBatchHeader};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -91,12 +91,12 @@ pub struct ActorArgs {
     pub actor_id: u32,
 }
 
-/// Reads `DIR/mdp.json` (written by the supervisor).
-pub fn read_mdp(run_dir: &Path) -> Result<MdpSpec, ActorError> {
+/// Reads the run's task from `DIR/mdp.json` (written by the supervisor).
+pub fn read_task(run_dir: &Path) -> Result<Task, ActorError> {
     let path = run_dir.join("mdp.json");
     let text =
         std::fs::read_to_string(&path).map_err(|e| ActorError::Mdp { path: path.clone(), why: e.to_string() })?;
-    serde_json::from_str(&text).map_err(|e| ActorError::Mdp { path, why: e.to_string() })
+    Task::from_json(&text).map_err(|e| ActorError::Mdp { path, why: e.to_string() })
 }
 
 pub fn read_config(run_dir: &Path) -> Result<Validated, ConfigError> {
@@ -111,11 +111,17 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
     if args.actor_id as usize >= cfg.actor_count {
         return Err(ActorError::ActorId { id: args.actor_id, count: cfg.actor_count });
     }
-    let spec = read_mdp(&args.run_dir)?;
-    let model = BatteryModel::default();
-    // The training split only: an actor never holds validation or test data.
-    let (ds, _) = load_or_generate(&cfg.def, &model, &default_cache_dir(), Split::Train)?;
-    cfg.check_dataset(&ds)?;
+    let task = read_task(&args.run_dir)?;
+    // Paper task: the training split only (an actor never holds validation or test data). Measured task:
+    // no data at all, the actor simulates its training cells.
+    let train = match &task {
+        Task::Paper(_) => {
+            let (ds, _) = load_or_generate(&cfg.def, &BatteryModel::default(), &default_cache_dir(), Split::Train)?;
+            cfg.check_dataset(&ds)?;
+            Some(ds)
+        }
+        Task::Measured(_) => None,
+    };
 
     let report_dir = args.run_dir.join("actors");
     std::fs::create_dir_all(&report_dir).map_err(|source| ActorError::Write { path: report_dir.clone(), source })?;
@@ -155,10 +161,17 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
     let status_sub = run.status_subscriber(&status)?;
 
     let layout =
-        PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: cfg.config.lac.hidden.clone() };
+        PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: cfg.config.lac.hidden.clone() };
     let seeds =
         (actor_seed(cfg.config.seed, args.actor_id, "env"), actor_seed(cfg.config.seed, args.actor_id, "noise"));
-    let mut envs = ActorEnvs::new(&spec, &model, &ds, cfg.config.actors.envs_per_actor, seeds, Scratch::new(&layout));
+    let n_envs = cfg.config.actors.envs_per_actor;
+    let mut envs = match (task, train) {
+        (Task::Paper(spec), Some(train)) => {
+            ActorEnvs::paper(spec, BatteryModel::default(), train, n_envs, seeds, Scratch::new(&layout))
+        }
+        (Task::Measured(spec), _) => ActorEnvs::measured(spec, n_envs, seeds, Scratch::new(&layout)),
+        (Task::Paper(_), None) => unreachable!("the paper task loads its training split above"),
+    };
     let publish_batch = run.limits.publish_batch;
     let mut pending: Vec<Transition> = Vec::with_capacity(publish_batch + envs.len());
     let mut policy: Option<PolicyNet> = None;
@@ -213,7 +226,7 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
             continue;
         }
 
-        envs.step(&spec, &model, &ds, net, &mut pending);
+        envs.step(net, &mut pending);
         report.generated_transitions += envs.len() as u64;
         while pending.len() >= publish_batch {
             let header = TransitionBatchHeader {

@@ -2,9 +2,10 @@
 //! sits here with its default and a doc line; [`TrainConfig::validate`] turns it into a checked
 //! [`Validated`] config once, before any process starts, naming the key of anything wrong.
 //!
-//! Two presets ([`Preset`]): `tuned` (the defaults below, each choice measured on the validation split and
-//! stated beside it) and `paper` (the paper's own hyperparameters). A config file only overrides keys of
-//! its preset. Unknown keys are refused (`deny_unknown_fields`) so a typo never silently falls back.
+//! Three presets ([`Preset`]): `measured` (the measured-only setting, what `bcal train` runs by default),
+//! `paper-tuned` (the paper's full-state setting with the defaults below, each choice measured on the
+//! validation split) and `paper` (the paper's setting with its own hyperparameters). A config file only
+//! overrides keys of its preset. Unknown keys are refused (`deny_unknown_fields`) so a typo never silently falls back.
 
 use crate::dataset::{Dataset, Experiment, ExperimentDef};
 use serde::{Deserialize, Serialize};
@@ -23,6 +24,9 @@ pub struct TrainConfig {
     pub replay: ReplayConfig,
     pub learner: LearnerConfig,
     pub actors: ActorConfig,
+    /// The measured-only setting (used when `env.observation = "Measured"`): the simulated cells, the
+    /// sensor and the calibrator.
+    pub measured: crate::measured::env::MeasuredSpec,
 }
 
 impl Default for TrainConfig {
@@ -35,6 +39,32 @@ impl Default for TrainConfig {
             replay: ReplayConfig::default(),
             learner: LearnerConfig::default(),
             actors: ActorConfig::default(),
+            measured: crate::measured::env::MeasuredSpec::default(),
+        }
+    }
+}
+
+/// What the calibrator observes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Observation {
+    /// The paper's [x_hat_t, x_t+1, u_t+1]: the simulated cell's full state, noise-free.
+    #[default]
+    FullState,
+    /// The paper's plus Vo / i, which in this model is Ro up to a 6 s lag: the label in disguise.
+    #[serde(alias = "FullStateOhmic")]
+    FullStateRoLeak,
+    /// Only what a battery management system measures: voltage, current and temperature through a sensor
+    /// model, plus the calibrator's own model (see `[measured]`).
+    Measured,
+}
+
+impl Observation {
+    /// The paper MDP's observation builder, None for the measured-only setting.
+    pub fn paper_kind(self) -> Option<crate::mdp::ObservationKind> {
+        match self {
+            Observation::FullState => Some(crate::mdp::ObservationKind::FullState),
+            Observation::FullStateRoLeak => Some(crate::mdp::ObservationKind::FullStateRoLeak),
+            Observation::Measured => None,
         }
     }
 }
@@ -44,8 +74,12 @@ impl Default for TrainConfig {
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum Preset {
-    /// The defaults of this file: hyperparameters measured to train better within minutes.
-    Tuned,
+    /// The measured-only setting (`env.observation = "Measured"`): voltage, current and temperature
+    /// through a sensor, any starting charge, changing loads; LAC hyperparameters as `paper-tuned`.
+    Measured,
+    /// The paper's full-state setting with the defaults of this file: hyperparameters measured to train
+    /// better within minutes (`TrainConfig::default()`).
+    PaperTuned,
     /// The paper's hyperparameters (Section 4.2: three layers of 256, LeakyReLU, Adam 5e-4, alpha3 1) and
     /// MDP (its observation and cost, windows of 16 steps as in its code), with the rest from the LAC code
     /// it builds on (gamma 0.995, tau 5e-3, initial beta 1, target entropy -dim(a), linearly decayed rates).
@@ -55,7 +89,8 @@ pub enum Preset {
 impl Preset {
     pub fn name(self) -> &'static str {
         match self {
-            Preset::Tuned => "tuned",
+            Preset::Measured => "measured",
+            Preset::PaperTuned => "paper-tuned",
             Preset::Paper => "paper",
         }
     }
@@ -63,10 +98,13 @@ impl Preset {
     /// The preset's full config.
     pub fn config(self) -> TrainConfig {
         let mut c = TrainConfig::default();
+        if self == Preset::Measured {
+            c.env.observation = Observation::Measured;
+        }
         if self == Preset::Paper {
             c.env.window_steps = 16;
             c.env.cost_log_e0 = 0.0;
-            c.env.observation = crate::mdp::ObservationKind::FullState;
+            c.env.observation = Observation::FullState;
             c.lac.hidden = vec![256, 256, 256];
             c.lac.lr = 5e-4;
             c.lac.lr_multipliers = 5e-4;
@@ -90,9 +128,10 @@ pub struct EnvConfig {
     pub r_o_range_ohm: [f64; 2],
     /// Cost shaping: 0 = the paper's cost (normalised tracking error e); > 0 = ln(1 + e / cost_log_e0).
     pub cost_log_e0: f64,
-    /// What the policy sees: "FullState" (the paper's [x_hat_t, x_t+1, u_t+1], the default) or
-    /// "FullStateRoLeak" (plus Vo / i, which in this model is Ro up to a 6 s lag: the label in disguise).
-    pub observation: crate::mdp::ObservationKind,
+    /// What the policy sees: "FullState" (the paper's [x_hat_t, x_t+1, u_t+1], the default),
+    /// "FullStateRoLeak" (plus Vo / i, which in this model is Ro up to a 6 s lag: the label in disguise) or
+    /// "Measured" (only sensor readings and the calibrator's own model; configured in `[measured]`).
+    pub observation: Observation,
 }
 
 impl Default for EnvConfig {
@@ -109,7 +148,7 @@ impl Default for EnvConfig {
             // improvements near the optimum (see MdpSpec::cost_of). Re-checked on validation in
             // docs/tuning.md.
             cost_log_e0: 1e-4,
-            observation: crate::mdp::ObservationKind::FullState,
+            observation: Observation::FullState,
         }
     }
 }
@@ -320,10 +359,10 @@ pub enum ConfigError {
 }
 
 impl TrainConfig {
-    /// Reads a TOML file over the tuned defaults; unknown keys and wrong types are errors naming the key
-    /// (and line).
+    /// Reads a TOML file over the defaults (`paper-tuned`; a run folder's config.toml is always complete);
+    /// unknown keys and wrong types are errors naming the key (and line).
     pub fn from_file(path: &Path) -> Result<Self, ConfigError> {
-        Self::from_file_over(path, Preset::Tuned)
+        Self::from_file_over(path, Preset::PaperTuned)
     }
 
     /// Reads a TOML file whose absent keys take `preset`'s values.
@@ -337,7 +376,7 @@ impl TrainConfig {
     }
 
     pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
-        Self::from_toml_over(text, Preset::Tuned)
+        Self::from_toml_over(text, Preset::PaperTuned)
     }
 
     /// Parses `text` as overrides of `preset`: the preset's config is the base table and every key of
@@ -377,6 +416,16 @@ impl TrainConfig {
         }
         if e.window_steps == 0 {
             return Err(bad("env.window_steps", &0, "must be at least 1"));
+        }
+        if e.observation == Observation::Measured {
+            if self.experiment != Experiment::Multi {
+                return Err(bad(
+                    "experiment",
+                    &self.experiment,
+                    "the measured-only setting calibrates qMobile and Ro together; set experiment = \"multi\"",
+                ));
+            }
+            check_measured(&self.measured)?;
         }
         let def = self.experiment.definition();
         // Only a calibrated parameter's range matters; the other stays at the experiment's fixed value.
@@ -469,7 +518,10 @@ impl TrainConfig {
         if actor_count > crate::wire::MAX_ACTORS {
             return Err(bad("actors.count", &actor_count, &format!("must be at most {}", crate::wire::MAX_ACTORS)));
         }
-        let act_dim = crate::mdp::ActionMap::from_config(self.experiment, e).dim();
+        let act_dim = match e.observation {
+            Observation::Measured => self.measured.act_dim(),
+            _ => crate::mdp::ActionMap::from_config(self.experiment, e).dim(),
+        };
         Ok(Validated {
             lr_multipliers: if l.lr_multipliers == 0.0 { l.lr / 10.0 } else { l.lr_multipliers },
             target_entropy: l.target_entropy.unwrap_or(l.target_entropy_per_action * act_dim as f64),
@@ -478,6 +530,126 @@ impl TrainConfig {
             config: self.clone(),
         })
     }
+}
+
+/// The measured-only setting's keys: what the model can integrate and the data can hold.
+fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigError> {
+    let invalid =
+        |key: &'static str, value: String, why: &str| ConfigError::Invalid { key, value, why: why.to_string() };
+    let sc = &m.scenario;
+    let tr = &m.tracker;
+    let p = crate::battery::BatteryParams::default();
+    let finite_range = |key: &'static str, r: [f64; 2], lo: f64, hi: f64| {
+        if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
+            Ok(())
+        } else {
+            Err(invalid(key, format!("{r:?}"), &format!("needs [low, high] with {lo} <= low <= high <= {hi}")))
+        }
+    };
+    // Sensor: the noise must be what a sensor has; at hundreds of mV or amperes the readings no longer
+    // describe the cell (a current that flips sign under a power load, a voltage below zero).
+    let s = &sc.sensor;
+    for (key, v, max) in [
+        ("measured.scenario.sensor.voltage_noise_v", s.voltage_noise_v, 0.05),
+        ("measured.scenario.sensor.current_noise_a", s.current_noise_a, 0.5),
+        ("measured.scenario.sensor.temperature_noise_k", s.temperature_noise_k, 5.0),
+    ] {
+        if !(v.is_finite() && (0.0..=max).contains(&v)) {
+            return Err(invalid(key, v.to_string(), &format!("must be in [0, {max}] (one standard deviation)")));
+        }
+    }
+    for (key, v, max) in [
+        ("measured.scenario.sensor.voltage_bias_v", s.voltage_bias_v, 0.1),
+        ("measured.scenario.sensor.current_bias_a", s.current_bias_a, 0.5),
+    ] {
+        if !(v.is_finite() && v.abs() <= max) {
+            return Err(invalid(key, v.to_string(), &format!("must be within +-{max}")));
+        }
+    }
+    // Euler on the ohmic lag (time constant t_o) is stable only below 2 t_o.
+    if !(sc.truth_dt_s > 0.0 && sc.truth_dt_s < 2.0 * p.t_o_s) {
+        return Err(invalid(
+            "measured.scenario.truth_dt_s",
+            sc.truth_dt_s.to_string(),
+            &format!(
+                "must be in (0, {:.2}) s: explicit Euler on the ohmic lag is unstable beyond 2 t_o",
+                2.0 * p.t_o_s
+            ),
+        ));
+    }
+    if sc.sample_interval_s.is_empty() {
+        return Err(invalid(
+            "measured.scenario.sample_interval_s",
+            "[]".into(),
+            "needs at least one [low, high] range",
+        ));
+    }
+    for r in &sc.sample_interval_s {
+        finite_range("measured.scenario.sample_interval_s", *r, sc.truth_dt_s, 120.0)?;
+    }
+    if !(tr.max_substep_s > 0.0 && tr.max_substep_s < 2.0 * p.t_o_s) {
+        return Err(invalid(
+            "measured.tracker.max_substep_s",
+            tr.max_substep_s.to_string(),
+            &format!(
+                "must be in (0, {:.2}) s: explicit Euler on the ohmic lag is unstable beyond 2 t_o",
+                2.0 * p.t_o_s
+            ),
+        ));
+    }
+    if sc.load_kinds.is_empty() {
+        return Err(invalid("measured.scenario.load_kinds", "[]".into(), "needs at least one load kind"));
+    }
+    finite_range("measured.scenario.soc0", sc.soc0, 0.05, 1.0)?;
+    finite_range("measured.scenario.rest_s", sc.rest_s, 1.0, 3600.0)?;
+    finite_range("measured.scenario.segment_hold_s", sc.segment_hold_s, 1.0, 36_000.0)?;
+    finite_range("measured.scenario.ambient_c", sc.ambient_c, -30.0, 60.0)?;
+    for (key, l) in [
+        ("measured.scenario.train", &sc.train),
+        ("measured.scenario.validation", &sc.validation),
+        ("measured.scenario.test", &sc.test),
+    ] {
+        finite_range(key, l.power_w, 0.1, 40.0)?;
+        finite_range(key, l.current_a, 0.01, 10.0)?;
+    }
+    if !(2.0..=4.0).contains(&sc.cutoff_v) {
+        return Err(invalid("measured.scenario.cutoff_v", sc.cutoff_v.to_string(), "must be in [2, 4] V"));
+    }
+    // The estimate's range must hold every true parameter the data can have.
+    for (key, data, range) in [
+        ("measured.tracker.q_mobile_range_c", sc.q_mobile_c, tr.q_mobile_range_c),
+        ("measured.tracker.r_o_range_ohm", sc.r_o_ohm, tr.r_o_range_ohm),
+    ] {
+        check_range(key, range, data[0], data[1])?;
+    }
+    finite_range("measured.scenario.q_mobile_c", sc.q_mobile_c, 100.0, 1e6)?;
+    finite_range("measured.scenario.r_o_ohm", sc.r_o_ohm, 0.0, 10.0)?;
+    let prior = [tr.prior.q_mobile_c, tr.prior.r_o_ohm];
+    let in_range = |v: f64, [lo, hi]: [f64; 2]| lo <= v && v <= hi;
+    if !(in_range(prior[0], tr.q_mobile_range_c) && in_range(prior[1], tr.r_o_range_ohm)) {
+        return Err(invalid(
+            "measured.tracker.prior",
+            format!("{:?}", tr.prior),
+            "must lie inside the estimate ranges",
+        ));
+    }
+    for (key, v) in [
+        ("measured.tracker.step_max", tr.step_max),
+        ("measured.tracker.cost_scale_v", tr.cost_scale_v),
+        ("measured.tracker.window_span_s", tr.window_span_s),
+        ("measured.tracker.interval_scale", tr.interval_scale),
+    ] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(invalid(key, v.to_string(), "must be a finite number > 0"));
+        }
+    }
+    if !(2..=512).contains(&tr.window_points) {
+        return Err(invalid("measured.tracker.window_points", tr.window_points.to_string(), "must be in 2..=512"));
+    }
+    if sc.validation_episodes == 0 || sc.test_episodes == 0 {
+        return Err(invalid("measured.scenario.validation_episodes", "0".into(), "validation and test need episodes"));
+    }
+    Ok(())
 }
 
 /// Deep merge: tables merge key by key, any other value replaces.
@@ -551,8 +723,8 @@ mod tests {
         // (paper 5e-4), gamma (0.995), hidden (256x3), init_beta (1), cost_log_e0 (0), window_steps (16),
         // target entropy (-dim(a)).
         let c = TrainConfig::default();
-        assert_eq!(c, Preset::Tuned.config());
-        assert_eq!(c.env.observation, crate::mdp::ObservationKind::FullState);
+        assert_eq!(c, Preset::PaperTuned.config());
+        assert_eq!(c.env.observation, Observation::FullState);
         assert_eq!(c.lac.lr_schedule, LrSchedule::Linear);
         assert_eq!(c.lac.lr, 2e-3);
         assert_eq!(c.lac.alpha3, 1.0);
@@ -584,7 +756,10 @@ mod tests {
         assert_eq!((c.seed, c.lac.lr, c.lac.hidden.clone(), c.lac.gamma), (7, 1e-3, vec![256, 256, 256], 0.995));
         // Unknown keys are still refused over a preset, and the full config round-trips over either preset.
         assert!(TrainConfig::from_toml_over("[lac]\nlearning_rate = 1\n", Preset::Paper).is_err());
-        assert_eq!(TrainConfig::from_toml_over(&p.to_toml(), Preset::Tuned).unwrap(), p);
+        assert_eq!(TrainConfig::from_toml_over(&p.to_toml(), Preset::PaperTuned).unwrap(), p);
+        let m = Preset::Measured.config();
+        assert_eq!(m.env.observation, Observation::Measured);
+        assert_eq!(m.validate().unwrap().target_entropy, -8.0);
         // The learning-rate schedule decays linearly to its final fraction.
         let mut l = LacConfig { lr_final_fraction: 0.1, ..LacConfig::default() };
         assert_eq!(l.lr_factor(0.0), 1.0);
@@ -616,6 +791,28 @@ mod tests {
             ("[learner]\nmax_updates = 0\ntime_budget_s = 0.0\n", "learner.max_updates"),
             ("[actors]\ncount = 1000\n", "actors.count"),
             ("[lac]\nlr_final_fraction = 1.5\n", "lac.lr_final_fraction"),
+            // The measured-only setting: what the model cannot integrate stably or the data cannot hold.
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.scenario.sensor]\nvoltage_noise_v = -0.003\n",
+                "measured.scenario.sensor.voltage_noise_v",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.scenario]\ntruth_dt_s = 13.0\n",
+                "measured.scenario.truth_dt_s",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.scenario]\nsample_interval_s = [[0.5, 1.0]]\n",
+                "measured.scenario.sample_interval_s",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.tracker]\nq_mobile_range_c = [4500.0, 7500.0]\n",
+                "measured.tracker.q_mobile_range_c",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.tracker]\nmax_substep_s = 0.0\n",
+                "measured.tracker.max_substep_s",
+            ),
+            ("experiment = \"single-q\"\n[env]\nobservation = \"Measured\"\n", "experiment"),
         ];
         for (text, key) in cases {
             let c = TrainConfig::from_toml(text).unwrap();

@@ -409,14 +409,16 @@ mod tests {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PolicyFile {
     pub layout: PolicyLayout,
-    pub mdp: crate::mdp::MdpSpec,
+    /// The task the policy was trained on (its observation, scales and action map travel with it).
+    pub task: crate::task::Task,
     pub experiment: crate::dataset::Experiment,
     /// Learner update counter when the weights were taken.
     pub update_step: u64,
     pub params: Vec<f32>,
 }
 
-const POLICY_MAGIC: &[u8; 8] = b"BCALPOL1";
+// Version 2: the policy carries a task (paper or measured) instead of a paper MDP.
+const POLICY_MAGIC: &[u8; 8] = b"BCALPOL2";
 
 /// A run folder's policy files: the latest weights (written at every checkpoint) ...
 pub const POLICY_LAST: &str = "policy.bcalpol";
@@ -459,6 +461,9 @@ impl PolicyFile {
             path: path.to_path_buf(),
             source,
         })?;
+        if bytes.len() >= 8 && &bytes[..8] == b"BCALPOL1" {
+            return Err(corrupt("a policy file of an older bcal (no task recorded); retrain the run".into()));
+        }
         if bytes.len() < 12 || &bytes[..8] != POLICY_MAGIC {
             return Err(corrupt("not a bcal policy file (bad magic or too short)".into()));
         }
@@ -468,13 +473,13 @@ impl PolicyFile {
         }
         let (pf, _): (PolicyFile, usize) = bincode::serde::decode_from_slice(&bytes[12..], bincode::config::standard())
             .map_err(|e| corrupt(format!("undecodable: {e}")))?;
-        if pf.layout.obs_dim != pf.mdp.obs_dim() || pf.layout.act_dim != pf.mdp.act_dim() {
+        if pf.layout.obs_dim != pf.task.obs_dim() || pf.layout.act_dim != pf.task.act_dim() {
             return Err(corrupt(format!(
-                "network shape {}->{} does not match its MDP {}->{}",
+                "network shape {}->{} does not match its task {}->{}",
                 pf.layout.obs_dim,
                 pf.layout.act_dim,
-                pf.mdp.obs_dim(),
-                pf.mdp.act_dim()
+                pf.task.obs_dim(),
+                pf.task.act_dim()
             )));
         }
         Ok(pf)

@@ -664,7 +664,7 @@ mod tests {
         let pf = PolicyFile {
             params: vec![0.0; layout.n_params()],
             layout,
-            mdp: spec.clone(),
+            task: bcal_common::task::Task::Paper(spec.clone()),
             experiment: Experiment::Multi,
             update_step: 7,
         };
@@ -680,7 +680,7 @@ mod tests {
             test: &test,
             validation: &val,
             train: Some(&train),
-            spec: &pf.mdp,
+            spec: pf.task.paper().unwrap(),
             model: &model,
             policy: PolicyInput::Loaded { file: &pf, path: path.display().to_string(), choice: "test policy".into() },
             training_curve: Some(curve),

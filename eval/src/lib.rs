@@ -4,13 +4,19 @@
 //! prediction error), times one step of each beside one battery-model step, and writes report.json,
 //! report.md ([`report`]) and figures ([`plots`]) into the run folder ([`evaluate`]).
 //!
+//! [`summary`] puts several runs (seeds) side by side as mean and spread.
+//!
 //! It never prints and never exits: progress goes to a callback and errors are typed.
 
 pub mod direct;
 pub mod evaluate;
+pub mod joint_ukf;
+pub mod measured_eval;
+pub mod measured_report;
 pub mod metrics;
 pub mod plots;
 pub mod report;
+pub mod summary;
 pub mod ukf;
 
 pub use evaluate::{evaluate, write_outputs, EvalError, EvalInput, EvalOptions, Evaluation, PolicyInput};

@@ -162,6 +162,25 @@ pub fn write_all(
     out
 }
 
+/// Writes only the training curve (PNG and SVG) into `dir`; returns the file names written and failures.
+pub fn write_training_curve(dir: &Path, tc: &TrainingCurve, text: bool) -> (Vec<String>, Vec<String>) {
+    let (mut files, mut failures) = (Vec::new(), Vec::new());
+    for ext in ["png", "svg"] {
+        let name = format!("training_curve.{ext}");
+        let path = dir.join(&name);
+        let res = if ext == "png" {
+            render(BitMapBackend::new(&path, (1200, 420)).into_drawing_area(), Fig::Training(tc), text)
+        } else {
+            render(SVGBackend::new(&path, (1200, 420)).into_drawing_area(), Fig::Training(tc), text)
+        };
+        match res {
+            Ok(()) => files.push(name),
+            Err(e) => failures.push(format!("{name}: {e}")),
+        }
+    }
+    (files, failures)
+}
+
 /// A figure to draw on any backend.
 #[derive(Clone, Copy)]
 enum Fig<'a> {

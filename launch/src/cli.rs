@@ -24,8 +24,12 @@ pub enum Command {
     Diagnose(crate::diagnose_cmd::DiagnoseArgs),
     /// Train the LAC calibrator: starts replay, learner and actor processes and supervises them.
     Train(crate::train_cmd::TrainArgs),
-    /// Evaluate RL-LAC against the UKF and the direct mapping on the held-out (high-load) trajectories; writes report.json, report.md and plots into the run folder.
+    /// Evaluate RL-LAC against the UKF and the direct mapping on the held-out (high-load) test trajectories;
+    /// writes report.json, report.md and plots into the run folder (or --out).
     Eval(crate::eval_cmd::EvalArgs),
+    /// Summarise evaluated runs of one setting (other seeds): mean, standard deviation, minimum and maximum
+    /// of every headline figure, and each run's value.
+    Summarize(crate::summarize_cmd::SummarizeArgs),
     /// Measure every performance figure the README quotes, each beside its baseline (model steps/s,
     /// calibrator step cost, iceoryx2 vs crossbeam transport, learner updates/s); prints tables and writes
     /// bench.json.

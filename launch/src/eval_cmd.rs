@@ -7,10 +7,13 @@
 
 use anyhow::{bail, Context};
 use bcal_common::battery::BatteryModel;
+use bcal_common::config::Observation;
 use bcal_common::config::TrainConfig;
 use bcal_common::dataset::{self, Dataset, Experiment, Split};
 use bcal_common::mdp::MdpSpec;
+use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::PolicyFile;
+use bcal_eval::measured_eval::{evaluate_measured, MeasuredEvalOptions, MeasuredInput};
 use bcal_eval::metrics::Param;
 use bcal_eval::plots::TrainingCurve;
 use bcal_eval::{EvalInput, EvalOptions, PolicyInput, Report};
@@ -24,6 +27,10 @@ pub struct EvalArgs {
     /// write report.json, report.md and the plots into it (created if missing).
     #[arg(long)]
     pub run: PathBuf,
+    /// Folder for report.json, report.md and the plots (default: the run folder), e.g. to keep the
+    /// reports of two policy choices side by side.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// Experiment to evaluate (default: the policy's, else the run's config.toml, else multi).
     #[arg(long, value_enum)]
     pub experiment: Option<Experiment>,
@@ -124,6 +131,25 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         None
     };
 
+    // The setting: the policy's task, else the run's observation, else the paper's.
+    let measured_spec = match (&policy, &config) {
+        (Some(p), _) => p.task.measured().cloned(),
+        (None, Some(c)) if c.env.observation == Observation::Measured => Some(c.measured.clone()),
+        _ => None,
+    };
+    if let Some(spec) = measured_spec {
+        if a.experiment.is_some_and(|e| e != Experiment::Multi) {
+            bail!("the measured-only setting calibrates qMobile and Ro together; drop --experiment");
+        }
+        return run_measured(
+            &a,
+            &spec,
+            policy.as_ref().map(|p| (p, policy_path.clone(), choice)),
+            config.as_ref(),
+            started,
+        );
+    }
+
     let experiment = match (a.experiment, &policy, &config) {
         (Some(e), Some(p), _) if p.experiment != e => bail!(
             "the policy {} was trained on {}, not {e}; drop --experiment or pass --experiment {}",
@@ -161,7 +187,14 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
 
     // The MDP: the policy's own (its scales travel with it), else the run's mdp.json, else derived here.
     let spec = match &policy {
-        Some(p) => p.mdp.clone(),
+        Some(p) => match &p.task {
+            bcal_common::task::Task::Paper(m) => m.clone(),
+            other => bail!(
+                "the policy {} was trained on the {} observation; this evaluation is of the paper's setting",
+                policy_path.display(),
+                other.observation_name()
+            ),
+        },
         None => {
             let mdp_path = run_dir.join("mdp.json");
             let from_run = match &config {
@@ -234,7 +267,8 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     let mut eval = bcal_eval::evaluate(&input, &opts, &mut |msg| {
         println!("[{:6.1} s] {msg}", started.elapsed().as_secs_f64());
     })?;
-    let written = bcal_eval::write_outputs(&mut eval, run_dir, None)?;
+    let out_dir = a.out.clone().unwrap_or_else(|| run_dir.clone());
+    let written = bcal_eval::write_outputs(&mut eval, &out_dir, None)?;
     print_summary(&eval.report);
     for n in &eval.report.notes {
         println!("note: {n}");
@@ -242,10 +276,92 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     println!(
         "wrote {} files into {} in {:.1} s: report.json, report.md, {}",
         written.len(),
-        run_dir.display(),
+        out_dir.display(),
         started.elapsed().as_secs_f64(),
         eval.report.plots.join(", ")
     );
+    Ok(())
+}
+
+/// The measured-only evaluation (issue 12) of a run: every calibrator on test cells read through the sensor.
+fn run_measured(
+    a: &EvalArgs,
+    spec: &MeasuredSpec,
+    policy: Option<(&PolicyFile, PathBuf, String)>,
+    config: Option<&TrainConfig>,
+    started: Instant,
+) -> anyhow::Result<()> {
+    let run_dir = &a.run;
+    println!("evaluating the measured-only setting in {}", run_dir.display());
+    let mut opts = if a.quick { MeasuredEvalOptions::quick() } else { MeasuredEvalOptions::full() };
+    let wanted = |m: MethodArg| if a.ukf_only { m == MethodArg::Ukf } else { a.methods.contains(&m) };
+    opts.rl = wanted(MethodArg::Rl);
+    opts.ukf = wanted(MethodArg::Ukf);
+    opts.direct_mapping = wanted(MethodArg::Direct);
+    if let Some(k) = a.per_load {
+        if k == 0 {
+            bail!("--per-load must be at least 1");
+        }
+        opts.test_episodes = Some(k);
+    }
+    match (a.dm_budget_s, config) {
+        (Some(s), _) => opts.direct.time_budget_s = s,
+        (None, Some(c)) if !a.quick && c.learner.time_budget_s > 0.0 => {
+            opts.direct.time_budget_s = c.learner.time_budget_s
+        }
+        _ => {}
+    }
+    if let Some(n) = a.dm_updates {
+        opts.direct.max_updates = n;
+    }
+    let policy_input = match &policy {
+        Some((file, path, choice)) => {
+            PolicyInput::Loaded { file, path: path.display().to_string(), choice: choice.clone() }
+        }
+        None => PolicyInput::Missing {
+            reason: format!(
+                "no policy file in {}: train one first (bcal train --run {})",
+                run_dir.display(),
+                run_dir.display()
+            ),
+        },
+    };
+    let training_curve = std::fs::read_to_string(run_dir.join("metrics.jsonl")).ok().map(|t| TrainingCurve::parse(&t));
+    let input = MeasuredInput { spec, policy: policy_input, training_curve, seed: config.map_or(1, |c| c.seed) };
+    let mut eval = evaluate_measured(&input, &opts, &mut |msg| {
+        println!("[{:6.1} s] {msg}", started.elapsed().as_secs_f64());
+    })?;
+    let out_dir = a.out.clone().unwrap_or_else(|| run_dir.clone());
+    let written = bcal_eval::measured_report::write_outputs(&mut eval, &out_dir, opts.plot_episodes)
+        .with_context(|| format!("cannot write the report into {}", out_dir.display()))?;
+    let r = &eval.report;
+    println!(
+        "
+measured-only, {:.1} mV: NRMSE qMobile / Ro % (second half), time to 2 % s, coverage %, us per reading",
+        r.voltage_noise_mv
+    );
+    for (key, name) in bcal_eval::measured_eval::METHODS {
+        let Some(m) = r.methods.get(key) else { continue };
+        let g = |v: &bcal_eval::metrics::ParamValues, d: usize| {
+            format!(
+                "{} / {}",
+                v.q_mobile.map_or("-".into(), |x| format!("{x:.d$}")),
+                v.r_o.map_or("-".into(), |x| format!("{x:.d$}"))
+            )
+        };
+        println!(
+            "  {name:<25} {} ({})  {}  {}  {}",
+            g(&m.nrmse_pct, 2),
+            g(&m.second_half_nrmse_pct, 2),
+            g(&m.time_to_2pct_s, 0),
+            g(&m.coverage_90_pct, 1),
+            m.step_us.map_or("-".into(), |x| format!("{x:.2}"))
+        );
+    }
+    for n in &r.notes {
+        println!("note: {n}");
+    }
+    println!("wrote {} files into {} in {:.1} s", written.len(), out_dir.display(), started.elapsed().as_secs_f64());
     Ok(())
 }
 

@@ -7,6 +7,7 @@ mod dataset_cmd;
 mod diagnose_cmd;
 mod eval_cmd;
 mod simulate;
+mod summarize_cmd;
 mod supervisor;
 mod train_cmd;
 
@@ -20,6 +21,7 @@ fn main() {
         cli::Command::Diagnose(a) => diagnose_cmd::run(a),
         cli::Command::Train(a) => train_cmd::run(a),
         cli::Command::Eval(a) => eval_cmd::run(a),
+        cli::Command::Summarize(a) => summarize_cmd::run(a),
         cli::Command::Bench(a) => bench_cmd::run(a),
         cli::Command::BenchPublish(a) => bench_cmd::publish(a),
     };

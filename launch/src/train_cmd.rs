@@ -12,6 +12,7 @@ use bcal_common::battery::BatteryModel;
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::dataset::{self, CacheStatus, Experiment, Split};
 use bcal_common::mdp::MdpSpec;
+use bcal_common::task::Task;
 use clap::Args;
 use std::io::{BufRead, IsTerminal, Seek, Write};
 use std::path::{Path, PathBuf};
@@ -19,9 +20,10 @@ use std::time::{Duration, Instant};
 
 #[derive(Args, Debug, Clone)]
 pub struct TrainArgs {
-    /// Starting point of the config: `tuned` (the defaults, measured on the validation split) or `paper`
-    /// (the paper's hyperparameters and MDP).
-    #[arg(long, value_enum, default_value_t = Preset::Tuned)]
+    /// Starting point of the config: `measured` (calibration from sensor readings: voltage, current,
+    /// temperature), `paper-tuned` (the paper's full-state setting, hyperparameters measured on the
+    /// validation split) or `paper` (the paper's setting and hyperparameters).
+    #[arg(long, value_enum, default_value_t = Preset::Measured)]
     pub preset: Preset,
     /// TOML config file; absent keys take the preset's values (see `bcal train --print-config`).
     #[arg(long)]
@@ -113,29 +115,40 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
     // A finished marker from an earlier leg must not end a resumed run at once.
     let _ = std::fs::remove_file(run_dir.join("learner.done"));
 
-    // Warm the cache of the splits training reads (actors: train, learner: validation) so the processes
-    // only read it; the MDP's observation scales come from the training split.
-    let model = BatteryModel::default();
-    let cache_dir = dataset::default_cache_dir();
-    let mut train = None;
-    for split in [Split::Train, Split::Validation] {
-        let (ds, rep) = dataset::load_or_generate(&v.def, &model, &cache_dir, split)?;
-        report_cache(cfg.experiment, split, &rep);
-        v.check_dataset(&ds)?;
-        if split == Split::Train {
-            train = Some(ds);
+    // The task every process reads from mdp.json. Paper task: warm the cache of the splits training reads
+    // (actors: train, learner: validation) so the processes only read it; the observation scales come from
+    // the training split. Measured task: no data set, actors simulate their cells.
+    let mdp_path = run_dir.join("mdp.json");
+    match cfg.env.observation.paper_kind() {
+        Some(_) => {
+            let model = BatteryModel::default();
+            let cache_dir = dataset::default_cache_dir();
+            let mut train = None;
+            for split in [Split::Train, Split::Validation] {
+                let (ds, rep) = dataset::load_or_generate(&v.def, &model, &cache_dir, split)?;
+                report_cache(cfg.experiment, split, &rep);
+                v.check_dataset(&ds)?;
+                if split == Split::Train {
+                    train = Some(ds);
+                }
+            }
+            if !(a.resume && mdp_path.exists()) {
+                let spec = MdpSpec::new(cfg.experiment, &cfg.env, train.as_ref().expect("loaded above"));
+                write_atomic(&mdp_path, serde_json::to_string_pretty(&Task::Paper(spec))?.as_bytes())?;
+            }
+        }
+        None => {
+            if !(a.resume && mdp_path.exists()) {
+                let task = Task::Measured(cfg.measured.clone());
+                write_atomic(&mdp_path, serde_json::to_string_pretty(&task)?.as_bytes())?;
+            }
         }
     }
-    let mdp_path = run_dir.join("mdp.json");
-    if !(a.resume && mdp_path.exists()) {
-        let spec = MdpSpec::new(cfg.experiment, &cfg.env, train.as_ref().expect("loaded above"));
-        write_atomic(&mdp_path, serde_json::to_string_pretty(&spec)?.as_bytes())?;
-    }
-    drop(train);
 
     println!(
-        "training {} (preset {}{}) with {} actor(s) x {} envs, budget {} s / {} updates, run folder {}",
+        "training {} / {} observation (preset {}{}) with {} actor(s) x {} envs, budget {} s / {} updates, run folder {}",
         cfg.experiment,
+        Task::observation_label(cfg.env.observation),
         a.preset.name(),
         a.config.as_ref().map(|p| format!(" + {}", p.display())).unwrap_or_default(),
         v.actor_count,

@@ -24,10 +24,12 @@
 //! Non-finite chokepoint (DESIGN habit 8): a non-finite loss or gradient skips every optimiser step, the
 //! update is counted as quarantined and the weights stay as they were.
 
+use bcal_common::config::Observation;
 use bcal_common::config::Validated;
 use bcal_common::dataset::Experiment;
-use bcal_common::mdp::{ActionMap, MdpSpec};
+use bcal_common::mdp::ActionMap;
 use bcal_common::policy::{PolicyFile, PolicyLayout, LOG_STD_MAX, LOG_STD_MIN};
+use bcal_common::task::Task;
 use bcal_common::wire::{Transition, MAX_ACT, MAX_OBS};
 use tch::nn::{self, Module, OptimizerConfig};
 use tch::{Device, Kind, Tensor};
@@ -664,11 +666,11 @@ impl Lac {
     }
 
     /// The trained calibrator as a libtorch-free [`PolicyFile`]; the caller saves it (e.g. to
-    /// `run_dir/policy.bcalpol`). `mdp` must be the MDP this learner trains on.
-    pub fn policy_file(&self, mdp: MdpSpec, experiment: Experiment) -> PolicyFile {
+    /// `run_dir/policy.bcalpol`). `task` must be the task this learner trains on.
+    pub fn policy_file(&self, task: Task, experiment: Experiment) -> PolicyFile {
         PolicyFile {
             layout: self.layout.clone(),
-            mdp,
+            task,
             experiment,
             update_step: self.updates,
             params: self.actor_flat_params(),
@@ -690,7 +692,10 @@ pub(crate) fn check_layout(cfg: &Validated, layout: &PolicyLayout) -> Result<(),
             layout.hidden, cfg.config.lac.hidden
         )));
     }
-    let want = ActionMap::from_config(cfg.config.experiment, &cfg.config.env).dim();
+    let want = match cfg.config.env.observation {
+        Observation::Measured => cfg.config.measured.act_dim(),
+        _ => ActionMap::from_config(cfg.config.experiment, &cfg.config.env).dim(),
+    };
     if layout.act_dim != want {
         return Err(LacError::Shape(format!(
             "act_dim {} but experiment {} calibrates {want} parameter(s)",

@@ -30,8 +30,11 @@ use bcal_common::ipc::{
     self, BatchClient, BatchPending, IpcError, Role, RunIpc, StatusSubscriber, UpdateConnections, WeightsPublisher,
     OPEN_TIMEOUT,
 };
-use bcal_common::mdp::{validate_policy, MdpSpec, PolicyScore};
+use bcal_common::mdp::{validate_policy, PolicyScore};
+use bcal_common::measured::env as measured_env;
+use bcal_common::measured::{scenario, Episode};
 use bcal_common::policy::{best_policy_file, PolicyLayout, PolicyNet, POLICY_BEST, POLICY_LAST};
+use bcal_common::task::Task;
 use bcal_common::wire::{BatchRequest, ReplayCounters, WeightsHeader};
 use serde_json::{json, Map, Value};
 use std::collections::VecDeque;
@@ -149,15 +152,42 @@ struct Best {
     update: u64,
 }
 
+/// The validation data of the run's task (the learner reads no other data). One per process.
+#[allow(clippy::large_enum_variant)]
+enum ValidationSet {
+    /// The paper task's validation split and the trajectories scored each time.
+    Paper { model: BatteryModel, val: Dataset, trajectories: Vec<usize> },
+    /// The measured task's validation episodes (fixed cells of the validation loads).
+    Measured { episodes: Vec<Episode> },
+}
+
+impl ValidationSet {
+    fn score(&self, task: &Task, net: &PolicyNet) -> PolicyScore {
+        match (self, task) {
+            (ValidationSet::Paper { model, val, trajectories }, Task::Paper(spec)) => {
+                validate_policy(spec, model, val, trajectories, net)
+            }
+            (ValidationSet::Measured { episodes }, Task::Measured(spec)) => {
+                measured_env::validate_policy(&spec.tracker, episodes, net)
+            }
+            _ => unreachable!("the validation set is built for the run's task"),
+        }
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            ValidationSet::Paper { trajectories, .. } => trajectories.len(),
+            ValidationSet::Measured { episodes } => episodes.len(),
+        }
+    }
+}
+
 /// Everything the loop needs besides the learner itself.
 struct Ctx {
     run_dir: PathBuf,
     cfg: Validated,
-    spec: MdpSpec,
-    model: BatteryModel,
-    /// The validation split (the learner reads no other).
-    val: Dataset,
-    val_trajectories: Vec<usize>,
+    task: Task,
+    val: ValidationSet,
     /// Best score so far under each [`SelectBy`], in `SelectBy::ALL` order.
     best: [Option<Best>; 2],
 }
@@ -195,7 +225,7 @@ impl Ctx {
 
     fn save_policy(&self, lac: &Lac, name: &str) -> anyhow::Result<()> {
         let path = self.run_dir.join(name);
-        lac.policy_file(self.spec.clone(), self.cfg.config.experiment)
+        lac.policy_file(self.task.clone(), self.cfg.config.experiment)
             .save(&path)
             .with_context(|| format!("policy file {}", path.display()))
     }
@@ -204,7 +234,7 @@ impl Ctx {
     /// returns the `validation` line for metrics.jsonl.
     fn validate(&mut self, lac: &Lac, log: &MetricsLog) -> anyhow::Result<Map<String, Value>> {
         let net = PolicyNet::from_flat(lac.layout().clone(), lac.actor_flat_params()).context("validation policy")?;
-        let score = validate_policy(&self.spec, &self.model, &self.val, &self.val_trajectories, &net);
+        let score = self.val.score(&self.task, &net);
         let mut line = Map::new();
         line.insert("kind".into(), json!("validation"));
         line.insert("t_s".into(), json!(log.t_s()));
@@ -212,7 +242,7 @@ impl Ctx {
         line.insert("val_tracking_error".into(), json!(score.tracking_error));
         line.insert("val_nrmse_q_pct".into(), json!(score.nrmse_q_pct));
         line.insert("val_nrmse_r_pct".into(), json!(score.nrmse_r_pct));
-        line.insert("val_trajectories".into(), json!(self.val_trajectories.len()));
+        line.insert("val_trajectories".into(), json!(self.val.len()));
         for (k, select) in SelectBy::ALL.into_iter().enumerate() {
             let s = score.by(select);
             if s.is_finite() && self.best[k].is_none_or(|b| s < b.score) {
@@ -268,12 +298,12 @@ fn read_config(run_dir: &Path) -> anyhow::Result<Validated> {
     Ok(TrainConfig::from_file(&path)?.validate()?)
 }
 
-fn read_mdp(run_dir: &Path) -> anyhow::Result<MdpSpec> {
+fn read_task(run_dir: &Path) -> anyhow::Result<Task> {
     let path = run_dir.join("mdp.json");
     let text = std::fs::read_to_string(&path).with_context(|| {
         format!("cannot read {}; the supervisor writes it before starting the learner", path.display())
     })?;
-    serde_json::from_str(&text).with_context(|| format!("{} is not an MDP description", path.display()))
+    Task::from_json(&text).with_context(|| format!("{} is not a task description", path.display()))
 }
 
 /// Newest replay status, if any arrived.
@@ -297,13 +327,28 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
     // The node first: from here on SIGTERM/SIGINT are flags the loop sees, not an abrupt exit.
     let (node, _) = ipc::create_node("bcal-learner")?;
     let cfg = read_config(&args.run_dir)?;
-    let spec = read_mdp(&args.run_dir)?;
-    let model = BatteryModel::default();
-    let (val, _) =
-        load_or_generate(&cfg.def, &model, &default_cache_dir(), Split::Validation).context("validation set")?;
-    cfg.check_dataset(&val)?;
+    let task = read_task(&args.run_dir)?;
+    let val = match &task {
+        Task::Paper(_) => {
+            let (val, _) =
+                load_or_generate(&cfg.def, &BatteryModel::default(), &default_cache_dir(), Split::Validation)
+                    .context("validation set")?;
+            cfg.check_dataset(&val)?;
+            let trajectories = val.spread_indices(cfg.config.learner.validate_trajectories);
+            ValidationSet::Paper { model: BatteryModel::default(), val, trajectories }
+        }
+        Task::Measured(m) => {
+            let n = match cfg.config.learner.validate_trajectories {
+                0 => m.scenario.validation_episodes,
+                k => k.min(m.scenario.validation_episodes),
+            };
+            let episodes = scenario::episode_set(&m.scenario, Split::Validation, m.scenario.validation_episodes)
+                .context("validation episodes")?;
+            ValidationSet::Measured { episodes: episodes.into_iter().take(n).collect() }
+        }
+    };
     let layout =
-        PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: cfg.config.lac.hidden.clone() };
+        PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: cfg.config.lac.hidden.clone() };
     let seed = cfg.config.seed ^ bcal_common::hash::fnv1a64(b"learner");
     let mut lac = match args.resume {
         true => match Lac::load_latest(&cfg, layout.clone(), &args.run_dir).context("--resume")? {
@@ -335,11 +380,9 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
     let batch_size = cfg.config.lac.batch_size;
     let mut ctx = Ctx {
         run_dir: args.run_dir.clone(),
-        val_trajectories: val.spread_indices(l.validate_trajectories),
         best: best_from_log(&std::fs::read_to_string(args.run_dir.join("metrics.jsonl")).unwrap_or_default()),
         cfg,
-        spec,
-        model,
+        task,
         val,
     };
 
@@ -514,6 +557,7 @@ mod tests {
     use super::*;
     use bcal_common::config::EnvConfig;
     use bcal_common::dataset::{generate, Experiment, ExperimentDef, Grid, ValidationDef};
+    use bcal_common::mdp::MdpSpec;
 
     /// A small validation split and the MDP of its experiment's (small) training split.
     fn tiny() -> (Dataset, MdpSpec, BatteryModel) {
@@ -553,6 +597,8 @@ mod tests {
         p[mean_bias + 1] = truth[1].clamp(-0.999_999, 0.999_999).atanh();
         let net = PolicyNet::from_flat(layout, p).unwrap();
         let s = validate_policy(&spec, &model, &val, &idx, &net);
+        let vs = ValidationSet::Paper { model, val: val.clone(), trajectories: idx.clone() };
+        assert_eq!(vs.score(&Task::Paper(spec.clone()), &net), s);
         assert!(s.nrmse_q_pct < 0.01 && s.nrmse_r_pct < 0.01, "{s:?}");
         assert!(s.tracking_error < 1e-2, "{s:?}");
     }

@@ -154,7 +154,7 @@ fn policy_file_round_trips_without_libtorch() {
         cost_log_e0: 0.0,
     };
     let path = run.path().join("policy.bcalpol");
-    lac.policy_file(mdp, Experiment::SingleQ).save(&path).unwrap();
+    lac.policy_file(bcal_common::task::Task::Paper(mdp), Experiment::SingleQ).save(&path).unwrap();
     let pf = PolicyFile::load(&path).unwrap();
     assert_eq!(pf.update_step, 2);
     assert_eq!(pf.params, lac.actor_flat_params());

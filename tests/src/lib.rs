@@ -13,6 +13,7 @@ use bcal_common::battery::BatteryModel;
 use bcal_common::config::{TrainConfig, Validated};
 use bcal_common::dataset::{default_cache_dir, load_or_generate, Dataset, Split};
 use bcal_common::mdp::MdpSpec;
+use bcal_common::task::Task;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::Mutex;
@@ -23,24 +24,31 @@ pub struct RunFolder {
     dir: tempfile::TempDir,
     pub config: TrainConfig,
     pub validated: Validated,
-    pub mdp: MdpSpec,
-    /// The experiment's training split (the MDP's scales come from it).
-    pub dataset: Dataset,
+    /// The run's task, as `mdp.json` holds it.
+    pub task: Task,
+    /// The experiment's training split (the paper MDP's scales come from it); None for a measured task.
+    pub dataset: Option<Dataset>,
 }
 
 impl RunFolder {
-    /// Writes `config` (validated first) and the MDP of its experiment; the dataset comes from the cache.
+    /// Writes `config` (validated first) and the task of its experiment and observation; a paper task's
+    /// dataset comes from the cache.
     pub fn new(config: TrainConfig) -> Self {
         let validated = config.validate().expect("test config validates");
         let dir = tempfile::Builder::new().prefix("bcal-test-").tempdir().expect("temp run folder");
         std::fs::write(dir.path().join("config.toml"), config.to_toml()).expect("write config.toml");
-        let (dataset, _) =
-            load_or_generate(&validated.def, &BatteryModel::default(), &default_cache_dir(), Split::Train)
-                .expect("dataset");
-        let mdp = MdpSpec::new(config.experiment, &config.env, &dataset);
-        std::fs::write(dir.path().join("mdp.json"), serde_json::to_string_pretty(&mdp).unwrap()).unwrap();
+        let (task, dataset) = match config.env.observation.paper_kind() {
+            Some(_) => {
+                let (dataset, _) =
+                    load_or_generate(&validated.def, &BatteryModel::default(), &default_cache_dir(), Split::Train)
+                        .expect("dataset");
+                (Task::Paper(MdpSpec::new(config.experiment, &config.env, &dataset)), Some(dataset))
+            }
+            None => (Task::Measured(config.measured.clone()), None),
+        };
+        std::fs::write(dir.path().join("mdp.json"), serde_json::to_string_pretty(&task).unwrap()).unwrap();
         std::fs::create_dir_all(dir.path().join("logs")).unwrap();
-        Self { dir, config, validated, mdp, dataset }
+        Self { dir, config, validated, task, dataset }
     }
 
     pub fn path(&self) -> &Path {

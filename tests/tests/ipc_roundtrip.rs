@@ -39,8 +39,11 @@ fn actor_transitions_all_reach_the_replay_and_sigterm_exits_zero() {
     let (node, _) = ipc::create_node("bcal-test-weights").unwrap();
     let ipc_run = RunIpc::new(run.path(), &run.validated).unwrap();
     let weights = ipc_run.weights(&node, Role::Open { timeout: Duration::from_secs(10) }).unwrap();
-    let layout =
-        PolicyLayout { obs_dim: run.mdp.obs_dim(), act_dim: run.mdp.act_dim(), hidden: run.config.lac.hidden.clone() };
+    let layout = PolicyLayout {
+        obs_dim: run.task.obs_dim(),
+        act_dim: run.task.act_dim(),
+        hidden: run.config.lac.hidden.clone(),
+    };
     let publisher = ipc_run.weights_publisher(&weights, layout.n_params()).unwrap();
 
     let mut actor = Proc::start(&run, "actor-0", "bcal-actor", &["--run", &dir, "--actor-id", "0"]);

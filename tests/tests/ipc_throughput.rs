@@ -23,8 +23,11 @@ fn measure(label: &str, mut cfg: TrainConfig, actors: usize, window: Duration) {
     let (node, _) = ipc::create_node("bcal-bench-weights").unwrap();
     let ipc_run = RunIpc::new(run.path(), &run.validated).unwrap();
     let weights = ipc_run.weights(&node, Role::Open { timeout: Duration::from_secs(10) }).unwrap();
-    let layout =
-        PolicyLayout { obs_dim: run.mdp.obs_dim(), act_dim: run.mdp.act_dim(), hidden: run.config.lac.hidden.clone() };
+    let layout = PolicyLayout {
+        obs_dim: run.task.obs_dim(),
+        act_dim: run.task.act_dim(),
+        hidden: run.config.lac.hidden.clone(),
+    };
     let publisher = ipc_run.weights_publisher(&weights, layout.n_params()).unwrap();
     let params: Vec<f32> = (0..layout.n_params()).map(|i| ((i % 13) as f32 - 6.0) * 0.01).collect();
     let mut s = publisher.loan_slice_uninit(params.len()).unwrap();

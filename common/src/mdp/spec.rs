@@ -231,7 +231,7 @@ pub struct MdpSpec {
 impl MdpSpec {
     pub fn new(experiment: Experiment, env: &EnvConfig, train: &Dataset) -> Self {
         Self {
-            observation: env.observation,
+            observation: env.observation.paper_kind().expect("the paper MDP is built only for paper observations"),
             actions: ActionMap::from_config(experiment, env),
             scales: ObsScales::from_train(train),
             window_steps: env.window_steps,

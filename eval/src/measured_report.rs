@@ -1,0 +1,389 @@
+//! The measured-only evaluation's outputs: `report.json` ([`MeasuredReport`]), `report.md` (one table per
+//! voltage-noise level, the end-of-discharge table, intervals, step cost, how every choice was made, and a
+//! reading generated from the numbers) and the figures: estimates versus time with their 90 % intervals for
+//! a few test cells, RL and the joint UKF side by side, and the training curve. Formats; never measures or
+//! prints.
+
+use crate::measured_eval::{MeasuredEvaluation, MeasuredReport, MethodScores, Trace, EOD_FRACTIONS, METHODS};
+use crate::metrics::ParamValues;
+use crate::plots::{font_available, write_training_curve};
+use bcal_common::measured::scenario::Episode;
+use bcal_common::nrmse::Param;
+use plotters::prelude::*;
+use std::fmt::Write;
+use std::path::{Path, PathBuf};
+
+/// The issue's targets at the sensor's noise, for the reading: NRMSE qMobile and Ro, %, step cost, us.
+pub const TARGET_NRMSE_PCT: [f64; 2] = [3.0, 0.5];
+pub const TARGET_STEP_US: f64 = 20.0;
+pub const TARGET_COVERAGE_PCT: [f64; 2] = [85.0, 95.0];
+
+fn f(v: Option<f64>, d: usize) -> String {
+    match v {
+        Some(x) if x.is_finite() => format!("{x:.d$}"),
+        Some(_) => "inf".into(),
+        None => "-".into(),
+    }
+}
+
+fn name_of(key: &str) -> &str {
+    METHODS.iter().find(|m| m.0 == key).map_or(key, |m| m.1)
+}
+
+fn pair(v: &ParamValues, d: usize) -> String {
+    format!("{} / {}", f(v.q_mobile, d), f(v.r_o, d))
+}
+
+/// `report.md` of a measured-only evaluation.
+pub fn render_markdown(r: &MeasuredReport) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "# bcal evaluation: measured-only calibration{}\n", if r.quick { " (quick)" } else { "" });
+    let _ = writeln!(
+        s,
+        "The calibrators see only what a battery management system measures: terminal voltage, current and \
+         temperature through a sensor model (headline: {:.1} mV voltage noise), read at intervals of {:?} s, from \
+         any starting charge at rest, under constant-power, constant-current and piecewise loads. Nothing of the \
+         simulated cell's internal state reaches them. Test: {} cells ({} readings) at loads never seen in \
+         training ({}); every choice (the joint UKF's settings, the direct mapping's early stopping, the interval \
+         scales, the delivered RL policy) was made on {} validation cells at loads between training and test.\n",
+        r.voltage_noise_mv,
+        r.sampling_intervals_s,
+        r.test_episodes,
+        r.test_readings,
+        r.test_loads,
+        r.validation_episodes
+    );
+    for (k, why) in &r.not_evaluated {
+        let _ = writeln!(s, "**{} was not evaluated:** {why}\n", name_of(k));
+    }
+    for level in &r.noise_levels {
+        let _ = writeln!(s, "## {:.1} mV voltage noise\n", level.voltage_noise_mv);
+        let _ = writeln!(
+            s,
+            "NRMSE in % of the Table-1 ranges (qMobile 4000-7000 C / Ro 0.1-0.2 ohm), over every reading and over the \
+             second half of each discharge; median time until the estimate enters and stays within 2 % (cells that \
+             settle, fraction); 90 % interval coverage.\n"
+        );
+        let _ = writeln!(
+            s,
+            "| Method | NRMSE q / Ro % | second half q / Ro % | time to 2 % q / Ro s | settled q / Ro | coverage q / Ro % | step us |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: |"
+        );
+        for (key, name) in METHODS {
+            let Some(m) = level.methods.get(key) else { continue };
+            let _ = writeln!(
+                s,
+                "| {name} | {} | {} | {} | {} | {} | {} |",
+                pair(&m.nrmse_pct, 2),
+                pair(&m.second_half_nrmse_pct, 2),
+                pair(&m.time_to_2pct_s, 0),
+                pair(&m.settled_fraction, 2),
+                pair(&m.coverage_90_pct, 1),
+                f(m.step_us, 2)
+            );
+        }
+        let _ = writeln!(s);
+    }
+    let _ = writeln!(s, "## End-of-discharge prediction ({:.1} mV)\n", r.voltage_noise_mv);
+    let _ = writeln!(
+        s,
+        "Made at 10 / 50 / 90 % of each discharge (load on to cut-off) from the calibrated state and parameters, \
+         running the calibrator's model under the cell's actual future load to the {} V cut-off; absolute error in \
+         s (mean, median) and mean in % of the discharge.\n",
+        3.0
+    );
+    let mut head = String::from("| Method |");
+    let mut rule = String::from("| --- |");
+    for fr in EOD_FRACTIONS {
+        let _ = write!(head, " {0:.0} %: MAE s | median s | MAE % |", fr * 100.0);
+        rule.push_str(" ---: | ---: | ---: |");
+    }
+    let _ = writeln!(s, "{head}\n{rule}");
+    for (key, name) in METHODS {
+        let Some(m) = r.methods.get(key) else { continue };
+        let mut row = format!("| {name} |");
+        for fr in EOD_FRACTIONS {
+            match m.eod.get(&format!("{:.0}", fr * 100.0)) {
+                Some(e) => {
+                    let _ = write!(row, " {:.1} | {:.1} | {:.2} |", e.mae_s, e.median_abs_s, e.mae_pct_of_discharge);
+                }
+                None => row.push_str(" - | - | - |"),
+            }
+        }
+        let _ = writeln!(s, "{row}");
+    }
+    let _ = writeln!(s, "\n## How every choice was made (validation only)\n");
+    if let Some(rl) = &r.rl {
+        let _ = writeln!(s, "- RL-LAC policy: {rl}.");
+    }
+    for (k, v) in &r.interval_scales {
+        let _ = writeln!(
+            s,
+            "- {}: 90 % interval = estimate +- {v:.2} standard deviations of its least-squares fit (the scale that \
+             covers 90 % of validation readings).",
+            name_of(k)
+        );
+    }
+    if let Some(u) = &r.ukf {
+        let b = &u.best;
+        let _ = writeln!(
+            s,
+            "- Joint UKF: {} settings tried on {} validation cells; chosen: measurement std {:.1} mV, parameter random \
+             walk {:e} per sqrt(s), charge process noise {} C per sqrt(s), prior std {:?} of the ranges; interval = its \
+             covariance's +-1.645 sd. Numerical rescues on test: {:?}.",
+            u.candidates,
+            u.validation_episodes,
+            b.meas_std_v * 1e3,
+            b.param_walk_per_sqrt_s,
+            b.charge_walk_c_per_sqrt_s,
+            b.prior_std_z,
+            u.counters_on_test
+        );
+    }
+    if let Some(d) = &r.direct_mapping {
+        let _ = writeln!(
+            s,
+            "- Direct mapping: {} training pairs, {} updates in {:.0} s, stopped by {}, weights of update {} (validation \
+             MSE {:.2e}).",
+            d.pairs,
+            d.updates,
+            d.seconds,
+            d.stopped_by.replace('_', " "),
+            d.best_update,
+            d.best_validation_loss
+        );
+    }
+    let _ = writeln!(s, "\n## Reading\n");
+    for line in reading(r) {
+        let _ = writeln!(s, "- {line}");
+    }
+    if !r.plots.is_empty() {
+        let _ = writeln!(s, "\n## Plots\n");
+        for p in r.plots.iter().filter(|p| p.ends_with(".png")) {
+            let _ = writeln!(s, "![{p}]({p})");
+        }
+    }
+    for n in &r.notes {
+        let _ = writeln!(s, "\nNote: {n}");
+    }
+    let _ = writeln!(s, "\nEvaluation took {:.0} s.", r.seconds);
+    s
+}
+
+/// Plain statements derived from the numbers, so the reading cannot contradict the tables.
+pub fn reading(r: &MeasuredReport) -> Vec<String> {
+    let mut out = Vec::new();
+    let get = |k: &str| r.methods.get(k);
+    if let (Some(rl), Some(ukf)) = (get("rl_lac"), get("ukf")) {
+        for p in Param::BOTH {
+            let (a, b) = (rl.nrmse_pct.get(p), ukf.nrmse_pct.get(p));
+            if let (Some(a), Some(b)) = (a, b) {
+                let verdict = if a < b { "below" } else { "above" };
+                out.push(format!(
+                    "{}: RL-LAC {a:.2} % vs joint UKF {b:.2} % over every reading ({verdict} the UKF); second half {} vs {} %.",
+                    p.label(),
+                    f(rl.second_half_nrmse_pct.get(p), 2),
+                    f(ukf.second_half_nrmse_pct.get(p), 2)
+                ));
+            }
+        }
+        for p in Param::BOTH {
+            if let (Some(a), Some(b)) = (rl.time_to_2pct_s.get(p), ukf.time_to_2pct_s.get(p)) {
+                let half = if a <= 0.5 * b { "within" } else { "not within" };
+                out.push(format!("{}: RL-LAC settles within 2 % in {a:.0} s (median), the UKF in {b:.0} s: {half} half the UKF's time.", p.label()));
+            }
+        }
+    }
+    if let Some(rl) = get("rl_lac") {
+        let targets: Vec<String> = Param::BOTH
+            .iter()
+            .zip(TARGET_NRMSE_PCT)
+            .map(|(p, t)| {
+                let v = rl.nrmse_pct.get(*p).unwrap_or(f64::NAN);
+                format!("{} {v:.2} % (target {t} %: {})", p.label(), if v <= t { "met" } else { "missed" })
+            })
+            .collect();
+        out.push(format!(
+            "RL-LAC against the issue's targets at {:.1} mV: {}.",
+            r.voltage_noise_mv,
+            targets.join(", ")
+        ));
+        if let Some(us) = rl.step_us {
+            out.push(format!(
+                "RL-LAC costs {us:.2} us per reading (its model, fit and policy): {} the {TARGET_STEP_US} us target.",
+                if us <= TARGET_STEP_US { "meets" } else { "misses" }
+            ));
+        }
+        let cov: Vec<String> =
+            Param::BOTH.iter().map(|p| format!("{} {} %", p.label(), f(rl.coverage_90_pct.get(*p), 1))).collect();
+        out.push(format!(
+            "RL-LAC's 90 % intervals cover {} of the test readings (target {}-{} %).",
+            cov.join(", "),
+            TARGET_COVERAGE_PCT[0],
+            TARGET_COVERAGE_PCT[1]
+        ));
+    }
+    if let (Some(rl), Some(fit)) = (get("rl_lac"), get("window_fit")) {
+        out.push(format!(
+            "What learning adds to the policy's own features: RL-LAC {} vs the window fit alone {} (NRMSE q / Ro %).",
+            pair(&rl.nrmse_pct, 2),
+            pair(&fit.nrmse_pct, 2)
+        ));
+    }
+    if let Some(u) = get("uncalibrated") {
+        out.push(format!(
+            "The uncalibrated prior scores {} (NRMSE q / Ro %): the error every calibrator starts from.",
+            pair(&u.nrmse_pct, 2)
+        ));
+    }
+    out
+}
+
+/// Estimates versus time with 90 % bands for a few test cells, RL and the joint UKF side by side.
+fn draw_estimates<DB: DrawingBackend>(
+    root: &DrawingArea<DB, plotters::coord::Shift>,
+    episodes: &[&Episode],
+    series: &[(&str, RGBColor, Vec<&Trace>)],
+    text: bool,
+) -> Result<(), String> {
+    let err = |e: &dyn std::fmt::Display| e.to_string();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let rows = root.split_evenly((episodes.len().max(1), 2));
+    for (k, e) in episodes.iter().enumerate() {
+        for (j, p) in Param::BOTH.into_iter().enumerate() {
+            let area = &rows[k * 2 + j];
+            let t_end = e.samples.last().map_or(1.0, |s| s.t_s).max(1.0);
+            let truth = p.value(&e.spec.truth);
+            let [lo, hi] = p.range();
+            let pad = 0.35 * (hi - lo);
+            let mut b = ChartBuilder::on(area);
+            b.margin(8);
+            if text {
+                b.caption(
+                    format!("{} ({}, {:.0} s): {}", p.label(), e.spec.kind.name(), t_end, p.unit()),
+                    ("sans-serif", 13),
+                )
+                .x_label_area_size(28)
+                .y_label_area_size(55);
+            }
+            let mut chart = b.build_cartesian_2d(0.0..t_end, (lo - pad)..(hi + pad)).map_err(|e| err(&e))?;
+            if text {
+                chart.configure_mesh().x_desc("time, s").light_line_style(TRANSPARENT).draw().map_err(|e| err(&e))?;
+            }
+            for (name, color, traces) in series {
+                let t = traces[k];
+                let band: Vec<(f64, f64, f64)> = e
+                    .samples
+                    .iter()
+                    .zip(&t.intervals)
+                    .filter_map(|(s, iv)| {
+                        iv.map(|iv| {
+                            let (a, b) = if p == Param::QMobile {
+                                (iv.q_mobile_c[0], iv.q_mobile_c[1])
+                            } else {
+                                (iv.r_o_ohm[0], iv.r_o_ohm[1])
+                            };
+                            (s.t_s, a, b)
+                        })
+                    })
+                    .collect();
+                if band.len() > 1 {
+                    let mut poly: Vec<(f64, f64)> = band.iter().map(|b| (b.0, b.2)).collect();
+                    poly.extend(band.iter().rev().map(|b| (b.0, b.1)));
+                    chart
+                        .draw_series(std::iter::once(Polygon::new(poly, color.mix(0.15).filled())))
+                        .map_err(|e| err(&e))?;
+                }
+                let line: Vec<(f64, f64)> =
+                    e.samples.iter().zip(&t.estimates).map(|(s, d)| (s.t_s, p.value(d))).collect();
+                let s = chart.draw_series(LineSeries::new(line, color.stroke_width(2))).map_err(|e| err(&e))?;
+                if text {
+                    let c = *color;
+                    s.label(*name).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
+                }
+            }
+            let s = chart
+                .draw_series(LineSeries::new(vec![(0.0, truth), (t_end, truth)], BLACK.stroke_width(1)))
+                .map_err(|e| err(&e))?;
+            if text {
+                s.label("truth").legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK));
+                chart
+                    .configure_series_labels()
+                    .background_style(WHITE.mix(0.8))
+                    .border_style(BLACK)
+                    .label_font(("sans-serif", 11))
+                    .position(SeriesLabelPosition::UpperRight)
+                    .draw()
+                    .map_err(|e| err(&e))?;
+            }
+        }
+    }
+    root.present().map_err(|e| err(&e))
+}
+
+/// Writes the figures, report.json and report.md into `dir`; returns the files written.
+pub fn write_outputs(eval: &mut MeasuredEvaluation, dir: &Path, plot_episodes: usize) -> std::io::Result<Vec<PathBuf>> {
+    std::fs::create_dir_all(dir)?;
+    let text = font_available();
+    let mut written = Vec::new();
+    let r = &mut eval.report;
+    // A few 1 s cells of different load kinds, the longest of each kind (the most to see).
+    let mut picks: Vec<usize> = Vec::new();
+    for kind in bcal_common::measured::LoadKind::ALL {
+        let best = (0..eval.episodes.len())
+            .filter(|&i| eval.episodes[i].spec.kind == kind && eval.episodes[i].spec.interval_s[1] <= 1.0)
+            .max_by_key(|&i| eval.episodes[i].samples.len());
+        picks.extend(best);
+    }
+    picks.truncate(plot_episodes);
+    let series: Vec<(&str, RGBColor, Vec<&Trace>)> =
+        [("rl_lac", "RL-LAC", RGBColor(214, 39, 40)), ("ukf", "joint UKF", RGBColor(31, 119, 180))]
+            .into_iter()
+            .filter_map(|(key, name, color)| {
+                eval.traces
+                    .iter()
+                    .find(|t| t.0 == key)
+                    .map(|(_, tr)| (name, color, picks.iter().map(|&i| &tr[i]).collect()))
+            })
+            .collect();
+    if !picks.is_empty() && !series.is_empty() {
+        let eps: Vec<&Episode> = picks.iter().map(|&i| &eval.episodes[i]).collect();
+        let size = (1200, 280 * picks.len() as u32 + 20);
+        for ext in ["png", "svg"] {
+            let name = format!("estimates_vs_time.{ext}");
+            let path = dir.join(&name);
+            let res = if ext == "png" {
+                draw_estimates(&BitMapBackend::new(&path, size).into_drawing_area(), &eps, &series, text)
+            } else {
+                draw_estimates(&SVGBackend::new(&path, size).into_drawing_area(), &eps, &series, text)
+            };
+            match res {
+                Ok(()) => {
+                    r.plots.push(name);
+                    written.push(path);
+                }
+                Err(e) => r.notes.push(format!("plot {name} failed: {e}")),
+            }
+        }
+    }
+    if let Some(tc) = eval.training_curve.as_ref().filter(|t| !t.is_empty()) {
+        let (files, failures) = write_training_curve(dir, tc, text);
+        written.extend(files.iter().map(|f| dir.join(f)));
+        r.plots.extend(files);
+        r.notes.extend(failures.into_iter().map(|f| format!("plot failed: {f}")));
+    }
+    if !text {
+        r.notes.push("no sans-serif font was found: plots have no text; install fonts-dejavu-core".into());
+    }
+    let p = dir.join("report.json");
+    bcal_common::fsutil::write_atomic(&p, serde_json::to_string_pretty(&r).expect("reports serialise").as_bytes())?;
+    written.push(p);
+    let p = dir.join("report.md");
+    bcal_common::fsutil::write_atomic(&p, render_markdown(r).as_bytes())?;
+    written.push(p);
+    Ok(written)
+}
+
+/// The scores of a method at the headline level, for callers that summarise.
+pub fn headline<'a>(r: &'a MeasuredReport, key: &str) -> Option<&'a MethodScores> {
+    r.methods.get(key)
+}
