@@ -1,23 +1,26 @@
 #!/usr/bin/env bash
-# bcal's main job: set up libtorch if missing, build, train the calibrator on the default config within a
-# time budget, evaluate it against the UKF and the direct mapping, and print the report.
+# bcal's main job: set up libtorch if missing, build, train the calibrator within a time budget, evaluate it
+# against its baselines, and print the report.
 #
-#   launch/run.sh [--experiment single-q|single-r|multi] [--preset tuned|paper] [--budget-s SECONDS]
-#                 [--seeds N] [--actors N] [--name NAME]
+#   launch/run.sh [--preset measured|paper-tuned|paper] [--budget-s SECONDS] [--seeds N] [--actors N]
+#                 [--name NAME] [--experiment single-q|single-r|multi]
 #
-# Defaults: experiment multi, preset tuned, budget 900 s, one seed, one actor per core, run folder
-# runs/<experiment>-<time>. With --seeds N (N >= 2) it trains and evaluates seeds 1..N into
-# runs/<name>-s<k> and prints their summary (mean, spread and every run's value) from runs/<name>-summary/.
+# Defaults: preset measured (calibration from what a battery management system measures: voltage, current and
+# temperature through a sensor, any starting charge, changing loads), budget 900 s, one seed, one actor per
+# core, run folder runs/<preset>-<time>. The paper's full-state setting is one flag away: --preset paper-tuned
+# (hyperparameters tuned on its validation split) or --preset paper (the paper's own), with --experiment.
+# With --seeds N (N >= 2) it trains and evaluates seeds 1..N into runs/<name>-s<k> and prints their summary
+# (mean, spread and every run's value) from runs/<name>-summary/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 experiment=multi
-preset=tuned
+preset=measured
 budget_s=900
 seeds=1
 actors=""
 name=""
-usage() { sed -n '2,10p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'; }
 while [ $# -gt 0 ]; do
   case "$1" in
     --experiment) experiment="${2:?--experiment needs a value}"; shift 2 ;;
@@ -31,17 +34,22 @@ while [ $# -gt 0 ]; do
   esac
 done
 case "$experiment" in single-q|single-r|multi) ;; *) echo "run.sh: --experiment must be single-q, single-r or multi" >&2; exit 2 ;; esac
-case "$preset" in tuned|paper) ;; *) echo "run.sh: --preset must be tuned or paper" >&2; exit 2 ;; esac
+case "$preset" in measured|paper-tuned|paper) ;; *) echo "run.sh: --preset must be measured, paper-tuned or paper" >&2; exit 2 ;; esac
+if [ "$preset" = measured ] && [ "$experiment" != multi ]; then
+  echo "run.sh: the measured setting calibrates qMobile and Ro together (--experiment multi)" >&2; exit 2
+fi
 case "$seeds" in ''|*[!0-9]*|0) echo "run.sh: --seeds must be a whole number >= 1" >&2; exit 2 ;; esac
-[ -n "$name" ] || name="$experiment-$preset-$(date -u +%Y%m%d-%H%M%S)"
+[ -n "$name" ] || name="$preset-$(date -u +%Y%m%d-%H%M%S)"
 
 echo "== libtorch"
 bash launch/setup-libtorch.sh
 echo "== build (release)"
 cargo build --release --bins --workspace
 bin=target/release
-echo "== data set"
-"$bin/bcal" dataset generate --experiment "$experiment"
+if [ "$preset" != measured ]; then
+  echo "== data set"
+  "$bin/bcal" dataset generate --experiment "$experiment"
+fi
 actor_args=()
 [ -z "$actors" ] || actor_args=(--actors "$actors")
 
@@ -49,11 +57,11 @@ runs=()
 for seed in $(seq 1 "$seeds"); do
   run_name="$name"
   [ "$seeds" = 1 ] || run_name="$name-s$seed"
-  echo "== train ($experiment, preset $preset, seed $seed, budget ${budget_s} s)"
+  echo "== train (preset $preset, experiment $experiment, seed $seed, budget ${budget_s} s)"
   "$bin/bcal" train --experiment "$experiment" --preset "$preset" --seed "$seed" --budget-s "$budget_s" \
     "${actor_args[@]}" --name "$run_name"
   echo "== evaluate (seed $seed)"
-  "$bin/bcal" eval --run "runs/$run_name" --experiment "$experiment"
+  "$bin/bcal" eval --run "runs/$run_name"
   runs+=("runs/$run_name")
 done
 echo
@@ -63,7 +71,7 @@ if [ "$seeds" = 1 ]; then
     cat "$run/report.md"
   fi
   echo
-  echo "report: $run/report.md (and report.json, plots/)"
+  echo "report: $run/report.md (and report.json, plots)"
 else
   "$bin/bcal" summarize "${runs[@]}" --out "runs/$name-summary"
   echo "reports: ${runs[*]/%//report.md}; summary: runs/$name-summary/summary.md"

@@ -7,13 +7,16 @@
 //! calibrated on), then grow the extended model greedily while each added cause still buys held-out
 //! accuracy and lowers the penalised score.
 //!
-//! Records that end under load (truncated) are kept out of every fit: their capacity is a lower bound and
-//! qMobile is a capacity. The diagnosis sees only the records; it never prints.
+//! Records that end under load above the cell's cut-off (truncated) are kept out of every fit: their
+//! capacity is a lower bound and qMobile is a capacity. Records that end under load at or below the cut-off
+//! reached it: they are complete discharges logged without the relaxation after, and are used. A cut-off
+//! above a record's first loaded voltage is refused for that record (it cannot be the cell's). The diagnosis
+//! sees only the records; it never prints.
 
 use crate::analysis::{record_residual, structure, RecordResidual, Structure};
 use crate::error::DoctorError;
 use crate::fit::{fit, refit_cycles, simulate_record, CycleStart, FitConfig, FitRecord, Fitted};
-use crate::record::{Discharge, Windows};
+use crate::record::{Discharge, Windows, DEFAULT_CUTOFF_V, PARTIAL_START_DROP_V};
 use crate::sim::{Cause, ExtParams};
 use bcal_common::battery::Degradation;
 use serde::Serialize;
@@ -45,6 +48,16 @@ pub struct DiagnoseConfig {
     pub max_causes: usize,
     /// The candidates to test. Default all.
     pub causes: Vec<Cause>,
+    /// The cell's discharge cut-off, V (`read::nasa_cutoff_v` gives a NASA cell's). A record that ends under
+    /// load at or below it reached it and is used; above it, the record was cut short (truncated) and is kept
+    /// out; a record whose first loaded voltage is below it is refused (wrong cut-off). `None`:
+    /// [`DEFAULT_CUTOFF_V`] (2.5 V) decides complete against truncated, noted on every record it decides, and
+    /// nothing is refused. Default `None`.
+    pub cutoff_v: Option<f64>,
+    /// A record whose rest before the load lies more than this below the full cell's open-circuit voltage
+    /// is reported as starting partly discharged (`RecordInfo::partial_start`), V. Default
+    /// [`PARTIAL_START_DROP_V`].
+    pub partial_start_drop_v: f64,
 }
 
 impl Default for DiagnoseConfig {
@@ -58,6 +71,8 @@ impl Default for DiagnoseConfig {
             noise_factor: 1.15,
             max_causes: 3,
             causes: Cause::ALL.to_vec(),
+            cutoff_v: None,
+            partial_start_drop_v: PARTIAL_START_DROP_V,
         }
     }
 }
@@ -155,9 +170,17 @@ pub struct RecordInfo {
     pub file: String,
     /// `train`, `heldout`, or `excluded`.
     pub role: &'static str,
+    /// Ends under load above the cut-off: cut short, kept out of the fits.
     pub truncated: bool,
+    /// Ends under load at or below the cut-off: complete (used), without the relaxation after it.
+    pub ended_at_cutoff: bool,
     /// Charge drawn under load, Ah; `None` for truncated records (a lower bound only).
     pub capacity_ah: Option<f64>,
+    /// Mean voltage of the rest before the load, V (`None` without one).
+    pub rest_before_v: Option<f64>,
+    /// The rest lies more than `partial_start_drop_v` below the full cell's open-circuit voltage: the
+    /// discharge did not start full, and the fit starts it from that rest (through the open-circuit curve).
+    pub partial_start: bool,
     pub samples: usize,
     pub note: Option<String>,
 }
@@ -182,6 +205,8 @@ pub struct Diagnosis {
     pub records: Vec<RecordInfo>,
     /// Truncated records kept out of the fits.
     pub truncated_count: usize,
+    /// Records that ended under load at or below the cut-off, used as complete discharges.
+    pub ended_at_cutoff_count: usize,
     pub settings: Settings,
 }
 
@@ -198,6 +223,11 @@ pub struct Settings {
     pub min_cycle_penalty: f64,
     pub noise_factor: f64,
     pub max_causes: usize,
+    /// The cut-off that told complete records from truncated ones, V, and whether the caller gave it (else
+    /// [`DEFAULT_CUTOFF_V`]).
+    pub cutoff_v: f64,
+    pub cutoff_given: bool,
+    pub partial_start_drop_v: f64,
 }
 
 struct Prepared<'a> {
@@ -207,32 +237,57 @@ struct Prepared<'a> {
     truncated: usize,
 }
 
-fn prepare<'a>(cfg: &FitConfig, train: &'a [Discharge], heldout: &'a [Discharge]) -> Prepared<'a> {
+fn prepare<'a>(cfg: &DiagnoseConfig, train: &'a [Discharge], heldout: &'a [Discharge]) -> Prepared<'a> {
+    let fc = &cfg.fit;
+    let cutoff_v = cfg.cutoff_v.unwrap_or(DEFAULT_CUTOFF_V);
+    let cutoff_said = if cfg.cutoff_v.is_some() {
+        format!("the cut-off {cutoff_v} V")
+    } else {
+        format!("the default cut-off {cutoff_v} V (none given)")
+    };
     let mut p = Prepared { train: Vec::new(), heldout: Vec::new(), records: Vec::new(), truncated: 0 };
     for (set, role) in [(train, "train"), (heldout, "heldout")] {
         for d in set {
-            let w: Option<Windows> = d.windows(cfg.load_threshold_a, cfg.v_floor_v);
+            let w: Option<Windows> = d.windows_with_cutoff(fc.load_threshold_a, fc.v_floor_v, cfg.cutoff_v);
+            let refused = cfg.cutoff_v.and_then(|c| d.check_cutoff(c, fc.load_threshold_a).err());
+            let last_v = |w: &Windows| d.voltage_v[w.load_end - 1];
             let (role, note) = match w {
-                None => ("excluded", Some(format!("no sample above {} A", cfg.load_threshold_a))),
-                Some(w) if w.truncated => ("excluded", Some("ends under load (no cut-off): truncated".into())),
+                None => ("excluded", Some(format!("no sample above {} A", fc.load_threshold_a))),
+                Some(_) if refused.is_some() => ("excluded", refused.map(|e| e.to_string())),
+                Some(w) if w.truncated => (
+                    "excluded",
+                    Some(format!("ends under load at {:.3} V, above {cutoff_said}: truncated", last_v(&w))),
+                ),
                 Some(w) if w.fit_len() < 5 => ("excluded", Some("fewer than 5 loaded samples above the floor".into())),
+                Some(w) if w.ended_at_cutoff => (
+                    role,
+                    Some(format!(
+                        "ends under load at {:.3} V, at or below {cutoff_said}: a complete discharge without the \
+                         relaxation after it",
+                        last_v(&w)
+                    )),
+                ),
                 Some(_) => (role, None),
             };
             let truncated = w.is_some_and(|w| w.truncated);
             p.truncated += usize::from(truncated);
+            let start = d.start_state(&fc.base, fc.load_threshold_a, cfg.partial_start_drop_v).ok().flatten();
             p.records.push(RecordInfo {
                 cycle: d.cycle,
                 file: d.source.file_name().map_or_else(String::new, |f| f.to_string_lossy().into_owned()),
                 role,
                 truncated,
+                ended_at_cutoff: w.is_some_and(|w| w.ended_at_cutoff),
                 capacity_ah: w.filter(|w| !w.truncated).map(|w| d.charge_ah(w.load_on, w.load_end)),
+                rest_before_v: start.map(|s| s.rest_v),
+                partial_start: start.is_some_and(|s| s.partial),
                 samples: d.len(),
                 note,
             });
             if let (Some(w), "train") = (w, role) {
-                p.train.push(FitRecord::new(d, w, cfg));
+                p.train.push(FitRecord::new(d, w, fc));
             } else if let (Some(w), "heldout") = (w, role) {
-                p.heldout.push(FitRecord::new(d, w, cfg));
+                p.heldout.push(FitRecord::new(d, w, fc));
             }
         }
     }
@@ -244,14 +299,29 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
     if !(cfg.fit.dt_max_s > 0.0 && cfg.fit.dt_max_s.is_finite()) {
         return Err(DoctorError::BadConfig(format!("dt_max_s = {} must be > 0", cfg.fit.dt_max_s)));
     }
-    let p = prepare(&cfg.fit, train, heldout);
+    if let Some(c) = cfg.cutoff_v {
+        if !(0.5..=5.0).contains(&c) {
+            return Err(DoctorError::BadConfig(format!(
+                "cutoff_v = {c} V is not a Li-ion discharge cut-off (0.5-5 V); give it in volts, e.g. 2.5"
+            )));
+        }
+    }
+    let p = prepare(cfg, train, heldout);
     if p.train.is_empty() || p.heldout.is_empty() {
+        let mut reasons: Vec<String> = Vec::new();
+        for r in p.records.iter().filter(|r| r.role == "excluded") {
+            let why = format!("cycle {}: {}", r.cycle, r.note.as_deref().unwrap_or("excluded"));
+            if reasons.len() < 3 {
+                reasons.push(why);
+            }
+        }
+        let excluded = p.records.iter().filter(|r| r.role == "excluded").count();
         return Err(DoctorError::NothingSelected {
             why: format!(
-                "{} usable training and {} usable held-out records (truncated or unloaded records are excluded); \
-                 widen --cycles or --holdout",
+                "{} usable training and {} usable held-out records ({excluded} excluded{}); widen --cycles or --holdout",
                 p.train.len(),
-                p.heldout.len()
+                p.heldout.len(),
+                if reasons.is_empty() { String::new() } else { format!(": {}", reasons.join("; ")) }
             ),
         });
     }
@@ -346,6 +416,7 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
         gain_pct,
         noise_mv,
         base_train_structure,
+        ended_at_cutoff_count: p.records.iter().filter(|r| r.ended_at_cutoff).count(),
         records: p.records,
         truncated_count: p.truncated,
         settings: Settings {
@@ -359,6 +430,9 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
             min_cycle_penalty: cfg.min_cycle_penalty,
             noise_factor: cfg.noise_factor,
             max_causes: cfg.max_causes,
+            cutoff_v: cfg.cutoff_v.unwrap_or(DEFAULT_CUTOFF_V),
+            cutoff_given: cfg.cutoff_v.is_some(),
+            partial_start_drop_v: cfg.partial_start_drop_v,
         },
     })
 }

@@ -23,7 +23,7 @@ pub enum DoctorError {
     TimeNotIncreasing { path: PathBuf, line: u64, time_s: f64, previous_s: f64 },
     #[error(
         "{path}: voltage median {median_v:.1} looks like millivolts (a Li-ion cell reads 2.0-4.5 V); \
-         convert the column to volts (divide by 1000) before running the doctor"
+         convert the column to volts (divide by 1000) or name it voltage_mv (or `Voltage / mV`)"
     )]
     VoltageInMillivolts { path: PathBuf, median_v: f64 },
     #[error(
@@ -32,9 +32,29 @@ pub enum DoctorError {
     VoltageOutOfRange { path: PathBuf, median_v: f64 },
     #[error(
         "{path}: no sample carries a discharge current above {threshold_a} A; the generic CSV expects \
-         current_a POSITIVE while discharging (NASA files use negative and are read through metadata.csv)"
+         current_a POSITIVE while discharging (NASA files use negative and are read through metadata.csv); \
+         or let the reader decide the sign (--current-sign auto)"
     )]
     NoLoad { path: PathBuf, threshold_a: f64 },
+    #[error(
+        "{path}: no discharge: no sample carries a discharge current above {threshold_a} A with {sign}; check \
+         the current column and its unit, or the sign (--current-sign)"
+    )]
+    NoDischarge { path: PathBuf, threshold_a: f64, sign: String },
+    #[error(
+        "{path}: cannot tell which current sign is discharge: {why}; pass --current-sign discharge-positive or \
+         --current-sign discharge-negative"
+    )]
+    SignUndecided { path: PathBuf, why: String },
+    #[error("{path}: column `{column}` {why}; {hint}")]
+    SuspectUnit { path: PathBuf, column: String, why: String, hint: String },
+    #[error("{path}: column `{column}` is in `{unit}`, a unit the doctor does not read; write it in {accepted}")]
+    UnknownUnit { path: PathBuf, column: String, unit: String, accepted: &'static str },
+    #[error(
+        "{path}, cycle {cycle}: the cut-off {cutoff_v} V is above the first loaded voltage ({first_loaded_v:.3} V \
+         at {time_s} s); give the cell's discharge cut-off in volts (e.g. --cutoff-v 2.5), below its loaded voltages"
+    )]
+    CutoffAboveLoad { path: PathBuf, cycle: u32, cutoff_v: f64, first_loaded_v: f64, time_s: f64 },
     #[error("{path}: only {rows} usable samples; a discharge needs at least {min}")]
     TooFewSamples { path: PathBuf, rows: usize, min: usize },
     #[error("no discharge records selected: {why}")]

@@ -11,8 +11,9 @@
 //! in parallel.
 
 use crate::error::DoctorError;
+use crate::record::PARTIAL_START_DROP_V;
 use crate::record::{Discharge, Windows};
-use crate::sim::{simulate_voltage, Cause, Drive, ExtParams, ParamSpec};
+use crate::sim::{simulate_voltage_from, Cause, Drive, ExtParams, ParamSpec};
 use bcal_common::battery::{BatteryParams, Degradation};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
@@ -70,6 +71,17 @@ pub struct FitRecord<'a> {
     pub w: Windows,
     /// Indices in `w.load_on..w.fit_end` not right after a load step.
     pub used: Vec<usize>,
+    /// Where the simulation starts: `None` for a full cell, else the rest voltage and temperature of a
+    /// record that did not start full ([`start_rest`]).
+    pub start_rest: Option<(f64, f64)>,
+}
+
+/// The rest a record starts from when it did not start full (its rest before the load lies more than
+/// [`PARTIAL_START_DROP_V`] below the full cell's open-circuit voltage): (rest voltage V, temperature K).
+/// `None` (a full cell) otherwise.
+pub fn start_rest(cfg: &FitConfig, d: &Discharge) -> Option<(f64, f64)> {
+    let s = d.start_state(&cfg.base, cfg.load_threshold_a, PARTIAL_START_DROP_V).ok().flatten()?;
+    s.partial.then_some((s.rest_v, s.rest_temperature_k))
 }
 
 /// True when sample `k` follows a load step (its current jumped since the previous sample).
@@ -92,7 +104,7 @@ impl<'a> FitRecord<'a> {
                 used.push(k);
             }
         }
-        Self { d, w, used }
+        Self { d, w, used, start_rest: start_rest(cfg, d) }
     }
 
     fn drive(&self) -> Drive<'a> {
@@ -160,7 +172,7 @@ pub fn simulate_record(
         temperature_k: d.temperature_k.as_deref(),
         ambient_k: d.ambient_k,
     };
-    simulate_voltage(&cfg.base, deg, ext, drive, cfg.dt_max_s, &mut out)?;
+    simulate_voltage_from(&cfg.base, deg, ext, drive, start_rest(cfg, d), cfg.dt_max_s, &mut out)?;
     Ok(out)
 }
 
@@ -325,7 +337,7 @@ fn current_value(ext: &ExtParams, s: &ParamSpec) -> f64 {
 /// so the optimiser rejects the step.
 fn residuals(cfg: &FitConfig, r: &FitRecord<'_>, deg: Degradation, ext: &ExtParams) -> Vec<f64> {
     let mut out = vec![0.0; r.w.fit_end];
-    match simulate_voltage(&cfg.base, deg, ext, r.drive(), cfg.dt_max_s, &mut out) {
+    match simulate_voltage_from(&cfg.base, deg, ext, r.drive(), r.start_rest, cfg.dt_max_s, &mut out) {
         Ok(()) => r.used.iter().map(|&k| out[k] - r.d.voltage_v[k]).collect(),
         Err(_) => vec![1.0; r.used.len()],
     }
@@ -366,8 +378,8 @@ fn knee_starts(cfg: &FitConfig, r: &FitRecord<'_>, ext: &ExtParams) -> Vec<Degra
         for _ in 0..28 {
             let mid = 0.5 * (lo + hi);
             let d = Degradation { q_mobile_c: mid.exp(), r_o_ohm };
-            let above =
-                simulate_voltage(&cfg.base, d, ext, drive, cfg.dt_max_s, &mut out).is_ok() && out[last] > target_v;
+            let above = simulate_voltage_from(&cfg.base, d, ext, drive, r.start_rest, cfg.dt_max_s, &mut out).is_ok()
+                && out[last] > target_v;
             if above {
                 hi = mid;
             } else {
@@ -650,6 +662,32 @@ mod tests {
         }
         // The shared extension keeps the per-cycle parameter neutral.
         assert_eq!(f.ext.kinetics_scale, 1.0);
+    }
+
+    #[test]
+    fn a_record_that_did_not_start_full_is_fitted_from_its_rest() {
+        use bcal_common::battery::BatteryModel;
+        use bcal_common::measured::cellmodel::ocv_v;
+        let cfg = FitConfig { dt_max_s: 2.0, ..Default::default() };
+        let model = BatteryModel::new(cfg.base.clone(), false).unwrap();
+        // A cell resting at 55 % of its negative electrode's window.
+        let rest_v = ocv_v(&model, 0.33, 297.15);
+        let mut d = synthetic(5600.0, 0.19, &ExtParams::default());
+        let drive = Drive { time_s: &d.time_s, current_a: &d.current_a, temperature_k: None, ambient_k: d.ambient_k };
+        let (deg, mut v) = (Degradation { q_mobile_c: 5600.0, r_o_ohm: 0.19 }, vec![0.0; d.len()]);
+        simulate_voltage_from(&cfg.base, deg, &ExtParams::default(), drive, Some((rest_v, 297.15)), 2.0, &mut v)
+            .unwrap();
+        d.voltage_v = v;
+        let w = d.windows(cfg.load_threshold_a, cfg.v_floor_v).unwrap();
+        let rec = FitRecord::new(&d, w, &cfg);
+        assert!(rec.start_rest.is_some_and(|(v, _)| (v - rest_v).abs() < 1e-9), "{:?}", rec.start_rest);
+        let f = fit(&cfg, std::slice::from_ref(&rec), &[], &ExtParams::default(), None).unwrap();
+        assert!((f.per_cycle[0].q_mobile_c - 5600.0).abs() < 10.0, "{:?}", f.per_cycle[0]);
+        assert!(f.rmse_all_v() < 1e-3, "from its rest: {} mV", 1e3 * f.rmse_all_v());
+        // Started from a full cell, as before, the same record cannot be fitted.
+        let full = FitRecord { start_rest: None, ..rec.clone() };
+        let f = fit(&cfg, &[full], &[], &ExtParams::default(), None).unwrap();
+        assert!(f.rmse_all_v() > 0.01, "from a full cell: {} mV", 1e3 * f.rmse_all_v());
     }
 
     #[test]

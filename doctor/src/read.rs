@@ -1,19 +1,39 @@
-//! Readers for measured discharges: NASA PCoE records chosen through `metadata.csv`, and the documented
-//! generic CSV `time_s,voltage_v,current_a[,temperature_c][,cycle]` (current positive while discharging).
+//! Readers for measured discharges: NASA PCoE records chosen through `metadata.csv`; the documented generic
+//! CSV `time_s,voltage_v,current_a[,temperature_c][,cycle]` (current positive while discharging); and, through
+//! [`read_csv`], any CSV whose columns name time, voltage and current with their units: the generic names,
+//! the Battery Data Format's labels and machine names (`Test Time / s` or `test_time_second`, `Voltage / V`
+//! or `voltage_volt`, `Current / A` or `current_ampere`, `Cycle Count / 1`, `Temperature T1 / degC`, ...),
+//! unit suffixes (`time_ms`, `voltage_mv`, `current_ma`, `Current (mA)`, `Current / mA`), NASA's record names.
+//!
+//! Units, sign and discharge boundaries are decided here, once, and reported in a [`ReadReport`]:
+//! - units: a unit in the column name is converted (ms, min, h; mV; mA; K); a column declared in volts
+//!   whose median reads 500-5000 is refused as millivolts, a current above [`MAX_CELL_CURRENT_A`] as
+//!   milliamperes, a record drawing more than [`MAX_RECORD_CHARGE_AH`] as time in milliseconds, each with
+//!   the column to rename;
+//! - sign ([`CurrentSign`]): `Auto` decides from the data which sign is discharge (the voltage falls under
+//!   discharge current and steps down when it rises; [`SignEvidence`]) and reports its choice, or refuses
+//!   a file it cannot decide; the other two take the caller's word;
+//! - boundaries: rows group by their cycle column when there is one; a long file is cut at its charging
+//!   runs into discharge records, each with the rest before its load and the relaxation after it; gaps
+//!   (a time step over [`ReadOptions::gap_factor`] median steps) are kept and noted.
 //!
 //! Bad input never passes silently: files named in the metadata but absent are skipped and counted,
-//! non-finite or non-numeric fields are errors naming file and line, a voltage column in millivolts is
-//! refused with a hint, time must increase, a metadata row may name only a bare file in `data/`. Error
-//! lines are the lines records start on (CRLF and blank lines counted); file content in a message is shown
-//! escaped and shortened. Truncated records (ending under load) are found later by
-//! [`crate::record::Discharge::windows`] and flagged by the diagnosis. Readers never fit and never print.
+//! non-finite or non-numeric fields are errors naming file and line, time must increase, a metadata row may
+//! name only a bare file in `data/`. Error lines are the lines records start on (CRLF and blank lines
+//! counted); file content in a message is shown escaped and shortened. Through [`read_nasa_with`] and
+//! [`read_csv`] a bad record (cycle) is skipped and reported with its one-line error while the others read;
+//! the older [`read_nasa`], [`read_nasa_record`] and [`read_generic`] keep their fixed sign and fail on the
+//! first bad record. Records that end under load are told apart later by
+//! [`crate::record::Discharge::windows_with_cutoff`] (complete at the cut-off, or truncated) and
+//! [`nasa_cutoff_v`] gives a NASA cell's documented cut-off. Readers never fit and never print.
 
 use crate::error::DoctorError;
 use crate::record::{Discharge, CELSIUS_TO_KELVIN};
 use bcal_common::text::shown;
+use serde::Serialize;
 use std::collections::BTreeMap;
-use std::ops::RangeInclusive;
-use std::path::Path;
+use std::ops::{Range, RangeInclusive};
+use std::path::{Path, PathBuf};
 
 /// Fewest samples a record must hold to be worth a fit.
 pub const MIN_SAMPLES: usize = 10;
@@ -21,13 +41,194 @@ pub const MIN_SAMPLES: usize = 10;
 /// Ambient temperature assumed for a generic CSV without a temperature column, deg C.
 pub const DEFAULT_AMBIENT_C: f64 = 25.0;
 
-/// What a read returned besides the records: what it skipped and why.
-#[derive(Clone, Debug, Default, PartialEq)]
+/// Largest current a cell under test plausibly carries, A: a larger one is refused as milliamperes. The
+/// model is an 18650-sized cell (about 2 Ah); 100 A is 50 C for it.
+pub const MAX_CELL_CURRENT_A: f64 = 100.0;
+
+/// Largest charge one discharge record plausibly draws, Ah: a larger one is refused as time in
+/// milliseconds (which multiplies the charge by 1000).
+pub const MAX_RECORD_CHARGE_AH: f64 = 500.0;
+
+/// Least evidence the sign decision needs, V of voltage change (see [`SignEvidence`]).
+pub const MIN_SIGN_EVIDENCE_V: f64 = 0.02;
+
+/// Share of the evidence the decided sign needs (3 to 1).
+pub const SIGN_AGREEMENT: f64 = 0.75;
+
+/// Which sign of the measured current is discharge.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CurrentSign {
+    /// Decided from the data per file ([`SignEvidence`]); a file it cannot decide is refused.
+    #[default]
+    Auto,
+    /// Positive current discharges (the generic CSV's documented convention).
+    DischargePositive,
+    /// Negative current discharges (NASA's `Current_measured`; the Battery Data Format counts charge positive).
+    DischargeNegative,
+}
+
+impl CurrentSign {
+    /// Every option, in `--help` order.
+    pub const ALL: [CurrentSign; 3] =
+        [CurrentSign::Auto, CurrentSign::DischargePositive, CurrentSign::DischargeNegative];
+
+    /// The option's name on the command line: `auto`, `discharge-positive`, `discharge-negative`.
+    pub fn name(self) -> &'static str {
+        match self {
+            CurrentSign::Auto => "auto",
+            CurrentSign::DischargePositive => "discharge-positive",
+            CurrentSign::DischargeNegative => "discharge-negative",
+        }
+    }
+
+    fn of(discharge_positive: bool) -> Self {
+        if discharge_positive {
+            CurrentSign::DischargePositive
+        } else {
+            CurrentSign::DischargeNegative
+        }
+    }
+}
+
+impl std::fmt::Display for CurrentSign {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for CurrentSign {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        CurrentSign::ALL.into_iter().find(|c| c.name() == s.trim()).ok_or_else(|| {
+            format!("current sign `{}` is none of auto, discharge-positive, discharge-negative", shown(s, 40))
+        })
+    }
+}
+
+/// How [`read_csv`] and [`read_nasa_with`] read. Defaults suit NASA records and cycler exports.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReadOptions {
+    /// Which sign of the current is discharge. Default [`CurrentSign::Auto`].
+    pub current_sign: CurrentSign,
+    /// Ambient temperature, deg C, for every record of a CSV (NASA takes its metadata's). Default: the
+    /// file's ambient column, else each record's first temperature, else [`DEFAULT_AMBIENT_C`].
+    pub ambient_c: Option<f64>,
+    /// A sample discharges when its current exceeds this and charges below its negative, A. Default 0.05
+    /// (the fit's `load_threshold_a`).
+    pub load_threshold_a: f64,
+    /// A current change above this between two samples is a load step (sign evidence), A. Default 0.2.
+    pub step_threshold_a: f64,
+    /// A time step longer than this many median steps of its record is a gap: kept, noted. Default 10.
+    pub gap_factor: f64,
+    /// A charging run at least this long splits a file into discharge records, s; shorter ones (a
+    /// regenerative pulse) stay inside their record. Default 120.
+    pub min_charge_split_s: f64,
+    /// Rest kept before a record's first load, s (a long file may rest for hours). Default 1800.
+    pub max_rest_before_s: f64,
+    /// Relaxation kept after a record's last load, s. Default 3600.
+    pub max_rest_after_s: f64,
+}
+
+impl Default for ReadOptions {
+    fn default() -> Self {
+        Self {
+            current_sign: CurrentSign::Auto,
+            ambient_c: None,
+            load_threshold_a: 0.05,
+            step_threshold_a: 0.2,
+            gap_factor: 10.0,
+            min_charge_split_s: 120.0,
+            max_rest_before_s: 1800.0,
+            max_rest_after_s: 3600.0,
+        }
+    }
+}
+
+/// Which sign a file was read with, and why.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SignChoice {
+    pub file: PathBuf,
+    /// True when positive current was read as discharge.
+    pub discharge_positive: bool,
+    /// True when the data decided ([`CurrentSign::Auto`]); false when the caller's option did.
+    pub from_data: bool,
+    /// The evidence the data gave (also computed when the caller decided).
+    pub evidence: SignEvidence,
+}
+
+/// A record (or a whole file) skipped, with its one-line error.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Skipped {
+    pub file: PathBuf,
+    pub cycle: Option<u32>,
+    pub reason: String,
+}
+
+/// What a read returned besides the records: what it skipped and why, and what it decided.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct ReadReport {
     /// Files named in the metadata for the selected cell and cycles that are not on disk.
     pub missing_files: Vec<String>,
     /// Discharge rows of the selected cell in the metadata (present or not) inside the cycle range.
     pub rows_selected: usize,
+    /// `nasa`, `generic` or `bdf` (the vocabulary of the columns read; empty for the older readers).
+    pub format: &'static str,
+    /// The sign each file was read with.
+    pub signs: Vec<SignChoice>,
+    /// Unit conversions made, one line per column.
+    pub units: Vec<String>,
+    /// Records skipped while the others were read.
+    pub skipped: Vec<Skipped>,
+    /// Everything else worth saying: gaps kept, segments dropped, a sign against the format's convention.
+    pub notes: Vec<String>,
+}
+
+impl ReadReport {
+    /// The report as lines for a person: the sign decisions condensed per sign, unit conversions, skipped
+    /// records, notes. The CLI prints these; the library never does.
+    pub fn summary(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if !self.missing_files.is_empty() {
+            out.push(format!(
+                "{} of {} files named in the metadata are missing and skipped (first: {})",
+                self.missing_files.len(),
+                self.rows_selected,
+                self.missing_files[0]
+            ));
+        }
+        for positive in [true, false] {
+            let these: Vec<&SignChoice> = self.signs.iter().filter(|s| s.discharge_positive == positive).collect();
+            if these.is_empty() {
+                continue;
+            }
+            let from_data = these.iter().filter(|s| s.from_data).count();
+            let shares: Vec<f64> = these.iter().filter_map(|s| s.evidence.share_for(positive)).collect();
+            let lo = shares.iter().copied().fold(f64::INFINITY, f64::min);
+            let why = if from_data == 0 {
+                "as asked (--current-sign)".to_string()
+            } else if shares.is_empty() {
+                format!("decided from the data in {from_data}")
+            } else {
+                format!(
+                    "decided from the data in {from_data} (the voltage falls under that current and steps down as it \
+                     rises: at least {:.0} % of the evidence)",
+                    100.0 * lo
+                )
+            };
+            out.push(format!(
+                "current sign: {} in {} file{}, {why}",
+                if positive { "discharge positive" } else { "discharge negative" },
+                these.len(),
+                if these.len() == 1 { "" } else { "s" }
+            ));
+        }
+        out.extend(self.units.iter().map(|u| format!("unit: {u}")));
+        out.extend(self.skipped.iter().map(|s| format!("skipped: {}", s.reason)));
+        out.extend(self.notes.iter().cloned());
+        out
+    }
 }
 
 /// Parses `A..B` (inclusive) into a cycle range.
@@ -44,10 +245,36 @@ pub fn parse_cycle_range(text: &str) -> Result<RangeInclusive<u32>, DoctorError>
 
 /// Reads the discharges of `cell` whose cycle number (1-based order of the cell's discharge rows in
 /// `metadata.csv`) lies in `cycles` (all when `None`). Rows whose file is absent are skipped and listed.
+/// Current is read negative while discharging (NASA's sign); the first bad record fails the read.
 pub fn read_nasa(
     root: &Path,
     cell: &str,
     cycles: Option<&RangeInclusive<u32>>,
+) -> Result<(Vec<Discharge>, ReadReport), DoctorError> {
+    let opts = ReadOptions { current_sign: CurrentSign::DischargeNegative, ..ReadOptions::default() };
+    nasa_folder(root, cell, cycles, &opts, true)
+}
+
+/// [`read_nasa`] with options: the sign from [`ReadOptions::current_sign`] ([`CurrentSign::Auto`] finds
+/// NASA's negative discharge current from each record's data); a record that fails (unreadable, no
+/// discharge, a sign it cannot decide, too short, millivolts) is skipped and listed in
+/// [`ReadReport::skipped`] while the others read; the read fails only when no record is left, with the first
+/// record's error. Gaps in time are noted.
+pub fn read_nasa_with(
+    root: &Path,
+    cell: &str,
+    cycles: Option<&RangeInclusive<u32>>,
+    opts: &ReadOptions,
+) -> Result<(Vec<Discharge>, ReadReport), DoctorError> {
+    nasa_folder(root, cell, cycles, opts, false)
+}
+
+fn nasa_folder(
+    root: &Path,
+    cell: &str,
+    cycles: Option<&RangeInclusive<u32>>,
+    opts: &ReadOptions,
+    strict: bool,
 ) -> Result<(Vec<Discharge>, ReadReport), DoctorError> {
     let meta_path = root.join("metadata.csv");
     let bytes = read_file(&meta_path)?;
@@ -89,8 +316,9 @@ pub fn read_nasa(
         });
     }
     rows.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let mut report = ReadReport::default();
+    let mut report = ReadReport { format: if strict { "" } else { "nasa" }, ..ReadReport::default() };
     let mut out = Vec::new();
+    let mut first_error = None;
     for (k, (_, file, ambient_c, capacity_ah)) in rows.into_iter().enumerate() {
         let cycle = k as u32 + 1;
         if cycles.is_some_and(|r| !r.contains(&cycle)) {
@@ -102,16 +330,61 @@ pub fn read_nasa(
             report.missing_files.push(file);
             continue;
         }
-        let mut d = read_nasa_record(&path, cell, cycle, ambient_c + CELSIUS_TO_KELVIN)?;
-        d.stated_capacity_ah = capacity_ah;
-        out.push(d);
+        let read = nasa_record(&path, cell, cycle, ambient_c + CELSIUS_TO_KELVIN, opts).and_then(|(d, sign)| {
+            if !strict {
+                has_discharge(&d, opts, &sign)?;
+            }
+            Ok((d, sign))
+        });
+        match read {
+            Ok((mut d, sign)) => {
+                d.stated_capacity_ah = capacity_ah;
+                if !strict {
+                    report.notes.extend(gap_note(&d, opts.gap_factor));
+                    report.signs.push(sign);
+                }
+                out.push(d);
+            }
+            Err(e) if strict => return Err(e),
+            Err(e) => {
+                report.skipped.push(Skipped { file: path, cycle: Some(cycle), reason: e.to_string() });
+                first_error.get_or_insert(e);
+            }
+        }
     }
-    Ok((out, report))
+    match first_error {
+        Some(e) if out.is_empty() => Err(e),
+        _ => Ok((out, report)),
+    }
 }
 
 /// Reads one NASA discharge file (`Voltage_measured`, `Current_measured` negative while discharging,
 /// `Temperature_measured` deg C, `Time` s).
 pub fn read_nasa_record(path: &Path, cell: &str, cycle: u32, ambient_k: f64) -> Result<Discharge, DoctorError> {
+    let opts = ReadOptions { current_sign: CurrentSign::DischargeNegative, ..ReadOptions::default() };
+    nasa_record(path, cell, cycle, ambient_k, &opts).map(|(d, _)| d)
+}
+
+/// [`read_nasa_record`] with the sign from `opts` (reported), refusing a record without discharge.
+pub fn read_nasa_record_with(
+    path: &Path,
+    cell: &str,
+    cycle: u32,
+    ambient_k: f64,
+    opts: &ReadOptions,
+) -> Result<(Discharge, SignChoice), DoctorError> {
+    let (d, sign) = nasa_record(path, cell, cycle, ambient_k, opts)?;
+    has_discharge(&d, opts, &sign)?;
+    Ok((d, sign))
+}
+
+fn nasa_record(
+    path: &Path,
+    cell: &str,
+    cycle: u32,
+    ambient_k: f64,
+    opts: &ReadOptions,
+) -> Result<(Discharge, SignChoice), DoctorError> {
     let bytes = read_file(path)?;
     let mut lines = Lines::new(&bytes);
     let mut rdr = csv::Reader::from_reader(bytes.as_slice());
@@ -130,10 +403,105 @@ pub fn read_nasa_record(path: &Path, cell: &str, cycle: u32, ambient_k: f64) -> 
         check_time(&d.time_s, time_s, path, line)?;
         d.time_s.push(time_s);
         d.voltage_v.push(number(&rec, cv, "Voltage_measured", path, line)?);
-        d.current_a.push(-number(&rec, ci, "Current_measured", path, line)?);
+        // As measured for now; the sign is decided on the whole record below.
+        d.current_a.push(number(&rec, ci, "Current_measured", path, line)?);
         temps.push(number(&rec, ct, "Temperature_measured", path, line)? + CELSIUS_TO_KELVIN);
     }
-    validate(d)
+    let mut d = validate(d)?;
+    if opts.current_sign == CurrentSign::Auto && d.current_a.iter().all(|i| i.abs() <= opts.load_threshold_a) {
+        return Err(no_current(path, opts));
+    }
+    let mut evidence = SignEvidence::default();
+    evidence.add_record(&d.voltage_v, &d.current_a, opts);
+    let sign = decide_sign(path, evidence, opts.current_sign)?;
+    if !sign.discharge_positive {
+        d.current_a.iter_mut().for_each(|i| *i = -*i);
+    }
+    Ok((d, sign))
+}
+
+/// Refuses a record in which no sample discharges.
+fn has_discharge(d: &Discharge, opts: &ReadOptions, sign: &SignChoice) -> Result<(), DoctorError> {
+    if d.current_a.iter().any(|i| *i > opts.load_threshold_a) {
+        return Ok(());
+    }
+    Err(DoctorError::NoDischarge { path: d.source.clone(), threshold_a: opts.load_threshold_a, sign: sign_words(sign) })
+}
+
+/// No discharge because no current flows at all (the sign cannot matter).
+fn no_current(path: &Path, opts: &ReadOptions) -> DoctorError {
+    DoctorError::NoDischarge {
+        path: path.to_path_buf(),
+        threshold_a: opts.load_threshold_a,
+        sign: "either sign (no current beyond it at all)".into(),
+    }
+}
+
+fn sign_words(sign: &SignChoice) -> String {
+    format!(
+        "{} ({})",
+        CurrentSign::of(sign.discharge_positive).name(),
+        if sign.from_data { "decided from the data" } else { "as asked" }
+    )
+}
+
+/// The documented discharge cut-off of a NASA PCoE cell (`B0006` -> 2.5 V), read from the experiment
+/// descriptions `extra_infos/README_*.txt` of the folder `root`; `None` when the folder has none or they do
+/// not name the cell. (In `../shared`: B0005 2.7 V, B0006 2.5 V, B0007 2.2 V, B0018 2.5 V, B0025 2.0 V,
+/// B0029 2.0 V, B0055 2.5 V, ...)
+pub fn nasa_cutoff_v(root: &Path, cell: &str) -> Option<f64> {
+    let id: u32 = cell.trim().trim_start_matches(|c: char| c.is_ascii_alphabetic()).parse().ok()?;
+    let mut files: Vec<PathBuf> = std::fs::read_dir(root.join("extra_infos"))
+        .ok()?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with("README") && n.ends_with(".txt"))
+        })
+        .collect();
+    files.sort();
+    files
+        .iter()
+        .filter_map(|p| std::fs::read_to_string(p).ok())
+        .find_map(|text| parse_nasa_cutoffs(&text).into_iter().find(|(cell_id, _)| *cell_id == id).map(|(_, v)| v))
+}
+
+/// The cut-offs a NASA experiment description states, as (battery number, V): sentences such as "... until
+/// the battery voltage fell to 2.7V, 2.5V, 2.2V and 2.5V for batteries 5 6 7 and 18 respectively", "...
+/// the discharge runs were stopped at 2V, 2.2V, 2.5V and 2.7V for batteries 41, 42, 43 and 44" or "For
+/// battery 36 discharge was done at 2A until voltage fell to 2.7V".
+pub fn parse_nasa_cutoffs(text: &str) -> Vec<(u32, f64)> {
+    let mut out = Vec::new();
+    let text = text.replace(['\n', '\r'], " ");
+    for sentence in text.split(". ") {
+        let lower = sentence.to_lowercase();
+        let words: Vec<&str> = lower.split_whitespace().collect();
+        let Some(at) = words.windows(2).position(|w| matches!(w, ["fell", "to"] | ["stopped", "at"])) else {
+            continue;
+        };
+        let clean = |w: &str| w.trim_matches(|c: char| matches!(c, ',' | '.' | ';' | '(' | ')' | '#')).to_string();
+        let volts: Vec<f64> = words[at + 2..]
+            .iter()
+            .map(|w| clean(w))
+            .filter(|w| w != "and")
+            .map_while(|w| w.strip_suffix('v').and_then(|n| n.parse::<f64>().ok()))
+            .collect();
+        let ids: Vec<u32> = words
+            .iter()
+            .enumerate()
+            .filter(|(_, w)| w.starts_with("batter"))
+            .map(|(k, _)| {
+                words[k + 1..].iter().map(|w| clean(w)).filter(|w| w != "and").map_while(|w| w.parse().ok()).collect()
+            })
+            .find(|ids: &Vec<u32>| !ids.is_empty())
+            .unwrap_or_default();
+        if volts.len() == ids.len() {
+            out.extend(ids.into_iter().zip(volts));
+        } else if volts.len() == 1 {
+            out.extend(ids.into_iter().map(|id| (id, volts[0])));
+        }
+    }
+    out
 }
 
 /// Reads a generic CSV: `time_s,voltage_v,current_a` plus optional `temperature_c` and `cycle` columns
@@ -194,6 +562,659 @@ pub fn read_generic(path: &Path, ambient_c: Option<f64>) -> Result<Vec<Discharge
             validate(d)
         })
         .collect()
+}
+
+/// Reads any CSV of measured samples whose columns name time, voltage and current (see the module doc:
+/// the generic names, the Battery Data Format's labels or machine names, NASA's record names, units in
+/// the names), with optional cell temperature, ambient temperature and cycle columns. Units are converted
+/// or refused, the sign comes from `opts.current_sign` (decided on the whole file under `Auto`), rows group
+/// by cycle when there is a cycle column, and each group (or the whole file) is cut at its charging runs
+/// into discharge records: each holds the rest before its load, the load (with any rests inside it) and
+/// the relaxation after, its time counted from its first sample. A cycle holding two discharges keeps the
+/// larger and notes the other; without a cycle column records are numbered 1, 2, ... in time order.
+///
+/// File-level problems (unreadable, missing columns, a field that is not a number, time going backwards,
+/// a unit it cannot read or a current too large to be amperes, a sign it cannot decide, no discharge at
+/// all) fail the read naming the file (and line). A record that fails on its own (too few samples,
+/// millivolts, time in milliseconds) is skipped and listed in [`ReadReport::skipped`]; the read fails only
+/// when none is left.
+pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, ReadReport), DoctorError> {
+    let bytes = read_file(path)?;
+    let mut lines = Lines::new(&bytes);
+    let mut rdr = csv::Reader::from_reader(bytes.as_slice());
+    let headers = rdr.headers().map_err(|e| csv_error(path, e, &mut lines))?.clone();
+    let cols = Columns::find(&headers, path)?;
+    let mut groups: BTreeMap<u32, Vec<Row>> = BTreeMap::new();
+    let mut last_time: BTreeMap<u32, f64> = BTreeMap::new();
+    for rec in rdr.records() {
+        let rec = rec.map_err(|e| csv_error(path, e, &mut lines))?;
+        let line = lines.of(&rec);
+        let cycle = match &cols.cycle {
+            Some(c) => {
+                let v = number(&rec, c.index, &c.header, path, line)?;
+                // Beyond u32 the cast would saturate and merge distinct cycles.
+                if v < 0.0 || v.fract() != 0.0 || v > f64::from(u32::MAX) {
+                    return Err(bad_field(path, line, &c.header, rec.get(c.index).unwrap_or("")));
+                }
+                v as u32
+            }
+            None => 0,
+        };
+        let time_s = cols.time.value(&rec, path, line)?;
+        if let Some(&previous_s) = last_time.get(&cycle) {
+            if time_s <= previous_s {
+                return Err(DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s, previous_s });
+            }
+        }
+        last_time.insert(cycle, time_s);
+        let row = Row {
+            time_s,
+            voltage_v: cols.voltage.value(&rec, path, line)?,
+            current_a: cols.current.value(&rec, path, line)?,
+            temperature_c: cols.temperature.as_ref().map(|c| c.value(&rec, path, line)).transpose()?,
+            ambient_c: cols.ambient.as_ref().map(|c| c.value(&rec, path, line)).transpose()?,
+        };
+        groups.entry(cycle).or_default().push(row);
+    }
+    if groups.is_empty() {
+        return Err(DoctorError::TooFewSamples { path: path.to_path_buf(), rows: 0, min: MIN_SAMPLES });
+    }
+    let peak_a = groups.values().flatten().map(|r| r.current_a.abs()).fold(0.0, f64::max);
+    if peak_a > MAX_CELL_CURRENT_A {
+        let hint = if cols.current.unit == "A" {
+            "if it is in mA, name the column current_ma (or `Current / mA`), or divide it by 1000".to_string()
+        } else {
+            format!("check the column's unit (read as {})", cols.current.unit)
+        };
+        return Err(DoctorError::SuspectUnit {
+            path: path.to_path_buf(),
+            column: shown(&cols.current.header, 60),
+            why: format!("peaks at {} A, more than a cell carries ({MAX_CELL_CURRENT_A} A)", short(peak_a)),
+            hint,
+        });
+    }
+
+    if peak_a <= opts.load_threshold_a {
+        return Err(no_current(path, opts));
+    }
+    let mut report = ReadReport { format: cols.format, ..ReadReport::default() };
+    report.units = cols.conversions();
+    let mut evidence = SignEvidence::default();
+    for rows in groups.values() {
+        let v: Vec<f64> = rows.iter().map(|r| r.voltage_v).collect();
+        let i: Vec<f64> = rows.iter().map(|r| r.current_a).collect();
+        evidence.add_record(&v, &i, opts);
+    }
+    let sign = decide_sign(path, evidence, opts.current_sign)?;
+    report.notes.extend(convention_note(path, cols.format, &sign));
+    let flip = if sign.discharge_positive { 1.0 } else { -1.0 };
+    let cell = cell_name(path);
+
+    let with_cycle = cols.cycle.is_some();
+    let mut out: Vec<Discharge> = Vec::new();
+    let mut first_error: Option<DoctorError> = None;
+    let mut any_discharge = false;
+    let mut next_number = 1u32;
+    for (cycle, rows) in &groups {
+        let t: Vec<f64> = rows.iter().map(|r| r.time_s).collect();
+        let i: Vec<f64> = rows.iter().map(|r| flip * r.current_a).collect();
+        let mut segments = discharge_segments(&t, &i, opts);
+        if segments.is_empty() {
+            if with_cycle {
+                report.notes.push(format!("{}, cycle {cycle}: no discharge, skipped", path.display()));
+            }
+            continue;
+        }
+        any_discharge = true;
+        if with_cycle && segments.len() > 1 {
+            // One record per cycle: the largest discharge; the others are noted.
+            let drawn = |s: &Range<usize>| charge_drawn_ah(&t[s.clone()], &i[s.clone()]);
+            let best = (0..segments.len()).max_by(|&a, &b| drawn(&segments[a]).total_cmp(&drawn(&segments[b])));
+            let best = best.expect("non-empty");
+            for s in segments.iter().enumerate().filter(|(k, _)| *k != best).map(|(_, s)| s) {
+                report.notes.push(format!(
+                    "{}, cycle {cycle}: another discharge ({:.3} Ah, from {} s) split from the kept one by a charge; \
+                     skipped",
+                    path.display(),
+                    drawn(s),
+                    short(t[s.start])
+                ));
+            }
+            segments = vec![segments.swap_remove(best)];
+        }
+        for seg in segments {
+            let number = if with_cycle { *cycle } else { next_number };
+            next_number += 1;
+            let rows = &rows[seg.clone()];
+            let t0 = rows[0].time_s;
+            let mut d = empty(&cell, number, path, f64::NAN, cols.temperature.is_some());
+            d.time_s = rows.iter().map(|r| r.time_s - t0).collect();
+            d.voltage_v = rows.iter().map(|r| r.voltage_v).collect();
+            d.current_a = i[seg].to_vec();
+            if let Some(temps) = d.temperature_k.as_mut() {
+                *temps = rows.iter().map(|r| r.temperature_c.unwrap_or(f64::NAN) + CELSIUS_TO_KELVIN).collect();
+            }
+            d.ambient_k = CELSIUS_TO_KELVIN
+                + opts.ambient_c.or(rows[0].ambient_c).or(rows[0].temperature_c).unwrap_or(DEFAULT_AMBIENT_C);
+            match validate(d).and_then(|d| plausible_charge(d, &cols.time.header)) {
+                Ok(d) => {
+                    report.notes.extend(gap_note(&d, opts.gap_factor));
+                    out.push(d);
+                }
+                Err(e) => {
+                    report.skipped.push(Skipped {
+                        file: path.to_path_buf(),
+                        cycle: Some(number),
+                        reason: e.to_string(),
+                    });
+                    first_error.get_or_insert(e);
+                }
+            }
+        }
+    }
+    if !any_discharge {
+        return Err(DoctorError::NoDischarge {
+            path: path.to_path_buf(),
+            threshold_a: opts.load_threshold_a,
+            sign: sign_words(&sign),
+        });
+    }
+    report.signs.push(sign);
+    match first_error {
+        Some(e) if out.is_empty() => Err(e),
+        _ => Ok((out, report)),
+    }
+}
+
+/// One sample of a CSV in the doctor's units, current with the file's sign.
+#[derive(Clone, Copy, Debug)]
+struct Row {
+    time_s: f64,
+    voltage_v: f64,
+    current_a: f64,
+    temperature_c: Option<f64>,
+    ambient_c: Option<f64>,
+}
+
+/// What a column holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Quantity {
+    Time,
+    UnixTime,
+    Voltage,
+    Current,
+    Temperature,
+    Ambient,
+    Cycle,
+}
+
+/// A column [`read_csv`] reads, with the factor and offset to the doctor's unit (s, V, A, deg C).
+#[derive(Clone, Debug)]
+struct Col {
+    index: usize,
+    header: String,
+    scale: f64,
+    offset: f64,
+    /// The unit the column is read in (`s`, `ms`, `V`, `mV`, `A`, `mA`, `degC`, `K`, ...).
+    unit: &'static str,
+}
+
+impl Col {
+    fn value(&self, rec: &csv::StringRecord, path: &Path, line: u64) -> Result<f64, DoctorError> {
+        let v = number(rec, self.index, &self.header, path, line)? * self.scale + self.offset;
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(bad_field(path, line, &self.header, rec.get(self.index).unwrap_or("")))
+        }
+    }
+}
+
+/// The columns of a CSV, found by name.
+struct Columns {
+    time: Col,
+    voltage: Col,
+    current: Col,
+    temperature: Option<Col>,
+    ambient: Option<Col>,
+    cycle: Option<Col>,
+    /// `bdf`, `nasa` or `generic`: the vocabulary of the time, voltage and current columns.
+    format: &'static str,
+}
+
+/// The Battery Data Format's machine names this reader knows (its labels are recognised by their ` / `).
+const BDF_NAMES: &[&str] = &[
+    "test_time_second",
+    "unix_time_second",
+    "voltage_volt",
+    "current_ampere",
+    "cycle_count",
+    "ambient_temperature_celsius",
+    "temperature_t1_celsius",
+];
+
+const COLUMNS_HINT: &str = "name a time, a voltage and a current column: time_s,voltage_v,current_a (generic), \
+    Test Time / s,Voltage / V,Current / A or test_time_second,voltage_volt,current_ampere (Battery Data Format); \
+    other units in the name (time_ms, voltage_mv, current_ma, Current / mA)";
+
+impl Columns {
+    fn find(headers: &csv::StringRecord, path: &Path) -> Result<Columns, DoctorError> {
+        let mut found: Vec<(Quantity, Col, bool)> = Vec::new();
+        for (index, header) in headers.iter().enumerate() {
+            let Some((quantity, unit)) = classify(header) else { continue };
+            if found.iter().any(|(q, _, _)| *q == quantity) {
+                continue; // The first column of a quantity is read (T1 before T2, ...).
+            }
+            let Some((scale, offset, unit)) = unit_of(quantity, unit.as_deref()) else {
+                return Err(DoctorError::UnknownUnit {
+                    path: path.to_path_buf(),
+                    column: shown(header, 60),
+                    unit: shown(unit.as_deref().unwrap_or(""), 20),
+                    accepted: accepted_units(quantity),
+                });
+            };
+            let bdf = header.contains(" / ") || BDF_NAMES.contains(&header.trim());
+            found.push((quantity, Col { index, header: header.trim().to_string(), scale, offset, unit }, bdf));
+        }
+        let mut take = |q: Quantity| {
+            found.iter().position(|(fq, _, _)| *fq == q).map(|k| {
+                let (_, col, bdf) = found.remove(k);
+                (col, bdf)
+            })
+        };
+        let missing = |what: &str| DoctorError::MissingColumn {
+            path: path.to_path_buf(),
+            column: what.to_string(),
+            found: shown(&headers.iter().collect::<Vec<_>>().join(","), 200),
+            hint: COLUMNS_HINT,
+        };
+        let time = take(Quantity::Time).or_else(|| take(Quantity::UnixTime));
+        let (time, bdf_t) = time.ok_or_else(|| missing("time (time_s, Test Time / s)"))?;
+        let (voltage, bdf_v) = take(Quantity::Voltage).ok_or_else(|| missing("voltage (voltage_v, Voltage / V)"))?;
+        let (current, bdf_i) = take(Quantity::Current).ok_or_else(|| missing("current (current_a, Current / A)"))?;
+        let nasa = current.header == "Current_measured";
+        Ok(Columns {
+            time,
+            voltage,
+            current,
+            temperature: take(Quantity::Temperature).map(|c| c.0),
+            ambient: take(Quantity::Ambient).map(|c| c.0),
+            cycle: take(Quantity::Cycle).map(|c| c.0),
+            format: if bdf_t || bdf_v || bdf_i {
+                "bdf"
+            } else if nasa {
+                "nasa"
+            } else {
+                "generic"
+            },
+        })
+    }
+
+    /// One line per column read in another unit than the doctor's.
+    fn conversions(&self) -> Vec<String> {
+        let si =
+            |c: &Col, si: &str| (c.unit != si).then(|| format!("`{}` read in {}, converted to {si}", c.header, c.unit));
+        [
+            si(&self.time, "s"),
+            si(&self.voltage, "V"),
+            si(&self.current, "A"),
+            self.temperature.as_ref().and_then(|c| si(c, "degC")),
+            self.ambient.as_ref().and_then(|c| si(c, "degC")),
+        ]
+        .into_iter()
+        .flatten()
+        .collect()
+    }
+}
+
+/// The quantity a header names and the unit it gives, if the reader knows the name: `Voltage / mV`
+/// (Battery Data Format labels), `Current (mA)`, `current [mA]`, `current_ma`, `test_time_second`,
+/// `Voltage_measured`, `voltage`. The unit is `None` when the name gives none.
+fn classify(header: &str) -> Option<(Quantity, Option<String>)> {
+    let h = header.trim().trim_start_matches('\u{feff}');
+    let (base, unit) = if let Some((b, u)) = h.split_once('/') {
+        (b, Some(u.trim()))
+    } else if let Some((b, u)) = h.strip_suffix(')').and_then(|s| s.rsplit_once('(')) {
+        (b, Some(u.trim()))
+    } else if let Some((b, u)) = h.strip_suffix(']').and_then(|s| s.rsplit_once('[')) {
+        (b, Some(u.trim()))
+    } else {
+        match h.rsplit_once('_') {
+            Some((b, u)) if UNIT_WORDS.contains(&u.to_lowercase().as_str()) => (b, Some(u)),
+            _ => (h, None),
+        }
+    };
+    let base = base.to_lowercase().replace(['_', '-'], " ").split_whitespace().collect::<Vec<_>>().join(" ");
+    let quantity = match base.as_str() {
+        "time" | "test time" | "elapsed time" => Quantity::Time,
+        "unix time" => Quantity::UnixTime,
+        "voltage" | "voltage measured" | "cell voltage" | "terminal voltage" => Quantity::Voltage,
+        "current" | "current measured" | "cell current" => Quantity::Current,
+        "temperature"
+        | "temperature measured"
+        | "cell temperature"
+        | "surface temperature"
+        | "temperature t1"
+        | "surface temperature t1" => Quantity::Temperature,
+        "ambient temperature" => Quantity::Ambient,
+        "cycle" | "cycle count" | "cycle index" | "cycle number" => Quantity::Cycle,
+        _ => return None,
+    };
+    Some((quantity, unit.map(str::to_string)))
+}
+
+/// Unit words recognised as the last `_` part of a machine-readable name (`time_ms`, `voltage_volt`).
+const UNIT_WORDS: &[&str] = &[
+    "s",
+    "sec",
+    "second",
+    "seconds",
+    "ms",
+    "millisecond",
+    "milliseconds",
+    "min",
+    "minute",
+    "minutes",
+    "h",
+    "hour",
+    "hours",
+    "v",
+    "volt",
+    "volts",
+    "mv",
+    "millivolt",
+    "millivolts",
+    "a",
+    "amp",
+    "ampere",
+    "amperes",
+    "ma",
+    "milliamp",
+    "milliampere",
+    "milliamperes",
+    "c",
+    "degc",
+    "celsius",
+    "k",
+    "kelvin",
+];
+
+/// (scale, offset, unit name) from a quantity's unit word to the doctor's unit; `None` for a unit it does not
+/// read. No unit means the doctor's own.
+fn unit_of(q: Quantity, unit: Option<&str>) -> Option<(f64, f64, &'static str)> {
+    let u = unit.map(|u| u.trim().trim_start_matches('°').to_lowercase());
+    let u = u.as_deref().unwrap_or("");
+    Some(match q {
+        Quantity::Time | Quantity::UnixTime => match u {
+            "" | "s" | "sec" | "second" | "seconds" => (1.0, 0.0, "s"),
+            "ms" | "millisecond" | "milliseconds" => (1e-3, 0.0, "ms"),
+            "min" | "minute" | "minutes" => (60.0, 0.0, "min"),
+            "h" | "hour" | "hours" => (3600.0, 0.0, "h"),
+            _ => return None,
+        },
+        Quantity::Voltage => match u {
+            "" | "v" | "volt" | "volts" => (1.0, 0.0, "V"),
+            "mv" | "millivolt" | "millivolts" => (1e-3, 0.0, "mV"),
+            _ => return None,
+        },
+        Quantity::Current => match u {
+            "" | "a" | "amp" | "ampere" | "amperes" => (1.0, 0.0, "A"),
+            "ma" | "milliamp" | "milliampere" | "milliamperes" => (1e-3, 0.0, "mA"),
+            _ => return None,
+        },
+        Quantity::Temperature | Quantity::Ambient => match u {
+            "" | "c" | "degc" | "deg c" | "celsius" => (1.0, 0.0, "degC"),
+            "k" | "kelvin" => (1.0, -CELSIUS_TO_KELVIN, "K"),
+            _ => return None,
+        },
+        Quantity::Cycle => match u {
+            "" | "1" | "-" => (1.0, 0.0, "1"),
+            _ => return None,
+        },
+    })
+}
+
+fn accepted_units(q: Quantity) -> &'static str {
+    match q {
+        Quantity::Time | Quantity::UnixTime => "s, ms, min or h",
+        Quantity::Voltage => "V or mV",
+        Quantity::Current => "A or mA",
+        Quantity::Temperature | Quantity::Ambient => "degC or K",
+        Quantity::Cycle => "plain counts (unit 1)",
+    }
+}
+
+/// The cell's name from a file name: its stem without a `.bdf` part (`B1.bdf.csv` -> `B1`).
+fn cell_name(path: &Path) -> String {
+    let stem = path.file_stem().map_or_else(|| "cell".to_string(), |s| s.to_string_lossy().into_owned());
+    stem.strip_suffix(".bdf").map_or(stem.clone(), str::to_string)
+}
+
+/// The discharge records of one group of samples (time order, current positive while discharging): the
+/// stretches between charging runs of at least `min_charge_split_s` that hold a discharging sample, each
+/// trimmed to `max_rest_before_s` of rest before its first discharging sample and `max_rest_after_s` after
+/// its last.
+fn discharge_segments(t: &[f64], i: &[f64], opts: &ReadOptions) -> Vec<Range<usize>> {
+    let n = t.len();
+    let charging = |k: usize| i[k] < -opts.load_threshold_a;
+    // Boundaries at long charging runs: the stretches are the ranges between them.
+    let mut stretches = Vec::new();
+    let mut start = 0;
+    let mut k = 0;
+    while k < n {
+        if !charging(k) {
+            k += 1;
+            continue;
+        }
+        let run_start = k;
+        while k < n && charging(k) {
+            k += 1;
+        }
+        // The run's span, each end half an interval beyond its samples.
+        let from = if run_start > 0 { 0.5 * (t[run_start - 1] + t[run_start]) } else { t[run_start] };
+        let to = if k < n { 0.5 * (t[k - 1] + t[k]) } else { t[k - 1] };
+        if to - from >= opts.min_charge_split_s {
+            stretches.push(start..run_start);
+            start = k;
+        }
+    }
+    stretches.push(start..n);
+    stretches
+        .into_iter()
+        .filter_map(|s| {
+            let first = s.clone().find(|&k| i[k] > opts.load_threshold_a)?;
+            let last = s.clone().rev().find(|&k| i[k] > opts.load_threshold_a)?;
+            let from = (s.start..=first).find(|&k| t[k] >= t[first] - opts.max_rest_before_s).unwrap_or(first);
+            let to = (last..s.end).rev().find(|&k| t[k] <= t[last] + opts.max_rest_after_s).unwrap_or(last);
+            Some(from..to + 1)
+        })
+        .collect()
+}
+
+/// Charge drawn (discharging current only), Ah, trapezoidal.
+fn charge_drawn_ah(t: &[f64], i: &[f64]) -> f64 {
+    t.windows(2).zip(i.windows(2)).map(|(t, i)| 0.5 * (i[0].max(0.0) + i[1].max(0.0)) * (t[1] - t[0])).sum::<f64>()
+        / 3600.0
+}
+
+/// Refuses a record that draws more charge than a cell holds: its time is most likely in milliseconds.
+fn plausible_charge(d: Discharge, time_header: &str) -> Result<Discharge, DoctorError> {
+    let q_ah = d.charge_ah(0, d.len());
+    if q_ah <= MAX_RECORD_CHARGE_AH {
+        return Ok(d);
+    }
+    Err(DoctorError::SuspectUnit {
+        path: d.source.clone(),
+        column: shown(time_header, 60),
+        why: format!(
+            "gives cycle {} a discharge of {} Ah, more than a cell holds ({MAX_RECORD_CHARGE_AH} Ah)",
+            d.cycle,
+            short(q_ah)
+        ),
+        hint: "if time is in milliseconds, name the column time_ms (or `Test Time / ms`), or divide it by 1000".into(),
+    })
+}
+
+/// A note on the gaps in a record's time (steps over `factor` times its median step), if any.
+fn gap_note(d: &Discharge, factor: f64) -> Option<String> {
+    let mut dt: Vec<f64> = d.time_s.windows(2).map(|w| w[1] - w[0]).collect();
+    if dt.is_empty() {
+        return None;
+    }
+    let longest = dt.iter().copied().fold(0.0, f64::max);
+    dt.sort_by(f64::total_cmp);
+    let median = dt[dt.len() / 2];
+    let gaps = dt.iter().filter(|s| **s > factor * median).count();
+    (gaps > 0).then(|| {
+        format!(
+            "{}, cycle {}: {gaps} gap{} in time (longest {} s against a median step of {} s); kept, the simulator \
+             bridges {}",
+            d.source.display(),
+            d.cycle,
+            if gaps == 1 { "" } else { "s" },
+            short(longest),
+            short(median),
+            if gaps == 1 { "it" } else { "them" }
+        )
+    })
+}
+
+/// A number short enough for a message.
+fn short(x: f64) -> String {
+    if x.abs() >= 1e6 || (x != 0.0 && x.abs() < 1e-3) {
+        format!("{x:.3e}")
+    } else {
+        format!("{}", (x * 1000.0).round() / 1000.0)
+    }
+}
+
+/// Evidence on which sign of the current is discharge, in volts of voltage change: under discharge the
+/// terminal voltage falls, and a step up of the discharge current steps it down (V = OCV - R I). Two
+/// kinds of vote, each weighted by the voltage change it rests on:
+/// - a load step (the current changes by more than `step_threshold_a` between two samples): the voltage
+///   moves against the current's change if positive current discharges;
+/// - a run of samples under one sign of current beyond `load_threshold_a`, with no step inside: the voltage
+///   at its end against its start (noise cancels over the run) falls under discharge, rises under charge.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct SignEvidence {
+    /// Voltage change that says positive current discharges, V.
+    pub positive_v: f64,
+    /// Voltage change that says negative current discharges, V.
+    pub negative_v: f64,
+}
+
+impl SignEvidence {
+    /// Adds the votes of one record (samples in time order, current as measured).
+    pub fn add_record(&mut self, voltage_v: &[f64], current_a: &[f64], opts: &ReadOptions) {
+        let (v, i) = (voltage_v, current_a);
+        let n = v.len().min(i.len());
+        let mut vote = |positive: bool, w: f64| {
+            if positive {
+                self.positive_v += w;
+            } else {
+                self.negative_v += w;
+            }
+        };
+        let mut run_start: Option<usize> = None;
+        for k in 0..n {
+            let step = k > 0 && (i[k] - i[k - 1]).abs() > opts.step_threshold_a;
+            if step {
+                let (dv, di) = (v[k] - v[k - 1], i[k] - i[k - 1]);
+                vote(dv * di < 0.0, dv.abs());
+            }
+            let sign = if i[k] > opts.load_threshold_a {
+                1.0
+            } else if i[k] < -opts.load_threshold_a {
+                -1.0
+            } else {
+                0.0
+            };
+            let same_run = run_start.is_some_and(|s| !step && sign != 0.0 && i[s].signum() == sign);
+            if !same_run {
+                if let Some(s) = run_start.take() {
+                    let dv = v[k - 1] - v[s];
+                    vote(dv * i[s] < 0.0, dv.abs());
+                }
+                run_start = (sign != 0.0).then_some(k);
+            }
+        }
+        if let Some(s) = run_start {
+            let dv = v[n - 1] - v[s];
+            vote(dv * i[s] < 0.0, dv.abs());
+        }
+    }
+
+    /// Share of the evidence for the given sign being discharge, 0-1; `None` without evidence.
+    pub fn share_for(&self, discharge_positive: bool) -> Option<f64> {
+        let total = self.positive_v + self.negative_v;
+        (total > 0.0).then(|| if discharge_positive { self.positive_v } else { self.negative_v } / total)
+    }
+
+    /// Whether positive current discharges, when the evidence says so clearly: at least
+    /// [`MIN_SIGN_EVIDENCE_V`] of it, [`SIGN_AGREEMENT`] of it on one side. Else why not.
+    pub fn decide(&self) -> Result<bool, String> {
+        let total = self.positive_v + self.negative_v;
+        if total < MIN_SIGN_EVIDENCE_V {
+            return Err(format!(
+                "the voltage hardly moves with the current ({:.1} mV of evidence, {:.0} mV needed)",
+                1e3 * total,
+                1e3 * MIN_SIGN_EVIDENCE_V
+            ));
+        }
+        let share = self.positive_v / total;
+        if share >= SIGN_AGREEMENT {
+            Ok(true)
+        } else if share <= 1.0 - SIGN_AGREEMENT {
+            Ok(false)
+        } else {
+            Err(format!(
+                "the voltage falls under positive current for {:.0} % of the evidence and under negative current for \
+                 {:.0} %",
+                100.0 * share,
+                100.0 * (1.0 - share)
+            ))
+        }
+    }
+}
+
+/// The sign a file is read with: the caller's, or the data's under `Auto` (refusing a file it cannot decide).
+fn decide_sign(path: &Path, evidence: SignEvidence, option: CurrentSign) -> Result<SignChoice, DoctorError> {
+    let (discharge_positive, from_data) = match option {
+        CurrentSign::DischargePositive => (true, false),
+        CurrentSign::DischargeNegative => (false, false),
+        CurrentSign::Auto => match evidence.decide() {
+            Ok(p) => (p, true),
+            Err(why) => return Err(DoctorError::SignUndecided { path: path.to_path_buf(), why }),
+        },
+    };
+    Ok(SignChoice { file: path.to_path_buf(), discharge_positive, from_data, evidence })
+}
+
+/// A note when a file is read against its format's documented sign, or the caller's sign against the data.
+fn convention_note(path: &Path, format: &str, sign: &SignChoice) -> Option<String> {
+    let against_data = !sign.from_data && sign.evidence.decide().is_ok_and(|p| p != sign.discharge_positive);
+    if against_data {
+        return Some(format!(
+            "{}: read {} as asked, but the data says {} (the voltage falls under the other sign)",
+            path.display(),
+            CurrentSign::of(sign.discharge_positive),
+            CurrentSign::of(!sign.discharge_positive)
+        ));
+    }
+    let documented = match format {
+        "bdf" => false,
+        "generic" => true,
+        _ => return None,
+    };
+    (sign.from_data && sign.discharge_positive != documented).then(|| {
+        format!(
+            "{}: the {} counts {} positive, but this file's data says {}; read it so (check the export)",
+            path.display(),
+            if format == "bdf" { "Battery Data Format" } else { "generic CSV" },
+            if documented { "discharge" } else { "charge" },
+            CurrentSign::of(sign.discharge_positive)
+        )
+    })
 }
 
 fn empty(cell: &str, cycle: u32, path: &Path, ambient_k: f64, with_temperature: bool) -> Discharge {
@@ -316,6 +1337,90 @@ fn csv_error(path: &Path, source: csv::Error, lines: &mut Lines) -> DoctorError 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn nasa_descriptions_give_each_battery_its_cutoff() {
+        let text =
+            "Data Description:\nA set of four Li-ion batteries (# 5, 6, 7 and 18) were run. Charging was carried \
+            out until the battery voltage reached 4.2V. Discharge was carried out at a constant current (CC) level of \
+            2A until the battery voltage fell to 2.7V, 2.5V, 2.2V and 2.5V for batteries 5 6 7 and 18 respectively. \
+            Discharge was carried out at 4A until the battery voltage fell to 2.0V and 2.2V for batteries 33 and 34 \
+            respectively. For battery 36 discharge was done at 2A until voltage fell to 2.7V. Fixed load current \
+            level of 1A was used and the discharge runs were stopped at 2V, 2.2V, 2.5V and 2.7V for batteries 45, \
+            46, 47 and 48 respectively. Capacity: Battery capacity (Ahr) for discharge till 2.7V";
+        let got = parse_nasa_cutoffs(text);
+        let want = [
+            (5, 2.7),
+            (6, 2.5),
+            (7, 2.2),
+            (18, 2.5),
+            (33, 2.0),
+            (34, 2.2),
+            (36, 2.7),
+            (45, 2.0),
+            (46, 2.2),
+            (47, 2.5),
+            (48, 2.7),
+        ];
+        assert_eq!(got, want.to_vec());
+    }
+
+    #[test]
+    fn column_names_give_quantity_and_unit() {
+        let unit = |h: &str| classify(h).map(|(q, u)| (q, unit_of(q, u.as_deref()).map(|x| x.2)));
+        for (h, q, u) in [
+            ("time_s", Quantity::Time, "s"),
+            ("Test Time / s", Quantity::Time, "s"),
+            ("test_time_second", Quantity::Time, "s"),
+            ("time_ms", Quantity::Time, "ms"),
+            ("Time", Quantity::Time, "s"),
+            ("Unix Time / s", Quantity::UnixTime, "s"),
+            ("voltage_v", Quantity::Voltage, "V"),
+            ("Voltage / mV", Quantity::Voltage, "mV"),
+            ("Voltage_measured", Quantity::Voltage, "V"),
+            ("voltage_volt", Quantity::Voltage, "V"),
+            ("current_ampere", Quantity::Current, "A"),
+            ("Current (mA)", Quantity::Current, "mA"),
+            ("current [mA]", Quantity::Current, "mA"),
+            ("current_ma", Quantity::Current, "mA"),
+            ("Temperature T1 / degC", Quantity::Temperature, "degC"),
+            ("Surface Temperature T1 / degC", Quantity::Temperature, "degC"),
+            ("temperature_t1_celsius", Quantity::Temperature, "degC"),
+            ("Temperature (°C)", Quantity::Temperature, "degC"),
+            ("temperature_k", Quantity::Temperature, "K"),
+            ("Ambient Temperature / degC", Quantity::Ambient, "degC"),
+            ("Cycle Count / 1", Quantity::Cycle, "1"),
+            ("cycle_count", Quantity::Cycle, "1"),
+            ("cycle", Quantity::Cycle, "1"),
+        ] {
+            assert_eq!(unit(h), Some((q, Some(u))), "{h}");
+        }
+        for h in ["Step Index / 1", "step_time_second", "Current_load", "Voltage_load", "dV/dt(V/s)", "note", ""] {
+            assert!(classify(h).is_none(), "{h}");
+        }
+        assert_eq!(unit("Current / kA"), Some((Quantity::Current, None)));
+    }
+
+    #[test]
+    fn long_charges_split_records_and_short_pulses_do_not() {
+        let opts = ReadOptions::default();
+        // 10 s samples: rest, discharge with a 20 s regenerative pulse, rest, a 300 s charge, rest, discharge.
+        let mut i = vec![0.0; 5];
+        i.extend([2.0; 10]);
+        i.extend([-1.0; 2]);
+        i.extend([2.0; 10]);
+        i.extend([0.0; 5]);
+        i.extend([-1.5; 30]);
+        i.extend([0.0; 5]);
+        i.extend([2.0; 10]);
+        let t: Vec<f64> = (0..i.len()).map(|k| 10.0 * k as f64).collect();
+        assert_eq!(discharge_segments(&t, &i, &opts), vec![0..32, 62..77]);
+        // Rest limits trim each side.
+        let short = ReadOptions { max_rest_before_s: 20.0, max_rest_after_s: 10.0, ..opts };
+        assert_eq!(discharge_segments(&t, &i, &short), vec![3..28, 65..77]);
+        // No discharge, no record.
+        assert!(discharge_segments(&t[..5], &i[..5], &opts).is_empty());
+    }
 
     #[test]
     fn cycle_ranges_parse_and_refuse_nonsense() {

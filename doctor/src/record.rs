@@ -2,13 +2,37 @@
 //! kelvin), and the windows every later stage agrees on: rest before the load, the loaded part down to the
 //! fit floor, and the relaxation after cut-off.
 //!
+//! A record that ends under load is one of two things: a discharge that reached the cell's cut-off and
+//! was logged without the relaxation after it (complete: [`Windows::ended_at_cutoff`]), or one cut short
+//! above the cut-off ([`Windows::truncated`]), whose capacity is only a lower bound. The cut-off comes from
+//! the caller ([`DEFAULT_CUTOFF_V`] when unknown). The rest before the load tells where the discharge
+//! starts ([`Discharge::start_state`]): a cell that rests clearly below the full cell's open-circuit
+//! voltage did not start full.
+//!
 //! Readers build [`Discharge`] values; nothing here reads files or fits anything.
 
+use crate::error::DoctorError;
+use bcal_common::battery::{BatteryModel, BatteryParams};
+use bcal_common::measured::cellmodel::{ocv_v, xn_from_rest_voltage};
 use serde::Serialize;
 use std::path::PathBuf;
 
 /// Offset from degrees Celsius to kelvin.
 pub const CELSIUS_TO_KELVIN: f64 = 273.15;
+
+/// Discharge cut-off assumed when the caller knows none, V: a record ending under load at or below it is
+/// complete. 2.5 V is the lowest cut-off of the NASA 2 A cells in `../shared` (B0006, B0018; B0005 stops
+/// at 2.7 V, B0007 at 2.2 V) and a common 18650 cut-off; give the cell's own when it differs.
+pub const DEFAULT_CUTOFF_V: f64 = 2.5;
+
+/// A discharge starts partly discharged when the mean voltage of its rest before the load lies more than
+/// this below the base model's full-cell open-circuit voltage at the rest temperature, V. Chosen on the
+/// NASA records in `../shared` (every one charged CC-CV to 4.2 V before it; `tests/nasa_as_it_is.rs`): they
+/// rest from 31 mV above to 70 mV below the full-cell OCV, except B0055 cycle 1, 347 mV below (3.84 V;
+/// 0.80 Ah against 1.32 Ah on the next cycle), which did not start full; and on the synthetic test cells,
+/// whose ageing electrode balance lowers a full cell's rest by up to 174 mV (the generator's largest drift;
+/// `record::tests`), a full cell that a lower threshold would call partial.
+pub const PARTIAL_START_DROP_V: f64 = 0.2;
 
 /// A measured discharge record, validated by a reader.
 #[derive(Clone, Debug)]
@@ -42,8 +66,11 @@ pub struct Windows {
     pub fit_end: usize,
     /// One past the last loaded sample (the cut-off).
     pub load_end: usize,
-    /// True when the record ends while still under load: no cut-off, no relaxation.
+    /// True when the record ends under load ABOVE the cut-off: cut short, its capacity a lower bound.
     pub truncated: bool,
+    /// True when the record ends under load at or below the cut-off: a complete discharge logged without the
+    /// relaxation after it (its capacity is the full capacity to the cut-off).
+    pub ended_at_cutoff: bool,
 }
 
 impl Windows {
@@ -51,6 +78,22 @@ impl Windows {
     pub fn fit_len(&self) -> usize {
         self.fit_end - self.load_on
     }
+}
+
+/// Where a discharge starts, from the rest before its load (see [`Discharge::start_state`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct StartState {
+    /// Mean voltage of the samples before the first loaded one, V.
+    pub rest_v: f64,
+    /// Mean temperature over those samples (the ambient without a measured temperature), K.
+    pub rest_temperature_k: f64,
+    /// The base model's open-circuit voltage of a full cell at that temperature, V.
+    pub full_ocv_v: f64,
+    /// The negative electrode's mole fraction whose open-circuit voltage is `rest_v` (the base model's
+    /// curve, clamped to its window; `xn_max` for a full cell).
+    pub xn0: f64,
+    /// True when `rest_v` lies more than the given drop below `full_ocv_v`: the discharge did not start full.
+    pub partial: bool,
 }
 
 impl Discharge {
@@ -65,14 +108,86 @@ impl Discharge {
     }
 
     /// Finds the load window: loaded means `current_a > load_threshold_a`; the fit window stops at the first
-    /// loaded sample below `v_floor_v` (the knee is beyond the model's reach there) or at the cut-off.
-    /// `None` when no sample is loaded.
+    /// loaded sample below `v_floor_v` (the knee is beyond the model's reach there) or at the cut-off. A
+    /// record ending under load is taken as ending at the [`DEFAULT_CUTOFF_V`] cut-off if its last loaded
+    /// voltage is at or below it (see [`Discharge::windows_with_cutoff`]). `None` when no sample is loaded.
     pub fn windows(&self, load_threshold_a: f64, v_floor_v: f64) -> Option<Windows> {
-        let load_on = self.current_a.iter().position(|i| *i > load_threshold_a)?;
+        self.windows_with_cutoff(load_threshold_a, v_floor_v, None)
+    }
+
+    /// [`Discharge::windows`] with the cell's discharge cut-off, V ([`DEFAULT_CUTOFF_V`] when `None`): a record
+    /// whose last sample is still loaded ended at the cut-off when that sample's voltage is at or below it,
+    /// else it was cut short (truncated).
+    pub fn windows_with_cutoff(&self, load_threshold_a: f64, v_floor_v: f64, cutoff_v: Option<f64>) -> Option<Windows> {
+        let load_on = self.first_loaded(load_threshold_a)?;
         let last_loaded = self.current_a.iter().rposition(|i| *i > load_threshold_a)?;
         let load_end = last_loaded + 1;
         let fit_end = (load_on..load_end).find(|&k| self.voltage_v[k] < v_floor_v).unwrap_or(load_end);
-        Some(Windows { load_on, fit_end, load_end, truncated: load_end == self.len() })
+        let under_load_at_end = load_end == self.len();
+        let ended_at_cutoff = under_load_at_end && self.voltage_v[last_loaded] <= cutoff_v.unwrap_or(DEFAULT_CUTOFF_V);
+        Some(Windows { load_on, fit_end, load_end, truncated: under_load_at_end && !ended_at_cutoff, ended_at_cutoff })
+    }
+
+    /// Index of the first sample under load (`current_a > load_threshold_a`).
+    pub fn first_loaded(&self, load_threshold_a: f64) -> Option<usize> {
+        self.current_a.iter().position(|i| *i > load_threshold_a)
+    }
+
+    /// Refuses a cut-off above the first loaded voltage: the cycler would have stopped at once, so the
+    /// cut-off given is not this cell's (a wrong value, or millivolts). Records without load pass.
+    pub fn check_cutoff(&self, cutoff_v: f64, load_threshold_a: f64) -> Result<(), DoctorError> {
+        let first = self.first_loaded(load_threshold_a);
+        match first.and_then(|k| Some((*self.voltage_v.get(k)?, *self.time_s.get(k)?))) {
+            Some((first_loaded_v, time_s)) if first_loaded_v < cutoff_v => Err(DoctorError::CutoffAboveLoad {
+                path: self.source.clone(),
+                cycle: self.cycle,
+                cutoff_v,
+                first_loaded_v,
+                time_s,
+            }),
+            _ => Ok(()),
+        }
+    }
+
+    /// Mean voltage of the rest before the load (the samples before the first loaded one), V; `None` when the
+    /// record starts under load or has no load.
+    pub fn rest_before_load_v(&self, load_threshold_a: f64) -> Option<f64> {
+        let k = self.first_loaded(load_threshold_a)?;
+        let rest = self.voltage_v.get(..k).filter(|r| !r.is_empty())?;
+        Some(rest.iter().sum::<f64>() / k as f64)
+    }
+
+    /// Where the discharge starts: the rest voltage before the load mapped through the base model's
+    /// open-circuit curve (`bcal_common::measured::cellmodel::xn_from_rest_voltage`) to the negative
+    /// electrode's starting mole fraction, and whether it lies more than `partial_drop_v` below the full
+    /// cell's open-circuit voltage ([`PARTIAL_START_DROP_V`] is the doctor's rule). A cell charged to its
+    /// end voltage rests near the full-cell curve; one that rests clearly below did not start full, and
+    /// starting it from a full cell (progpy's initial state) would credit it with charge it never held.
+    /// `Ok(None)` when the record has no rest before its load.
+    pub fn start_state(
+        &self,
+        base: &BatteryParams,
+        load_threshold_a: f64,
+        partial_drop_v: f64,
+    ) -> Result<Option<StartState>, DoctorError> {
+        let (Some(k), Some(rest_v)) = (self.first_loaded(load_threshold_a), self.rest_before_load_v(load_threshold_a))
+        else {
+            return Ok(None);
+        };
+        let rest_temperature_k = match self.temperature_k.as_deref().and_then(|t| t.get(..k)) {
+            Some(t) => t.iter().sum::<f64>() / k as f64,
+            None => self.ambient_k,
+        };
+        let model = BatteryModel::new(base.clone(), false)?;
+        let full_ocv_v = ocv_v(&model, base.xn_max, rest_temperature_k);
+        let xn0 = xn_from_rest_voltage(&model, rest_v, rest_temperature_k);
+        Ok(Some(StartState {
+            rest_v,
+            rest_temperature_k,
+            full_ocv_v,
+            xn0,
+            partial: rest_v < full_ocv_v - partial_drop_v,
+        }))
     }
 
     /// Charge drawn between two sample indices, Ah (trapezoidal; only the discharging part counts).
@@ -114,17 +229,87 @@ mod tests {
     fn windows_find_load_floor_and_cutoff() {
         let r = record(vec![0.0, 2.0, 2.0, 2.0, 2.0, 0.0, 0.0], vec![4.2, 4.0, 3.8, 2.85, 2.7, 3.3, 3.4]);
         let w = r.windows(0.05, 2.9).unwrap();
-        assert_eq!(w, Windows { load_on: 1, fit_end: 3, load_end: 5, truncated: false });
+        assert_eq!(w, Windows { load_on: 1, fit_end: 3, load_end: 5, truncated: false, ended_at_cutoff: false });
         assert_eq!(w.fit_len(), 2);
     }
 
     #[test]
-    fn a_record_ending_under_load_is_truncated() {
+    fn a_record_ending_under_load_above_the_cutoff_is_truncated() {
         let r = record(vec![0.0, 2.0, 2.0, 2.0], vec![4.2, 4.0, 3.9, 3.8]);
         let w = r.windows(0.05, 2.9).unwrap();
-        assert!(w.truncated);
+        assert!(w.truncated && !w.ended_at_cutoff);
         assert_eq!(w.fit_end, 4);
         assert!(record(vec![0.0, 0.0], vec![4.2, 4.2]).windows(0.05, 2.9).is_none());
+    }
+
+    #[test]
+    fn a_record_ending_under_load_at_or_below_the_cutoff_is_complete() {
+        // B0006's way: still loaded at the last sample, 2.35 V, below its 2.5 V cut-off.
+        let r = record(vec![0.0, 2.0, 2.0, 2.0, 2.0], vec![4.2, 4.0, 3.6, 2.8, 2.35]);
+        for cutoff in [None, Some(2.5), Some(2.35)] {
+            let w = r.windows_with_cutoff(0.05, 2.9, cutoff).unwrap();
+            assert!(w.ended_at_cutoff && !w.truncated, "{cutoff:?}: {w:?}");
+            assert_eq!((w.load_end, w.fit_end), (5, 3));
+        }
+        // The same record is cut short for a cell whose cut-off is lower (B0007: 2.2 V).
+        let w = r.windows_with_cutoff(0.05, 2.9, Some(2.2)).unwrap();
+        assert!(w.truncated && !w.ended_at_cutoff);
+        // A record with its relaxation is neither.
+        let relaxed = record(vec![0.0, 2.0, 2.0, 0.0], vec![4.2, 4.0, 2.4, 3.3]);
+        let w = relaxed.windows_with_cutoff(0.05, 2.9, Some(2.5)).unwrap();
+        assert!(!w.truncated && !w.ended_at_cutoff);
+    }
+
+    #[test]
+    fn a_cutoff_above_the_first_loaded_voltage_is_refused_naming_file_and_cycle() {
+        let r = record(vec![0.0, 2.0, 2.0, 0.0], vec![4.2, 4.0, 3.0, 3.5]);
+        assert!(r.check_cutoff(2.5, 0.05).is_ok());
+        let msg = r.check_cutoff(4.1, 0.05).unwrap_err().to_string();
+        assert!(msg.contains("t.csv, cycle 1") && msg.contains("4.1 V") && msg.contains("4.000 V"), "{msg}");
+        assert!(msg.contains("--cutoff-v") && !msg.contains('\n'), "{msg}");
+        // A cut-off in millivolts is caught the same way.
+        assert!(r.check_cutoff(2500.0, 0.05).is_err());
+    }
+
+    #[test]
+    fn the_rest_before_the_load_gives_the_starting_state() {
+        let base = BatteryParams::default();
+        let model = BatteryModel::new(base.clone(), false).unwrap();
+        let full = ocv_v(&model, base.xn_max, 297.15);
+        let half_xn = 0.5 * (base.xn_min + base.xn_max);
+        let half = ocv_v(&model, half_xn, 297.15);
+        let start = |rest_v: f64| {
+            let r = record(vec![0.0, 0.0, 2.0, 2.0], vec![rest_v - 0.001, rest_v + 0.001, 3.9, 3.8]);
+            assert!((r.rest_before_load_v(0.05).unwrap() - rest_v).abs() < 1e-12);
+            r.start_state(&base, 0.05, PARTIAL_START_DROP_V).unwrap().unwrap()
+        };
+        let s = start(full);
+        assert!(!s.partial && (s.xn0 - base.xn_max).abs() < 1e-6 && (s.full_ocv_v - full).abs() < 1e-12, "{s:?}");
+        // A rest just inside the rule is still a full start; the half-charged cell is not.
+        assert!(!start(full - 0.9 * PARTIAL_START_DROP_V).partial);
+        let s = start(half);
+        assert!(s.partial && (s.xn0 - half_xn).abs() < 1e-6, "{s:?}");
+        // No rest before the load: no starting state to read.
+        let r = record(vec![2.0, 2.0, 0.0], vec![4.0, 3.9, 4.1]);
+        assert!(r.rest_before_load_v(0.05).is_none() && r.start_state(&base, 0.05, 0.1).unwrap().is_none());
+    }
+
+    /// What the rule's threshold is measured against (figures quoted beside [`PARTIAL_START_DROP_V`]): the
+    /// drop of a full cell's rest under the synthetic generator's largest electrode-balance drift.
+    #[test]
+    fn an_aged_electrode_balance_lowers_the_full_rest_less_than_the_rule() {
+        let base = BatteryParams::default();
+        let model = BatteryModel::new(base.clone(), false).unwrap();
+        let full = ocv_v(&model, base.xn_max, 297.15);
+        let mut worst: f64 = 0.0;
+        for (dxp, dxn) in [(0.05, -0.05), (0.10, -0.05), (0.05, -0.12), (0.10, -0.12), (0.11, -0.15)] {
+            let shifted = BatteryParams { xp_min: base.xp_min + dxp, xn_max: base.xn_max + dxn, ..base.clone() };
+            let m = BatteryModel::new(shifted.clone(), false).unwrap();
+            let drop = full - ocv_v(&m, shifted.xn_max, 297.15);
+            eprintln!("balance shift xp {dxp:+.2} xn {dxn:+.2}: full rest {:.1} mV lower", 1e3 * drop);
+            worst = worst.max(drop);
+        }
+        assert!(worst < PARTIAL_START_DROP_V, "{worst}");
     }
 
     #[test]

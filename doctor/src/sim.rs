@@ -16,6 +16,8 @@
 
 use bcal_common::battery::{BatteryModel, BatteryParams, Degradation, ModelError};
 use bcal_common::math::{idx, ModelState};
+use bcal_common::measured::cellmodel::xn_from_rest_voltage;
+use bcal_common::measured::scenario::rest_state;
 use serde::Serialize;
 
 /// A candidate cause of model-data disagreement: each is one small extension of the model.
@@ -295,6 +297,15 @@ impl ExtendedCell {
         })
     }
 
+    /// Puts the cell at rest at the state whose open-circuit voltage (under this cell's own electrode
+    /// window) is `rest_v` at `t_k`: the start of a discharge that did not begin full
+    /// ([`crate::record::Discharge::start_state`]). Replaces the full-cell start of [`ExtendedCell::new`].
+    pub fn start_at_rest_voltage(&mut self, rest_v: f64, t_k: f64) {
+        let xn0 = xn_from_rest_voltage(&self.model, rest_v, t_k);
+        let t_b = self.x[idx::T_B];
+        self.x = rest_state(&self.model, &self.d, xn0, t_b);
+    }
+
     /// Feeds the measured cell temperature, K (used only when temperature-driven).
     #[inline]
     pub fn set_temperature_k(&mut self, t_k: f64) {
@@ -377,11 +388,28 @@ pub fn simulate_voltage(
     dt_max_s: f64,
     out: &mut [f64],
 ) -> Result<(), ModelError> {
+    simulate_voltage_from(base, d, ext, drive, None, dt_max_s, out)
+}
+
+/// [`simulate_voltage`] from a given start: a full cell (`None`, progpy's initial state) or the rest state
+/// whose open-circuit voltage is `rest_v` at `t_k` (`Some((rest_v, t_k))`).
+pub fn simulate_voltage_from(
+    base: &BatteryParams,
+    d: Degradation,
+    ext: &ExtParams,
+    drive: Drive<'_>,
+    start_rest: Option<(f64, f64)>,
+    dt_max_s: f64,
+    out: &mut [f64],
+) -> Result<(), ModelError> {
     let n = out.len().min(drive.time_s.len());
     if n == 0 {
         return Ok(());
     }
     let mut cell = ExtendedCell::new(base, d, *ext, drive.ambient_k, drive.temperature_k.is_some())?;
+    if let Some((rest_v, t_k)) = start_rest {
+        cell.start_at_rest_voltage(rest_v, t_k);
+    }
     let (t, i) = (drive.time_s, drive.current_a);
     if let Some(tk) = drive.temperature_k {
         cell.set_temperature_k(tk[0]);

@@ -1,12 +1,14 @@
 //! Bad input never passes silently: missing files named in the metadata are skipped with a count,
-//! truncated records are flagged and kept out of the fits, non-finite or non-numeric fields are reported
-//! with file and line, a millivolt voltage column is refused with a hint, and a discharge current written
-//! negative (NASA's sign) in the generic CSV is refused with the sign convention.
+//! truncated records (ending under load above the cut-off) are flagged and kept out of the fits while
+//! records ending under load at the cut-off are used, a cut-off above a record's first loaded voltage is
+//! refused for that record while the others run, non-finite or non-numeric fields are reported with file
+//! and line, a millivolt voltage column is refused with a hint, and a discharge current written negative
+//! (NASA's sign) in the generic CSV is refused with the sign convention.
 
 mod common;
 
 use bcal_doctor::read::{read_generic, read_nasa};
-use bcal_doctor::{diagnose, DoctorError};
+use bcal_doctor::{diagnose, Cause, DiagnoseConfig, DoctorError};
 use common::{config, record, LoadKind, Truth};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
@@ -139,6 +141,76 @@ fn truncated_records_are_flagged_and_kept_out_of_the_fits() {
     assert_eq!(diag.base.train_cycles.iter().map(|c| c.cycle).collect::<Vec<_>>(), vec![1]);
     let full = diag.records.iter().find(|r| r.cycle == 1).unwrap();
     assert!(full.capacity_ah.is_some_and(|c| c > 0.5), "{full:?}");
+}
+
+/// Four synthetic discharges of one cell (rest, constant load to 3.0 V, relaxation).
+fn four_cycles(seed: u64) -> Vec<bcal_doctor::Discharge> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let truth = Truth::aged(&mut rng);
+    (1..=4).map(|c| to_discharge(c, truth.ambient_c, &record(&truth, c, LoadKind::Cc, &mut rng))).collect()
+}
+
+/// The doctor with one candidate: these tests are about which records it uses, not what it names.
+fn quick_config(cutoff_v: Option<f64>) -> DiagnoseConfig {
+    let mut cfg = DiagnoseConfig { cutoff_v, causes: vec![Cause::VoltageOffset], ..config() };
+    cfg.max_causes = 1;
+    cfg
+}
+
+#[test]
+fn a_record_ending_under_load_at_the_cutoff_is_complete_and_used() {
+    let mut records = four_cycles(12);
+    let full_capacity = |d: &bcal_doctor::Discharge| {
+        let w = d.windows(0.05, 2.9).unwrap();
+        d.charge_ah(w.load_on, w.load_end)
+    };
+    let want_ah = full_capacity(&records[1]);
+    // Cycle 2 logged without its relaxation: it stops on its last loaded sample (about 3.0 V).
+    let d = &mut records[1];
+    let keep = d.windows(0.05, 2.9).unwrap().load_end;
+    d.time_s.truncate(keep);
+    d.voltage_v.truncate(keep);
+    d.current_a.truncate(keep);
+    d.temperature_k.as_mut().unwrap().truncate(keep);
+    let last_v = d.voltage_v[keep - 1];
+    // This cell's cut-off is the protocol's: the record reached it and is a complete discharge.
+    let diag = diagnose(&quick_config(Some(last_v + 0.001)), &records[..2], &records[2..]).unwrap();
+    let info = diag.records.iter().find(|r| r.cycle == 2).unwrap();
+    assert!(info.ended_at_cutoff && !info.truncated && info.role == "train", "{info:?}");
+    assert!(info.capacity_ah.is_some_and(|q| (q - want_ah).abs() < 1e-12), "{info:?} vs {want_ah}");
+    assert_eq!((diag.ended_at_cutoff_count, diag.truncated_count), (1, 0));
+    assert_eq!(diag.base.train_cycles.iter().map(|c| c.cycle).collect::<Vec<_>>(), vec![1, 2]);
+    assert!(diag.settings.cutoff_given && diag.settings.cutoff_v == last_v + 0.001);
+    // For a cell with a lower cut-off (the default 2.5 V among them) the same record was cut short.
+    for cutoff in [Some(last_v - 0.01), None] {
+        let diag = diagnose(&quick_config(cutoff), &records[..2], &records[2..]).unwrap();
+        let info = diag.records.iter().find(|r| r.cycle == 2).unwrap();
+        assert!(info.truncated && info.role == "excluded" && info.capacity_ah.is_none(), "{info:?}");
+        assert!(info.note.as_deref().is_some_and(|n| n.contains("truncated")), "{info:?}");
+    }
+}
+
+#[test]
+fn a_cutoff_above_the_first_loaded_voltage_is_refused_for_that_record_and_the_others_run() {
+    let mut records = four_cycles(13);
+    // Cycle 4 reads 1.2 V low throughout (a wrong channel): the 3.0 V cut-off lies above its first load.
+    records[3].voltage_v.iter_mut().for_each(|v| *v -= 1.2);
+    let diag = diagnose(&quick_config(Some(3.0)), &records[..2], &records[2..]).unwrap();
+    let info = diag.records.iter().find(|r| r.cycle == 4).unwrap();
+    let note = info.note.as_deref().unwrap();
+    assert_eq!(info.role, "excluded");
+    assert!(
+        note.contains("cycle4.csv, cycle 4") && note.contains("cut-off 3 V is above") && note.contains("--cutoff-v"),
+        "{note}"
+    );
+    assert!(!note.contains('\n'));
+    assert_eq!(diag.base.heldout_cycles.iter().map(|c| c.cycle).collect::<Vec<_>>(), vec![3]);
+    // Above every record's: nothing is left, and the error says why, naming the files.
+    let msg = diagnose(&quick_config(Some(4.5)), &records[..2], &records[2..]).unwrap_err().to_string();
+    assert!(msg.contains("cycle1.csv") && msg.contains("cut-off 4.5 V is above the first loaded voltage"), "{msg}");
+    // A cut-off that is no voltage (millivolts) is refused before anything runs.
+    let msg = diagnose(&quick_config(Some(2500.0)), &records[..2], &records[2..]).unwrap_err().to_string();
+    assert!(msg.contains("cutoff_v = 2500 V") && msg.contains("in volts"), "{msg}");
 }
 
 fn to_discharge(cycle: u32, ambient_c: f64, rows: &[(f64, f64, f64, f64)]) -> bcal_doctor::Discharge {

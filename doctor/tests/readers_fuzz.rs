@@ -1,10 +1,13 @@
 //! Hostile input to the doctor's readers, by property (proptest): arbitrary bytes and mutations of a real
 //! NASA record never panic; every error names the file, and a line it names exists in the input (and holds
 //! the bad value); whatever a reader accepts satisfies the documented invariants; valid files round-trip
-//! exactly; a corrupt file neither poisons later reads nor hides which file of a folder is bad, and the
-//! metadata cannot send the reader outside `data/`.
+//! exactly (Battery Data Format files in any of their spellings and units too, within rounding of the unit
+//! conversion); a corrupt file neither poisons later reads nor hides which file of a folder is bad (the
+//! skipping reader reads the others and names it), and the metadata cannot send the reader outside `data/`.
 
-use bcal_doctor::read::{read_generic, read_nasa, read_nasa_record, MIN_SAMPLES};
+use bcal_doctor::read::{
+    read_csv, read_generic, read_nasa, read_nasa_record, read_nasa_with, CurrentSign, ReadOptions, MIN_SAMPLES,
+};
 use bcal_doctor::record::CELSIUS_TO_KELVIN;
 use bcal_doctor::{Discharge, DoctorError};
 use proptest::prelude::*;
@@ -120,7 +123,11 @@ fn check_err(err: &DoctorError, path: &Path, bytes: &[u8]) -> Result<(), TestCas
         | DoctorError::TooFewSamples { .. }
         | DoctorError::VoltageInMillivolts { .. }
         | DoctorError::VoltageOutOfRange { .. }
-        | DoctorError::NoLoad { .. } => {}
+        | DoctorError::NoLoad { .. }
+        | DoctorError::NoDischarge { .. }
+        | DoctorError::SignUndecided { .. }
+        | DoctorError::SuspectUnit { .. }
+        | DoctorError::UnknownUnit { .. } => {}
         other => prop_assert!(false, "unexpected error kind for a file read: {other:?}"),
     }
     Ok(())
@@ -161,6 +168,33 @@ fn check_generic(path: &Path, bytes: &[u8]) -> Result<(), TestCaseError> {
         }
         Err(e) => check_err(&e, path, bytes),
     }
+}
+
+/// The general reader, with the sign decided from the data and with the sign given: Ok (valid records,
+/// one per cycle number, each from its own start, the sign reported) or an error naming the file.
+fn check_csv(path: &Path, bytes: &[u8]) -> Result<(), TestCaseError> {
+    for current_sign in [CurrentSign::Auto, CurrentSign::DischargePositive] {
+        match read_csv(path, &ReadOptions { current_sign, ..ReadOptions::default() }) {
+            Ok((records, report)) => {
+                prop_assert!(!records.is_empty());
+                prop_assert_eq!(report.signs.len(), 1);
+                prop_assert_eq!(report.signs[0].from_data, current_sign == CurrentSign::Auto);
+                let mut cycles: Vec<u32> = records.iter().map(|d| d.cycle).collect();
+                cycles.dedup();
+                prop_assert_eq!(cycles.len(), records.len(), "one record per cycle number");
+                for d in &records {
+                    check_ok(d, path)?;
+                    prop_assert_eq!(d.time_s[0], 0.0);
+                    prop_assert!(d.current_a.iter().any(|i| *i > 0.05), "a record without discharge");
+                }
+                for s in &report.skipped {
+                    prop_assert!(s.reason.contains(&path.display().to_string()), "{}", s.reason);
+                }
+            }
+            Err(e) => check_err(&e, path, bytes)?,
+        }
+    }
+    Ok(())
 }
 
 /// Every field of two records is identical (bit for bit).
@@ -498,6 +532,103 @@ impl GenericFile {
     }
 }
 
+/// A valid Battery Data Format file (or a generic one with units in its names) and what it must read back as.
+#[derive(Clone, Debug)]
+struct BdfFile {
+    /// Per cycle: rows of (time_s, voltage_v, current_a discharging positive, temperature_c).
+    cycles: Vec<(u32, Vec<Row>)>,
+    /// Preferred labels (`Test Time / s`) or machine names (`test_time_second`), or the generic names.
+    spelling: u8,
+    with_temperature: bool,
+    with_cycle: bool,
+    /// Time in ms, voltage in mV, current in mA (in the names).
+    milli: (bool, bool, bool),
+    order: Vec<usize>,
+    crlf: bool,
+}
+
+/// Rows with the current never charging (so each cycle is one discharge record), loaded at both ends.
+fn discharge_rows() -> impl Strategy<Value = Vec<Row>> {
+    rows().prop_map(|mut rows| {
+        for r in rows.iter_mut() {
+            r.2 = r.2.abs();
+        }
+        let last = rows.len() - 1;
+        rows[last].2 += 0.5;
+        rows
+    })
+}
+
+fn bdf_file() -> impl Strategy<Value = BdfFile> {
+    (
+        prop::collection::btree_map(0u32..1000, discharge_rows(), 1..4),
+        (0u8..3, any::<bool>(), any::<bool>()),
+        any::<(bool, bool, bool)>(),
+        Just((0..6).collect::<Vec<usize>>()).prop_shuffle(),
+        any::<bool>(),
+    )
+        .prop_map(|(map, (spelling, with_temperature, with_cycle), milli, order, crlf)| {
+            let mut cycles: Vec<_> = map.into_iter().collect();
+            if !with_cycle {
+                cycles.truncate(1);
+                cycles[0].0 = 1;
+            }
+            BdfFile { cycles, spelling, with_temperature, with_cycle, milli, order, crlf }
+        })
+}
+
+impl BdfFile {
+    fn text(&self) -> String {
+        let (ms, mv, ma) = self.milli;
+        let names: [String; 6] = match self.spelling {
+            0 => [
+                format!("Test Time / {}", if ms { "ms" } else { "s" }),
+                format!("Voltage / {}", if mv { "mV" } else { "V" }),
+                format!("Current / {}", if ma { "mA" } else { "A" }),
+                "Temperature T1 / degC".into(),
+                "Cycle Count / 1".into(),
+                "Step Index / 1".into(),
+            ],
+            1 => [
+                (if ms { "test_time_millisecond" } else { "test_time_second" }).into(),
+                (if mv { "voltage_millivolt" } else { "voltage_volt" }).into(),
+                (if ma { "current_milliampere" } else { "current_ampere" }).into(),
+                "temperature_t1_celsius".into(),
+                "cycle_count".into(),
+                "step_index".into(),
+            ],
+            _ => [
+                (if ms { "time_ms" } else { "time_s" }).into(),
+                (if mv { "voltage_mv" } else { "voltage_v" }).into(),
+                (if ma { "current_ma" } else { "current_a" }).into(),
+                "temperature_c".into(),
+                "cycle".into(),
+                "note".into(),
+            ],
+        };
+        let used = [true, true, true, self.with_temperature, self.with_cycle, true];
+        let cols: Vec<usize> = self.order.iter().copied().filter(|&c| used[c]).collect();
+        let eol = if self.crlf { "\r\n" } else { "\n" };
+        let k = |milli: bool| if milli { 1e3 } else { 1.0 };
+        let mut s = cols.iter().map(|&c| names[c].clone()).collect::<Vec<_>>().join(",") + eol;
+        for (cycle, rows) in &self.cycles {
+            for (t, v, i, temp) in rows {
+                // Charge positive, as the Battery Data Format counts it.
+                let fields = [
+                    (t * k(ms)).to_string(),
+                    (v * k(mv)).to_string(),
+                    (-i * k(ma)).to_string(),
+                    temp.to_string(),
+                    cycle.to_string(),
+                    "1".into(),
+                ];
+                s += &(cols.iter().map(|&c| fields[c].clone()).collect::<Vec<_>>().join(",") + eol);
+            }
+        }
+        s
+    }
+}
+
 /// A folder in the NASA layout: B0005 with three discharges (`00002`, `00004`, `00005`), B0006 with one
 /// (`00007`), a charge row between; each file is the sample with its voltages shifted per file.
 struct NasaFolder {
@@ -554,6 +685,7 @@ proptest! {
         std::fs::write(&path, &bytes).unwrap();
         check_nasa(&path, &bytes)?;
         check_generic(&path, &bytes)?;
+        check_csv(&path, &bytes)?;
     }
 
     /// Mutations of a real NASA record (truncation, bit flips, inserted or deleted bytes and lines, a repeated
@@ -570,6 +702,7 @@ proptest! {
         std::fs::write(&path, &bytes).unwrap();
         check_nasa(&path, &bytes)?;
         check_generic(&path, &bytes)?;
+        check_csv(&path, &bytes)?;
         let again = read_nasa_record(&good_path(), "B0005", 1, AMBIENT_K).unwrap();
         assert_same(&reference, &again)?;
     }
@@ -597,6 +730,46 @@ proptest! {
                 prop_assert!(d.temperature_k.is_none());
                 prop_assert_eq!(d.ambient_k, 25.0 + CELSIUS_TO_KELVIN);
             }
+        }
+    }
+
+    /// Valid Battery Data Format files (labels or machine names, or generic names with units; s or ms, V or
+    /// mV, A or mA; 1-3 cycles; columns in any order; charge positive) read back what was written: one record
+    /// per cycle, time from its start, within the rounding of the unit conversion.
+    #[test]
+    fn valid_bdf_files_round_trip(file in bdf_file()) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cellY.bdf.csv");
+        std::fs::write(&path, file.text()).unwrap();
+        let opts = ReadOptions { current_sign: CurrentSign::DischargeNegative, ..ReadOptions::default() };
+        let (records, report) =
+            read_csv(&path, &opts).map_err(|e| TestCaseError::fail(format!("{e}\n{}", file.text())))?;
+        // Machine names in milli-units are not the format's own (its units are fixed), so they alone do not
+        // make a file BDF.
+        let (ms, mv, ma) = file.milli;
+        let bdf = file.spelling == 0 || (file.spelling == 1 && !(ms && mv && ma));
+        prop_assert_eq!(report.format, if bdf { "bdf" } else { "generic" });
+        prop_assert_eq!(records.len(), file.cycles.len());
+        let close = |a: &[f64], b: &[f64]| {
+            a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-9 * (1.0 + y.abs()))
+        };
+        for (d, (cycle, rows)) in records.iter().zip(&file.cycles) {
+            prop_assert_eq!(d.cycle, if file.with_cycle { *cycle } else { 1 });
+            prop_assert_eq!(&d.cell, "cellY");
+            let t0 = rows[0].0;
+            prop_assert!(close(&d.time_s, &rows.iter().map(|r| r.0 - t0).collect::<Vec<_>>()), "time");
+            prop_assert!(close(&d.voltage_v, &rows.iter().map(|r| r.1).collect::<Vec<_>>()), "voltage");
+            prop_assert!(close(&d.current_a, &rows.iter().map(|r| r.2).collect::<Vec<_>>()), "current");
+            let temps: Vec<f64> = rows.iter().map(|r| r.3 + CELSIUS_TO_KELVIN).collect();
+            match &d.temperature_k {
+                Some(t) => prop_assert!(file.with_temperature && close(t, &temps)),
+                None => prop_assert!(!file.with_temperature),
+            }
+        }
+        // Deciding the sign from these (random) rows either agrees or refuses, naming the file.
+        match read_csv(&path, &ReadOptions::default()) {
+            Ok((_, report)) => prop_assert!(report.signs[0].from_data),
+            Err(e) => check_err(&e, &path, file.text().as_bytes())?,
         }
     }
 
@@ -674,6 +847,23 @@ proptest! {
                         prop_assert!(!e.to_string().contains(&folder.data(f).display().to_string()), "{e}");
                     }
                 }
+            }
+        }
+        // The skipping reader, deciding the sign from the data: the untouched records as the fixed-sign reader
+        // read them, the corrupt one read or skipped naming it, never the whole cell refused.
+        let (records, report) = read_nasa_with(folder.root.path(), "B0005", None, &ReadOptions::default())
+            .map_err(|e| TestCaseError::fail(format!("one bad file failed the cell: {e}")))?;
+        let bad_cycle = which as u32 + 1;
+        prop_assert_eq!(records.len() + report.skipped.len(), 3);
+        for s in &report.skipped {
+            prop_assert_eq!(s.cycle, Some(bad_cycle));
+            prop_assert!(s.reason.contains(&bad.display().to_string()), "{}", s.reason);
+        }
+        for d in &records {
+            if d.cycle == bad_cycle {
+                check_ok(d, &bad)?;
+            } else {
+                assert_same(d, &with_root(&reference[d.cycle as usize - 1]))?;
             }
         }
         // The other cell and the other cycles of this cell are unaffected.

@@ -188,7 +188,7 @@ pub struct Trace {
 }
 
 /// A calibrator that needs building per episode.
-type Make<'a> = Box<dyn Fn() -> Box<dyn Calibrator + 'a> + Sync + 'a>;
+pub type Make<'a> = Box<dyn Fn() -> Box<dyn Calibrator + 'a> + Sync + 'a>;
 
 /// The direct mapping as a calibrator: the window fit runs for its inputs, the network answers.
 struct DirectCalibrator<'a> {
@@ -464,9 +464,39 @@ fn with_voltage_noise(cfg: &ScenarioConfig, v: f64) -> ScenarioConfig {
     c
 }
 
+/// Every grid setting of the joint UKF on `validation` cells, the best by the mean of the two NRMSEs over
+/// every reading (validation only: the test cells never choose anything).
+pub fn tune_joint_ukf(spec: &TrackerSpec, validation: &[Episode], grid: &JointUkfGrid) -> UkfTuning {
+    let cands = grid.candidates();
+    let mut rows: Vec<(JointUkfSettings, f64)> = cands
+        .par_iter()
+        .map(|s| {
+            let mut acc = bcal_common::nrmse::NrmseAccumulator::default();
+            for e in validation {
+                let mut f = JointUkf::new(*s, spec);
+                for r in &e.samples {
+                    f.step(r);
+                    acc.add(&f.estimate(), &e.spec.truth);
+                }
+            }
+            let (q, r) = acc.pct();
+            let m = 0.5 * (q + r);
+            (*s, if m.is_finite() { m } else { f64::INFINITY })
+        })
+        .collect();
+    rows.sort_by(|a, b| a.1.total_cmp(&b.1));
+    UkfTuning {
+        best: rows[0].0,
+        candidates: rows.len(),
+        top: rows.into_iter().take(5).collect(),
+        validation_episodes: validation.len(),
+        counters_on_test: JointUkfCounters::default(),
+    }
+}
+
 /// The 90th percentile of |error| / sd over the readings with a spread: the interval scale that covers
-/// 90 % of validation readings (both parameters pooled).
-fn interval_scale_on(spec: &TrackerSpec, episodes: &[Episode], make: &Make) -> f64 {
+/// 90 % of validation readings (both parameters pooled). `make` builds the calibrator with scale 1.
+pub fn interval_scale_on(spec: &TrackerSpec, episodes: &[Episode], make: &Make) -> f64 {
     let mut ratios: Vec<f64> = episodes
         .par_iter()
         .flat_map_iter(|e| {
@@ -629,37 +659,18 @@ pub fn evaluate_measured(
     // The joint UKF: every grid setting on validation, the best by the mean of the two NRMSEs.
     let mut ukf_tuning = None;
     if opts.ukf {
-        let cands = opts.ukf_grid.candidates();
-        progress(&format!("joint UKF: tuning {} settings on {} validation cells", cands.len(), validation.len()));
-        let mut rows: Vec<(JointUkfSettings, f64)> = cands
-            .par_iter()
-            .map(|s| {
-                let mut acc = bcal_common::nrmse::NrmseAccumulator::default();
-                for e in &validation {
-                    let mut f = JointUkf::new(*s, &spec.tracker);
-                    for r in &e.samples {
-                        f.step(r);
-                        acc.add(&f.estimate(), &e.spec.truth);
-                    }
-                }
-                let (q, r) = acc.pct();
-                let m = 0.5 * (q + r);
-                (*s, if m.is_finite() { m } else { f64::INFINITY })
-            })
-            .collect();
-        rows.sort_by(|a, b| a.1.total_cmp(&b.1));
-        let best = rows[0].0;
+        progress(&format!(
+            "joint UKF: tuning {} settings on {} validation cells",
+            opts.ukf_grid.candidates().len(),
+            validation.len()
+        ));
+        let t = tune_joint_ukf(&spec.tracker, &validation, &opts.ukf_grid);
+        let best = t.best;
         progress(&format!(
             "joint UKF: chose meas_std {:.1} mV, parameter walk {:e}/sqrt(s), charge walk {} C/sqrt(s), prior std {:?} (validation mean NRMSE {:.2} %)",
-            best.meas_std_v * 1e3, best.param_walk_per_sqrt_s, best.charge_walk_c_per_sqrt_s, best.prior_std_z, rows[0].1
+            best.meas_std_v * 1e3, best.param_walk_per_sqrt_s, best.charge_walk_c_per_sqrt_s, best.prior_std_z, t.top[0].1
         ));
-        ukf_tuning = Some(UkfTuning {
-            best,
-            candidates: rows.len(),
-            top: rows.into_iter().take(5).collect(),
-            validation_episodes: validation.len(),
-            counters_on_test: JointUkfCounters::default(),
-        });
+        ukf_tuning = Some(t);
     } else {
         not_evaluated.insert("ukf".into(), "disabled by the command line".into());
     }

@@ -78,10 +78,42 @@ impl ValidationTrace {
     }
 }
 
+/// One run's report, of either setting.
+pub enum AnyReport {
+    Paper(Box<Report>),
+    Measured(Box<crate::measured_eval::MeasuredReport>),
+}
+
+impl AnyReport {
+    /// Parses report.json of either setting (the measured one says `"observation": "Measured"`).
+    pub fn parse(text: &str) -> Result<Self, serde_json::Error> {
+        let v: serde_json::Value = serde_json::from_str(text)?;
+        if v.get("observation").and_then(|o| o.as_str()) == Some("Measured") {
+            Ok(AnyReport::Measured(Box::new(serde_json::from_value(v)?)))
+        } else {
+            Ok(AnyReport::Paper(Box::new(serde_json::from_value(v)?)))
+        }
+    }
+
+    fn experiment(&self) -> String {
+        match self {
+            AnyReport::Paper(r) => r.experiment.clone(),
+            AnyReport::Measured(_) => "measured".into(),
+        }
+    }
+
+    fn size(&self) -> (usize, bool) {
+        match self {
+            AnyReport::Paper(r) => (r.test_trajectories, r.quick),
+            AnyReport::Measured(r) => (r.test_episodes, r.quick),
+        }
+    }
+}
+
 /// One run's inputs.
 pub struct RunInput {
     pub name: String,
-    pub report: Report,
+    pub report: AnyReport,
     pub validation: Option<ValidationTrace>,
 }
 
@@ -108,8 +140,56 @@ pub struct Summary {
     pub mismatches: Vec<String>,
 }
 
+/// The figures of a measured-only report (its headline noise level), by (method, figure).
+fn figures_measured(r: &crate::measured_eval::MeasuredReport) -> BTreeMap<(String, String), f64> {
+    let mut out = BTreeMap::new();
+    for (key, m) in &r.methods {
+        let mut put = |fig: String, val: Option<f64>| {
+            if let Some(x) = val.filter(|x| x.is_finite()) {
+                out.insert((key.clone(), fig), x);
+            }
+        };
+        for p in Param::BOTH {
+            put(format!("nrmse_pct.{}", p.key()), m.nrmse_pct.get(p));
+            put(format!("second_half_nrmse_pct.{}", p.key()), m.second_half_nrmse_pct.get(p));
+            put(format!("time_to_2pct_s.{}", p.key()), m.time_to_2pct_s.get(p));
+            put(format!("coverage_90_pct.{}", p.key()), m.coverage_90_pct.get(p));
+        }
+        put("step_us".into(), m.step_us);
+        for (f, e) in &m.eod {
+            put(format!("eod.at_{f}pct.mae_s"), Some(e.mae_s));
+        }
+    }
+    out
+}
+
 /// The figures of one report, by (method, figure).
-fn figures(r: &Report, v: Option<&ValidationTrace>) -> BTreeMap<(String, String), f64> {
+fn figures(r: &AnyReport, v: Option<&ValidationTrace>) -> BTreeMap<(String, String), f64> {
+    match r {
+        AnyReport::Paper(p) => figures_paper(p, v),
+        AnyReport::Measured(m) => {
+            let mut out = figures_measured(m);
+            if let Some(v) = v {
+                let pick =
+                    |pair: Option<(f64, f64)>, p: Param| pair.map(|(q, r)| if p == Param::QMobile { q } else { r });
+                for p in Param::BOTH {
+                    for (fig, val) in [
+                        ("training_best_validation_nrmse_pct", pick(v.best_nrmse(), p)),
+                        ("training_last_validation_nrmse_pct", pick(v.last(), p)),
+                    ] {
+                        if let Some(x) = val {
+                            out.insert(("rl_lac".into(), format!("{fig}.{}", p.key())), x);
+                        }
+                    }
+                }
+            }
+            out
+        }
+    }
+}
+
+/// The figures of one paper-setting report, by (method, figure).
+fn figures_paper(r: &Report, v: Option<&ValidationTrace>) -> BTreeMap<(String, String), f64> {
     let mut out = BTreeMap::new();
     let params = r.calibrated_params();
     for (key, _) in METHODS {
@@ -147,28 +227,32 @@ fn figures(r: &Report, v: Option<&ValidationTrace>) -> BTreeMap<(String, String)
 /// Summarises runs of one experiment; runs of different experiments are refused.
 pub fn summarize(runs: &[RunInput]) -> Result<Summary, String> {
     let first = runs.first().ok_or("no runs to summarise")?;
-    let experiment = first.report.experiment.clone();
+    let experiment = first.report.experiment();
     let mut mismatches = Vec::new();
     for r in runs {
-        if r.report.experiment != experiment {
+        if r.report.experiment() != experiment {
             return Err(format!(
                 "run {} is of experiment {}, run {} of {experiment}: summarise one experiment at a time",
-                r.name, r.report.experiment, first.name
+                r.name,
+                r.report.experiment(),
+                first.name
             ));
         }
-        if r.report.test_trajectories != first.report.test_trajectories
-            && !mismatches.contains(&"test_trajectories".into())
-        {
-            mismatches.push("test_trajectories".to_string());
+        let ((n, quick), (n0, quick0)) = (r.report.size(), first.report.size());
+        if n != n0 && !mismatches.contains(&"test set size".into()) {
+            mismatches.push("test set size".to_string());
         }
-        if r.report.quick != first.report.quick && !mismatches.contains(&"quick".into()) {
+        if quick != quick0 && !mismatches.contains(&"quick".into()) {
             mismatches.push("quick".to_string());
         }
     }
     let per_run: Vec<BTreeMap<(String, String), f64>> =
         runs.iter().map(|r| figures(&r.report, r.validation.as_ref())).collect();
     let mut keys: Vec<(String, String)> = per_run.iter().flat_map(|m| m.keys().cloned()).collect();
-    keys.sort_by_key(|(m, f)| (METHODS.iter().position(|x| x.0 == m).unwrap_or(9), f.clone()));
+    let order = |m: &str| {
+        METHODS.iter().position(|x| x.0 == m).or_else(|| crate::measured_eval::METHODS.iter().position(|x| x.0 == m))
+    };
+    keys.sort_by_key(|(m, f)| (order(m).unwrap_or(9), f.clone()));
     keys.dedup();
     let rows = keys
         .into_iter()
@@ -195,7 +279,11 @@ pub fn render_markdown(s: &Summary) -> String {
     }
     let _ = writeln!(out, "| method | figure | mean ± std (min-max) | n | per run |\n| --- | --- | --- | ---: | --- |");
     for r in &s.rows {
-        let name = METHODS.iter().find(|m| m.0 == r.method).map_or(r.method.as_str(), |m| m.1);
+        let name = METHODS
+            .iter()
+            .chain(crate::measured_eval::METHODS.iter())
+            .find(|m| m.0 == r.method)
+            .map_or(r.method.as_str(), |m| m.1);
         let digits = if r.figure.starts_with("update") || r.figure.contains("mae_s") { 1 } else { 3 };
         let each: Vec<String> =
             r.per_run.iter().map(|v| v.map_or("-".into(), |x| format!("{x:.d$}", d = digits))).collect();

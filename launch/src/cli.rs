@@ -22,6 +22,12 @@ pub enum Command {
     Dataset(DatasetArgs),
     /// Diagnose measured discharges: fit the model, find what it gets wrong, name the cause, extend it.
     Diagnose(crate::diagnose_cmd::DiagnoseArgs),
+    /// Calibrate real cells in real time: feed measured discharges to the calibrators one reading at a time,
+    /// predict the end of discharge and the capacity, and score them against what the cycler measured.
+    Calibrate(crate::calibrate_cmd::CalibrateArgs),
+    /// Write the training config of an RL calibrator for one real cell (its load, sampling, temperature,
+    /// cut-off and parameter ranges from its training cycles).
+    CellConfig(crate::calibrate_cmd::CellConfigArgs),
     /// Train the LAC calibrator: starts replay, learner and actor processes and supervises them.
     Train(crate::train_cmd::TrainArgs),
     /// Evaluate RL-LAC against the UKF and the direct mapping on the held-out (high-load) test trajectories;

@@ -3,7 +3,7 @@
 //! `diagnosis.json`, `diagnosis.md` and residual plots into `--out`.
 
 use anyhow::Context;
-use bcal_doctor::read::{parse_cycle_range, read_generic, read_nasa};
+use bcal_doctor::read::{nasa_cutoff_v, parse_cycle_range, CurrentSign, ReadOptions};
 use bcal_doctor::{diagnose, Cause, DiagnoseConfig, Discharge};
 use clap::ValueEnum;
 use std::ops::RangeInclusive;
@@ -43,6 +43,14 @@ pub struct DiagnoseArgs {
     /// Ambient temperature for a generic CSV, deg C (default: each record's first temperature, else 25).
     #[arg(long, allow_hyphen_values = true)]
     pub ambient_c: Option<f64>,
+    /// Which sign of the current is discharge: `auto` decides from the data and says what it chose
+    /// (NASA: negative; the generic CSV: positive; the Battery Data Format: negative).
+    #[arg(long, default_value = "auto")]
+    pub current_sign: CurrentSign,
+    /// Cut-off voltage: a record ending under load at or below it is a complete discharge (default: the
+    /// cell's documented protocol for a NASA folder, else 2.5 V with a note per record).
+    #[arg(long, value_parser = crate::cli::positive_f64)]
+    pub cutoff_v: Option<f64>,
     /// Candidate causes to test (comma-separated). Default: all.
     #[arg(long, value_enum, value_delimiter = ',')]
     pub causes: Vec<CauseArg>,
@@ -88,21 +96,8 @@ impl From<CauseArg> for Cause {
 fn load(a: &DiagnoseArgs) -> anyhow::Result<(Vec<Discharge>, Vec<Discharge>)> {
     let cycles = a.cycles.as_deref().map(parse_cycle_range).transpose()?;
     let holdout = a.holdout.as_deref().map(parse_cycle_range).transpose()?;
-    let all: Vec<Discharge> = if a.data.is_dir() {
-        let (records, report) = read_nasa(&a.data, &a.cell, None)?;
-        if !report.missing_files.is_empty() {
-            eprintln!(
-                "diagnose: {} of {} discharge files named in metadata.csv for {} are missing and skipped (first: {})",
-                report.missing_files.len(),
-                report.rows_selected,
-                a.cell,
-                report.missing_files[0]
-            );
-        }
-        records
-    } else {
-        read_generic(&a.data, a.ambient_c)?
-    };
+    let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
+    let all: Vec<Discharge> = crate::calibrate_cmd::read(&a.data, &a.cell, None, &opts)?;
     anyhow::ensure!(!all.is_empty(), "{} holds no discharge record", a.data.display());
     let last = all.iter().map(|d| d.cycle).max().unwrap_or(1);
     let first = all.iter().map(|d| d.cycle).min().unwrap_or(1);
@@ -127,12 +122,15 @@ fn load(a: &DiagnoseArgs) -> anyhow::Result<(Vec<Discharge>, Vec<Discharge>)> {
 
 pub fn run(a: DiagnoseArgs) -> anyhow::Result<()> {
     let (train, held) = load(&a)?;
-    let mut cfg = DiagnoseConfig::default();
+    let mut cfg = DiagnoseConfig {
+        cutoff_v: a.cutoff_v.or_else(|| a.data.is_dir().then(|| nasa_cutoff_v(&a.data, &a.cell)).flatten()),
+        max_causes: a.max_causes,
+        min_gain_pct: a.min_gain_pct,
+        ..DiagnoseConfig::default()
+    };
     cfg.fit.dt_max_s = a.dt;
     cfg.fit.v_floor_v = a.v_floor;
     cfg.fit.load_threshold_a = a.load_threshold;
-    cfg.max_causes = a.max_causes;
-    cfg.min_gain_pct = a.min_gain_pct;
     if !a.causes.is_empty() {
         cfg.causes = a.causes.iter().map(|c| Cause::from(*c)).collect();
     }

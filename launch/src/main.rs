@@ -2,6 +2,7 @@
 //! own module with a `run` function returning `anyhow::Result`.
 
 mod bench_cmd;
+mod calibrate_cmd;
 mod cli;
 mod dataset_cmd;
 mod diagnose_cmd;
@@ -19,6 +20,8 @@ fn main() {
         cli::Command::Simulate(a) => simulate::run(a),
         cli::Command::Dataset(a) => dataset_cmd::run(a),
         cli::Command::Diagnose(a) => diagnose_cmd::run(a),
+        cli::Command::Calibrate(a) => calibrate_cmd::run(a),
+        cli::Command::CellConfig(a) => calibrate_cmd::run_cell_config(a),
         cli::Command::Train(a) => train_cmd::run(a),
         cli::Command::Eval(a) => eval_cmd::run(a),
         cli::Command::Summarize(a) => summarize_cmd::run(a),

@@ -3,8 +3,7 @@
 //! summary.md when `--out DIR` is given.
 
 use anyhow::Context;
-use bcal_eval::summary::{self, RunInput, ValidationTrace};
-use bcal_eval::Report;
+use bcal_eval::summary::{self, AnyReport, RunInput, ValidationTrace};
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
@@ -27,7 +26,7 @@ pub fn run(a: SummarizeArgs) -> anyhow::Result<()> {
         let text = std::fs::read_to_string(&path).with_context(|| {
             format!("cannot read {}; evaluate the run first (bcal eval --run {})", path.display(), dir.display())
         })?;
-        let report: Report = serde_json::from_str(&text)
+        let report = AnyReport::parse(&text)
             .with_context(|| format!("{} is not a bcal report (written by another version?)", path.display()))?;
         let validation = std::fs::read_to_string(dir.join("metrics.jsonl")).ok().map(|t| ValidationTrace::parse(&t));
         inputs.push(RunInput { name: dir.display().to_string(), report, validation });

@@ -21,6 +21,11 @@ pub trait Calibrator {
     fn interval(&self) -> Option<Interval>;
     /// The calibrated model state now (for end-of-discharge predictions); None before the first reading.
     fn state(&self) -> Option<ModelState>;
+    /// The model state now as it would be under parameters `d` (the bounds of an interval): a calibrator
+    /// that keeps its state consistent with any parameters rebuilds it; others give their own state.
+    fn state_under(&self, _d: &Degradation) -> Option<ModelState> {
+        self.state()
+    }
 }
 
 /// The RL policy as a calibrator: its tracker reads, the policy's deterministic action moves the estimate.
@@ -58,6 +63,9 @@ impl Calibrator for RlCalibrator<'_> {
     fn state(&self) -> Option<ModelState> {
         tracker_state(&self.tracker)
     }
+    fn state_under(&self, d: &Degradation) -> Option<ModelState> {
+        self.tracker.cell().map(|c| c.state(&c.track, d))
+    }
 }
 
 /// The tracker following its own fit step (as far as `step_max` allows per reading), no learning.
@@ -91,16 +99,28 @@ impl Calibrator for WindowFitCalibrator {
     fn state(&self) -> Option<ModelState> {
         tracker_state(&self.tracker)
     }
+    fn state_under(&self, d: &Degradation) -> Option<ModelState> {
+        self.tracker.cell().map(|c| c.state(&c.track, d))
+    }
 }
 
-/// The new-cell model that never calibrates: the prior estimate, its state from the readings.
+/// A model that never calibrates during the discharge: parameters fixed from the start (the prior, a new
+/// cell's, the previous cycle's or an offline fit's), its state from the readings.
 pub struct Uncalibrated {
     tracker: Tracker,
 }
 
 impl Uncalibrated {
+    /// At the spec's prior.
     pub fn new(spec: &TrackerSpec) -> Self {
         Self { tracker: Tracker::new(spec) }
+    }
+
+    /// At `d` (clamped to the spec's ranges).
+    pub fn pinned(spec: &TrackerSpec, d: &Degradation) -> Self {
+        let mut tracker = Tracker::new(spec);
+        tracker.set_estimate(d);
+        Self { tracker }
     }
 }
 
@@ -116,6 +136,9 @@ impl Calibrator for Uncalibrated {
     }
     fn state(&self) -> Option<ModelState> {
         tracker_state(&self.tracker)
+    }
+    fn state_under(&self, d: &Degradation) -> Option<ModelState> {
+        self.tracker.cell().map(|c| c.state(&c.track, d))
     }
 }
 
@@ -135,9 +158,15 @@ pub struct EodQuery<'a> {
 }
 
 /// Predicted end-of-discharge time, s: the model runs from `x` at time `t_now_s` under `d` and the query's
-/// load until the voltage falls below its cut-off. None when it does not within `max_s` or the model fails.
+/// load until the voltage falls below its cut-off, or until the model itself is empty: a surface mole
+/// fraction at its clip ([`crate::battery::MOLE_FRACTION_CLIP`]), where the model's voltage stops falling
+/// (about 3.0 V at 2 A) while a real cell drops through its knee to any lower cut-off within a minute or
+/// two (NASA B0005: 3.0 V to 2.7 V in 47 s of a 3160 s discharge). None when neither happens within
+/// `max_s` or the model fails.
 pub fn predict_eod_s(model: &BatteryModel, x: &ModelState, d: &Degradation, t_now_s: f64, q: &EodQuery) -> Option<f64> {
     let (profile, cutoff_v, dt_s) = (q.profile, q.cutoff_v, q.dt_s);
+    let (lo, hi) = crate::battery::MOLE_FRACTION_CLIP;
+    let q_s_max = model.q_max_c(d) * model.params.vol_s_fraction;
     let mut x = *x;
     let mut t = t_now_s;
     while t - t_now_s <= q.max_s {
@@ -145,7 +174,8 @@ pub fn predict_eod_s(model: &BatteryModel, x: &ModelState, d: &Degradation, t_no
         if !v.is_finite() {
             return None;
         }
-        if v < cutoff_v {
+        let empty = x[crate::math::idx::QN_S] / q_s_max <= lo || x[crate::math::idx::QP_S] / q_s_max >= hi;
+        if v < cutoff_v || empty {
             return Some(t);
         }
         let i = match profile.at(t) {
@@ -185,6 +215,14 @@ mod tests {
             unc.step(s);
         }
         assert_eq!(unc.estimate(), TrackerSpec::default().prior);
+        let at = Degradation { q_mobile_c: 5000.0, r_o_ohm: 0.12 };
+        let mut pinned = Uncalibrated::pinned(&TrackerSpec::default(), &at);
+        for s in &ep.samples {
+            pinned.step(s);
+        }
+        assert!(
+            (pinned.estimate().q_mobile_c - 5000.0).abs() < 1e-9 && (pinned.estimate().r_o_ohm - 0.12).abs() < 1e-12
+        );
         assert!(unc.interval().is_none() && unc.state().is_some());
     }
 }

@@ -226,10 +226,13 @@ impl Tracker {
         }
     }
 
-    /// The RL cost of the current estimate: ln(1 + window RMS residual / `cost_scale_v`), monotone in the
-    /// residual, zero only for a perfect fit.
+    /// The RL cost of the current estimate: ln(1 + r / `cost_scale_v`) with r the root of the fit's own
+    /// objective per reading (squared residuals of every reading plus the prior's term): what the calibrator
+    /// can know about its estimate, no true parameter and no true state. The prior keeps the cost from
+    /// rewarding a jump the readings do not support yet (the estimate that minimises it is the posterior
+    /// mode, not the least-squares fit of the first few readings).
     pub fn cost(&self) -> f64 {
-        (self.stats.rms_v / self.spec.cost_scale_v).ln_1p()
+        (self.stats.map_rms_v / self.spec.cost_scale_v).ln_1p()
     }
 
     /// The 90 % interval of the current estimate from the window's fit (None while it cannot tell).

@@ -35,6 +35,9 @@ pub struct FitStats {
     pub n: usize,
     /// Root mean square of measured minus predicted voltage, V.
     pub rms_v: f64,
+    /// The same with the prior's term added to the sum of squares (the fit's own objective: misfit plus
+    /// prior, both in volts squared), V; equals `rms_v` without a prior.
+    pub map_rms_v: f64,
     /// Mean of r J (r: residual, J: dV/dz), V^2.
     pub grad: [f64; 2],
     /// Mean of J J^T (Gauss-Newton information), V^2: [qq, qr, rr].
@@ -199,19 +202,28 @@ impl FitWindow {
         // The step: damped Gauss-Newton on the mean squared residual plus the prior's term.
         let (mut a, b, mut c) = (h[0], h[1], h[2]);
         let (mut g0, mut g1) = (g[0], g[1]);
+        let mut sq_map = sq;
         if let Some((pz, sd, noise_v)) = prior {
             let w = (noise_v / sd).powi(2) * inv;
             a += w;
             c += w;
             g0 += w * (pz[0] - z[0]);
             g1 += w * (pz[1] - z[1]);
+            sq_map += (noise_v / sd).powi(2) * ((z[0] - pz[0]).powi(2) + (z[1] - pz[1]).powi(2));
         }
         // Levenberg damping relative to the information, so a parameter the readings cannot see stays put.
         let mu = 1e-3 * (a + c) + 1e-12;
         let (a, c) = (a + mu, c + mu);
         let det = a * c - b * b;
         let step = if det > 0.0 { [(c * g0 - b * g1) / det, (a * g1 - b * g0) / det] } else { [0.0; 2] };
-        FitStats { n: total.round() as usize, rms_v: (sq * inv).max(0.0).sqrt(), grad: g, info: h, step }
+        FitStats {
+            n: total.round() as usize,
+            rms_v: (sq * inv).max(0.0).sqrt(),
+            map_rms_v: (sq_map * inv).max(0.0).sqrt(),
+            grad: g,
+            info: h,
+            step,
+        }
     }
 }
 

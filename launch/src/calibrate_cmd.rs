@@ -1,0 +1,232 @@
+//! `bcal calibrate` and `bcal cell-config`: real cells in real time.
+//!
+//! `calibrate` reads a NASA PCoE folder or a generic CSV, feeds each judged discharge to the calibrators one
+//! reading at a time (no look-ahead), writes every reading's estimates, 90 % intervals, predicted end of
+//! discharge and capacity, and scores them against what the cycler measured (calibration.json, .md,
+//! figures). `cell-config` writes the training config of a policy for one cell (the measured-only setting
+//! with the cell's load, sampling, temperature, cut-off and parameter ranges from its training cycles).
+
+use anyhow::{bail, Context};
+use bcal_common::config::{Preset, TrainConfig};
+use bcal_common::policy::{PolicyFile, POLICY_BEST};
+use bcal_doctor::read::{parse_cycle_range, read_csv, read_nasa_with, CurrentSign, ReadOptions};
+use bcal_doctor::Discharge;
+use bcal_eval::measured_eval::JointUkfGrid;
+use bcal_realcell::calibrate::{calibrate, CalibrateInput};
+use bcal_realcell::cellspec::cell_spec;
+use bcal_realcell::record::{prepare, RecordSummary};
+use std::ops::RangeInclusive;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(clap::Args, Debug)]
+pub struct CalibrateArgs {
+    /// Measured data: a NASA PCoE folder (metadata.csv and data/) or a generic CSV
+    /// (time_s,voltage_v,current_a[,temperature_c][,cycle], current positive while discharging).
+    #[arg(long, value_name = "PATH")]
+    pub data: PathBuf,
+    /// Cell to read from a NASA folder (battery_id in metadata.csv).
+    #[arg(long, default_value = "B0005")]
+    pub cell: String,
+    /// Cycles to judge, A..B (1-based; NASA: the order of the cell's discharges). Default: those after
+    /// --train-cycles.
+    #[arg(long, value_name = "A..B")]
+    pub cycles: Option<String>,
+    /// Training cycles, A..B: the capacity trend, the cell's setting and the first previous-cycle reference.
+    #[arg(long, value_name = "A..B", default_value = "1..40")]
+    pub train_cycles: String,
+    /// Calibrators, comma separated: `rl:RUN` (the RL policy of a measured-only run folder, or a policy file),
+    /// `ukf` (the joint UKF, tuned on the cell's simulated validation cells), `fit` (the doctor's offline
+    /// least squares on the whole discharge: an oracle that sees the future). The references (uncalibrated,
+    /// previous cycle, capacity trend) always run.
+    #[arg(long, value_delimiter = ',', default_value = "ukf,fit")]
+    pub calibrator: Vec<String>,
+    /// Cut-off voltage of the end-of-discharge predictions, V (default: the cell's documented protocol).
+    #[arg(long, value_parser = crate::cli::positive_f64)]
+    pub cutoff_v: Option<f64>,
+    /// Ambient temperature for a generic CSV without a temperature column, deg C.
+    #[arg(long, allow_hyphen_values = true)]
+    pub ambient_c: Option<f64>,
+    /// Which sign of the current is discharge: `auto` decides from the data and says what it chose.
+    #[arg(long, default_value = "auto")]
+    pub current_sign: CurrentSign,
+    /// Use every N-th judged cycle (a whole-life run stays quick).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    pub stride: u32,
+    /// A quick run: a small UKF grid and fewer validation cells.
+    #[arg(long)]
+    pub quick: bool,
+    /// Output folder for calibration.json, calibration.md, the figures and readings/<method>/<cycle>.csv.
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct CellConfigArgs {
+    /// Measured data, as for `bcal calibrate`.
+    #[arg(long, value_name = "PATH")]
+    pub data: PathBuf,
+    #[arg(long, default_value = "B0005")]
+    pub cell: String,
+    /// Training cycles, A..B.
+    #[arg(long, value_name = "A..B", default_value = "1..40")]
+    pub train_cycles: String,
+    #[arg(long, value_parser = crate::cli::positive_f64)]
+    pub cutoff_v: Option<f64>,
+    #[arg(long, allow_hyphen_values = true)]
+    pub ambient_c: Option<f64>,
+    #[arg(long, default_value = "auto")]
+    pub current_sign: CurrentSign,
+    /// The run's training budget, s.
+    #[arg(long, default_value_t = 900.0, value_parser = crate::cli::positive_f64)]
+    pub budget_s: f64,
+    /// The TOML file to write (a complete config over the measured preset: `bcal train --config FILE`).
+    #[arg(long, value_name = "FILE.toml")]
+    pub out: PathBuf,
+}
+
+/// Reads the discharges of `cycles` (all when None): a NASA folder, else any CSV the doctor reads (the
+/// generic layout, the Battery Data Format, units and current sign as `opts` say); what the reader
+/// decided or skipped goes to stderr.
+pub fn read(
+    data: &Path,
+    cell: &str,
+    cycles: Option<&RangeInclusive<u32>>,
+    opts: &ReadOptions,
+) -> anyhow::Result<Vec<Discharge>> {
+    let (ds, rep) = if data.is_dir() {
+        read_nasa_with(data, cell, cycles, opts)
+            .with_context(|| format!("reading cell {cell} from {}", data.display()))?
+    } else {
+        let (all, rep) = read_csv(data, opts).with_context(|| format!("reading {}", data.display()))?;
+        (all.into_iter().filter(|d| cycles.is_none_or(|c| c.contains(&d.cycle))).collect(), rep)
+    };
+    for line in rep.summary() {
+        eprintln!("{line}");
+    }
+    Ok(ds)
+}
+
+/// The cut-off: given, else the documented protocol of a NASA cell, else refused with what to do.
+fn cutoff(given: Option<f64>, data: &Path, cell: &str) -> anyhow::Result<(f64, String)> {
+    if let Some(v) = given {
+        return Ok((v, "--cutoff-v".into()));
+    }
+    if data.is_dir() {
+        if let Some(v) = bcal_doctor::read::nasa_cutoff_v(data, cell) {
+            return Ok((v, "the cell's documented protocol (extra_infos)".into()));
+        }
+    }
+    bail!("no cut-off voltage is documented for {cell} in {}; pass --cutoff-v", data.display())
+}
+
+pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let train_range = parse_cycle_range(&a.train_cycles)?;
+    let judged_range = match &a.cycles {
+        Some(c) => parse_cycle_range(c)?,
+        None => (*train_range.end() + 1)..=u32::MAX,
+    };
+    if judged_range.start() <= train_range.end() && train_range.start() <= judged_range.end() {
+        bail!("--cycles {judged_range:?} overlaps --train-cycles {train_range:?}: judge cycles the calibrators were not set up on");
+    }
+    let (cut, cut_source) = cutoff(a.cutoff_v, &a.data, &a.cell)?;
+    let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
+    let train = read(&a.data, &a.cell, Some(&train_range), &opts)?;
+    let mut judged = read(&a.data, &a.cell, Some(&judged_range), &opts)?;
+    if a.stride > 1 {
+        let first = judged.first().map_or(0, |d| d.cycle);
+        judged.retain(|d| (d.cycle - first) % a.stride == 0);
+    }
+    // The calibrators asked for.
+    let mut policy: Option<(PolicyFile, String)> = None;
+    let (mut ukf, mut fit) = (false, false);
+    for c in &a.calibrator {
+        match c.trim() {
+            "ukf" => ukf = true,
+            "fit" => fit = true,
+            s if s.starts_with("rl:") => {
+                let p = PathBuf::from(&s[3..]);
+                let file = if p.is_dir() { p.join(POLICY_BEST) } else { p };
+                let pf = PolicyFile::load(&file).with_context(|| format!("the RL policy {}", file.display()))?;
+                policy = Some((pf, file.display().to_string()));
+            }
+            other => bail!("unknown calibrator `{other}`: use rl:RUN, ukf or fit (comma separated)"),
+        }
+    }
+    // The RL run's own cell setting (its simulated cells) sets up the UKF too, so both are tuned alike.
+    let spec = policy.as_ref().and_then(|(pf, _)| pf.task.measured().cloned());
+    let input = CalibrateInput {
+        cell: a.cell.clone(),
+        train,
+        judged,
+        cutoff_v: cut,
+        cutoff_source: cut_source,
+        policy: policy.as_ref().map(|(pf, p)| (pf, p.clone())),
+        ukf,
+        fit,
+        spec,
+        ukf_grid: if a.quick { JointUkfGrid::quick() } else { JointUkfGrid::default() },
+        validation_cells: if a.quick { 12 } else { 48 },
+    };
+    let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
+    cal.report.seconds = started.elapsed().as_secs_f64();
+    let written =
+        bcal_realcell::report::write_outputs(&a.out, &mut cal.report, &cal.judged, &cal.train_capacities, &cal.runs)
+            .with_context(|| format!("cannot write into {}", a.out.display()))?;
+    println!(
+        "\n{}",
+        bcal_realcell::report::render_markdown(&cal.report).lines().take(40).collect::<Vec<_>>().join("\n")
+    );
+    println!("wrote {} files into {} in {:.0} s", written.len(), a.out.display(), started.elapsed().as_secs_f64());
+    Ok(())
+}
+
+pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
+    let range = parse_cycle_range(&a.train_cycles)?;
+    let (cut, cut_source) = cutoff(a.cutoff_v, &a.data, &a.cell)?;
+    let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
+    let ds = read(&a.data, &a.cell, Some(&range), &opts)?;
+    let mut summary = RecordSummary::default();
+    let mut records = Vec::new();
+    let mut kept = Vec::new();
+    for d in &ds {
+        match prepare(d, cut) {
+            Ok(r) => {
+                records.push(r);
+                kept.push(d);
+            }
+            Err(e) => summary.refused.push(e.to_string()),
+        }
+    }
+    if records.is_empty() {
+        bail!("no usable training discharge of {} in cycles {range:?}: {}", a.cell, summary.refused.join("; "));
+    }
+    let cfg = bcal_doctor::fit::FitConfig::default();
+    let recs: Vec<_> = kept
+        .iter()
+        .filter_map(|d| {
+            d.windows(cfg.load_threshold_a, cfg.v_floor_v).map(|w| bcal_doctor::fit::FitRecord::new(d, w, &cfg))
+        })
+        .collect();
+    let fits = bcal_doctor::fit::refit_cycles(&cfg, &recs, &[], &bcal_doctor::ExtParams::default(), None)?.per_cycle;
+    let (spec, facts) = cell_spec(&records, &fits, cut);
+    let mut c: TrainConfig = Preset::Measured.config();
+    c.measured = spec;
+    c.learner.time_budget_s = a.budget_s;
+    c.validate().with_context(|| "the derived cell setting does not validate")?;
+    let header = format!(
+        "# bcal cell-config for {} from cycles {range:?} of {} (cut-off {cut} V: {cut_source}).\n# Read off the training \
+         cycles: {}\n",
+        a.cell,
+        a.data.display(),
+        serde_json::to_string(&facts)?
+    );
+    bcal_common::fsutil::write_atomic(&a.out, format!("{header}{}", c.to_toml()).as_bytes())
+        .with_context(|| format!("cannot write {}", a.out.display()))?;
+    println!("wrote {} (train with: bcal train --config {} --name NAME)", a.out.display(), a.out.display());
+    for r in &summary.refused {
+        println!("refused: {r}");
+    }
+    Ok(())
+}

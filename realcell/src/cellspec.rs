@@ -1,0 +1,135 @@
+//! The measured-only setting of one real cell, derived from its training cycles alone (nothing tuned to a
+//! particular cell): the load (constant current at the cycles' current), the sampling the data has, the
+//! rest before each discharge, the starting charge, the ambient temperature with a self-heating cell, the
+//! cut-off, and parameter ranges around the doctor's fits of the training cycles, widened for the ageing
+//! still to come. An RL policy for the cell trains on cells drawn from it; the joint UKF is tuned on its
+//! validation cells; both read the cell's measured temperature.
+
+use crate::record::CellRecord;
+use bcal_common::battery::Degradation;
+use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::measured::scenario::{LoadKind, ScenarioConfig, SplitLoads, KELVIN_0C};
+use bcal_common::measured::tracker::TrackerSpec;
+use serde::Serialize;
+
+/// How far the parameter ranges reach beyond the training fits: a cell keeps losing capacity and gaining
+/// resistance after its training cycles (NASA cells lose 30 % of their capacity over their life), so the
+/// true qMobile may fall to `Q_AGEING_FLOOR` of the smallest fit and Ro rise to `R_AGEING_CEILING` times the
+/// largest.
+pub const Q_AGEING_FLOOR: f64 = 0.5;
+pub const R_AGEING_CEILING: f64 = 2.5;
+
+/// What the derivation read off the training cycles, for the report.
+#[derive(Clone, Debug, Serialize)]
+pub struct CellFacts {
+    pub current_a: f64,
+    pub interval_s: [f64; 2],
+    pub rest_s: [f64; 2],
+    pub ambient_c: f64,
+    pub fit_q_mobile_c: [f64; 2],
+    pub fit_r_o_ohm: [f64; 2],
+}
+
+fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+/// The cell's measured-only setting from its training records and their fits.
+pub fn cell_spec(train: &[CellRecord], fits: &[Degradation], cutoff_v: f64) -> (MeasuredSpec, CellFacts) {
+    let current_a = quantile(train.iter().map(|r| r.current_a).collect(), 0.5);
+    let intervals: Vec<f64> =
+        train.iter().flat_map(|r| r.samples.windows(2).map(|w| w[1].t_s - w[0].t_s)).filter(|d| *d > 0.0).collect();
+    let interval_s = [quantile(intervals.clone(), 0.1).round().max(1.0), quantile(intervals, 0.9).round().max(1.0)];
+    let rests: Vec<f64> = train.iter().map(|r| r.load_on_s - r.samples[0].t_s).collect();
+    let rest_s = [quantile(rests.clone(), 0.1).clamp(1.0, 600.0), quantile(rests, 0.9).clamp(1.0, 600.0)];
+    let ambient_c = quantile(train.iter().map(|r| r.ambient_k - KELVIN_0C).collect(), 0.5);
+    let qs: Vec<f64> = fits.iter().map(|d| d.q_mobile_c).collect();
+    let rs: Vec<f64> = fits.iter().map(|d| d.r_o_ohm).collect();
+    let (q_lo, q_hi) = (quantile(qs.clone(), 0.0), quantile(qs.clone(), 1.0));
+    let (r_lo, r_hi) = (quantile(rs.clone(), 0.0), quantile(rs.clone(), 1.0));
+    // Data ranges: what the cell may be over the rest of its life; estimate ranges a little wider.
+    let q_data = [Q_AGEING_FLOOR * q_lo, 1.05 * q_hi];
+    let r_data = [(0.5 * r_lo).max(0.005), R_AGEING_CEILING * r_hi.max(0.01)];
+    let loads = SplitLoads { power_w: [1.0, 1.0], current_a: [0.95 * current_a, 1.05 * current_a] };
+    let scenario = ScenarioConfig {
+        q_mobile_c: q_data,
+        r_o_ohm: r_data,
+        // A cycler charges the cell full before each discharge; a little slack for self-discharge.
+        soc0: [0.95, 1.0],
+        rest_s,
+        sample_interval_s: vec![interval_s],
+        load_kinds: vec![LoadKind::ConstantCurrent],
+        train: loads.clone(),
+        validation: loads.clone(),
+        test: loads,
+        thermal: true,
+        ambient_c: [ambient_c - 1.0, ambient_c + 1.0],
+        cutoff_v,
+        ..ScenarioConfig::default()
+    };
+    let tracker = TrackerSpec {
+        q_mobile_range_c: [0.9 * q_data[0], 1.1 * q_data[1]],
+        r_o_range_ohm: [0.5 * r_data[0], 1.1 * r_data[1]],
+        prior: Degradation { q_mobile_c: quantile(qs, 0.5), r_o_ohm: quantile(rs, 0.5) },
+        use_measured_temperature: true,
+        cutoff_v,
+        ..TrackerSpec::default()
+    };
+    let facts =
+        CellFacts { current_a, interval_s, rest_s, ambient_c, fit_q_mobile_c: [q_lo, q_hi], fit_r_o_ohm: [r_lo, r_hi] };
+    (MeasuredSpec { scenario, tracker }, facts)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bcal_common::measured::scenario::{Request, Sample};
+
+    #[test]
+    fn the_setting_follows_the_training_cycles_and_validates() {
+        let rec = |cycle: u32, dt: f64| {
+            let samples: Vec<Sample> = (0..200)
+                .map(|k| Sample {
+                    t_s: dt * k as f64,
+                    voltage_v: 4.0,
+                    current_a: if k < 2 { 0.0 } else { 2.0 },
+                    temperature_k: 297.15,
+                    request: Request::Unknown,
+                })
+                .collect();
+            CellRecord {
+                cell: "T".into(),
+                cycle,
+                source: "t".into(),
+                load_on_s: 2.0 * dt,
+                eod_s: Some(199.0 * dt),
+                current_a: 2.0,
+                data_capacity_ah: Some(1.8),
+                stated_capacity_ah: Some(1.8),
+                ambient_k: 297.15,
+                samples,
+            }
+        };
+        let train = vec![rec(1, 18.0), rec(2, 10.0), rec(3, 18.0)];
+        let fits = vec![
+            Degradation { q_mobile_c: 7000.0, r_o_ohm: 0.10 },
+            Degradation { q_mobile_c: 6800.0, r_o_ohm: 0.12 },
+            Degradation { q_mobile_c: 6600.0, r_o_ohm: 0.14 },
+        ];
+        let (spec, facts) = cell_spec(&train, &fits, 2.7);
+        assert_eq!(facts.current_a, 2.0);
+        assert_eq!(facts.interval_s, [10.0, 18.0]);
+        assert!((facts.ambient_c - 24.0).abs() < 1e-9);
+        assert_eq!(spec.scenario.q_mobile_c, [3300.0, 7350.0]);
+        assert_eq!(spec.tracker.prior, Degradation { q_mobile_c: 6800.0, r_o_ohm: 0.12 });
+        assert!(spec.tracker.use_measured_temperature && spec.scenario.thermal);
+        // A run config over the measured preset with this setting passes the config's checks.
+        let mut c = bcal_common::config::Preset::Measured.config();
+        c.measured = spec;
+        c.validate().unwrap();
+    }
+}

@@ -1,0 +1,114 @@
+//! What a calibrated model predicts for the cell: when the voltage will reach the cut-off at the
+//! discharge's current (from the calibrated state now), and the capacity, the charge a full cell delivers
+//! at that current down to the cut-off. Each with a 90 % interval from the parameters' interval: the
+//! earliest end under (least qMobile, most Ro), the latest under (most qMobile, least Ro), since the end
+//! comes sooner with less capacity and more resistance.
+
+use bcal_common::battery::{BatteryModel, Degradation, Load, LoadProfile};
+use bcal_common::math::{idx, ModelState};
+use bcal_common::measured::calibrator::{predict_eod_s, EodQuery};
+use bcal_common::measured::scenario::rest_state;
+use bcal_common::measured::tracker::Interval;
+use serde::Serialize;
+
+/// Euler step of predictions, s (the reference model's).
+pub const PREDICT_DT_S: f64 = 1.0;
+/// Longest prediction horizon, s.
+pub const PREDICT_MAX_S: f64 = 40_000.0;
+
+/// A prediction with its 90 % interval (None where the calibrator has no interval or a bound fails).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Predicted {
+    pub value: Option<f64>,
+    pub lo: Option<f64>,
+    pub hi: Option<f64>,
+}
+
+impl Predicted {
+    /// The prediction with `by` added to the value and both bounds.
+    pub fn shifted(self, by: f64) -> Self {
+        Self { value: self.value.map(|v| v + by), lo: self.lo.map(|v| v + by), hi: self.hi.map(|v| v + by) }
+    }
+}
+
+/// The parameter corners that bound the end of discharge: (earliest, latest).
+fn corners(iv: &Interval) -> (Degradation, Degradation) {
+    (
+        Degradation { q_mobile_c: iv.q_mobile_c[0], r_o_ohm: iv.r_o_ohm[1] },
+        Degradation { q_mobile_c: iv.q_mobile_c[1], r_o_ohm: iv.r_o_ohm[0] },
+    )
+}
+
+/// The predicted end of discharge (absolute time, s) from `state(d)` at `t_now_s` at `current_a`, with the
+/// interval's corners. `state` rebuilds the calibrated state under any parameters (the tracker's model).
+pub fn eod(
+    model: &BatteryModel,
+    state: &dyn Fn(&Degradation) -> Option<ModelState>,
+    d: &Degradation,
+    iv: Option<&Interval>,
+    t_now_s: f64,
+    current_a: f64,
+    cutoff_v: f64,
+) -> Predicted {
+    let profile = LoadProfile::Constant(Load::CurrentA(current_a));
+    let q = EodQuery { profile: &profile, cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
+    let at = |p: &Degradation| state(p).and_then(|x| predict_eod_s(model, &x, p, t_now_s, &q));
+    let (lo, hi) = match iv.map(corners) {
+        Some((early, late)) => (at(&early), at(&late)),
+        None => (None, None),
+    };
+    Predicted { value: at(d), lo, hi }
+}
+
+/// The capacity a full cell at rest at `t_k` delivers at `current_a` down to `cutoff_v` under `d`, Ah.
+pub fn capacity_ah(model: &BatteryModel, d: &Degradation, current_a: f64, cutoff_v: f64, t_k: f64) -> Option<f64> {
+    let x0 = rest_state(model, d, model.params.xn_max, t_k);
+    let profile = LoadProfile::Constant(Load::CurrentA(current_a));
+    let q = EodQuery { profile: &profile, cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
+    predict_eod_s(model, &x0, d, 0.0, &q).map(|t| t * current_a / 3600.0)
+}
+
+/// The capacity with the interval's corners (least capacity: least qMobile, most Ro).
+pub fn capacity(
+    model: &BatteryModel,
+    d: &Degradation,
+    iv: Option<&Interval>,
+    current_a: f64,
+    cutoff_v: f64,
+    t_k: f64,
+) -> Predicted {
+    let at = |p: &Degradation| capacity_ah(model, p, current_a, cutoff_v, t_k);
+    let (lo, hi) = match iv.map(corners) {
+        Some((small, large)) => (at(&small), at(&large)),
+        None => (None, None),
+    };
+    Predicted { value: at(d), lo, hi }
+}
+
+/// The temperature the model runs a capacity prediction at: the state's, else the ambient.
+pub fn temperature_of(x: Option<&ModelState>, ambient_k: f64) -> f64 {
+    x.map_or(ambient_k, |x| x[idx::T_B])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn capacity_falls_with_qmobile_and_with_resistance_and_the_interval_brackets_it() {
+        let m = BatteryModel::default();
+        let d = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.15 };
+        let c = capacity_ah(&m, &d, 2.0, 3.0, 298.15).unwrap();
+        assert!(c > 1.0 && c < 6000.0 / 3600.0, "{c}");
+        assert!(capacity_ah(&m, &Degradation { q_mobile_c: 5000.0, ..d }, 2.0, 3.0, 298.15).unwrap() < c);
+        assert!(capacity_ah(&m, &Degradation { r_o_ohm: 0.25, ..d }, 2.0, 3.0, 298.15).unwrap() < c);
+        let iv = Interval { q_mobile_c: [5800.0, 6200.0], r_o_ohm: [0.14, 0.16] };
+        let p = capacity(&m, &d, Some(&iv), 2.0, 3.0, 298.15);
+        assert!(p.lo.unwrap() < p.value.unwrap() && p.value.unwrap() < p.hi.unwrap(), "{p:?}");
+        // A constant-current discharge from full lasts capacity / current.
+        let x0 = |p: &Degradation| Some(rest_state(&m, p, m.params.xn_max, 298.15));
+        let e = eod(&m, &x0, &d, Some(&iv), 0.0, 2.0, 3.0);
+        assert!((e.value.unwrap() * 2.0 / 3600.0 - c).abs() < 2.0 * 2.0 / 3600.0);
+        assert!(e.lo.unwrap() < e.value.unwrap() && e.value.unwrap() < e.hi.unwrap());
+    }
+}

@@ -1,0 +1,204 @@
+//! Runs the calibrators over a cell's discharges, one reading at a time, and records at every reading the
+//! estimate, its 90 % interval, the predicted end of discharge and the predicted capacity.
+//!
+//! Streaming calibrators see each discharge as a BMS would, with no look-ahead: the RL policy and the joint
+//! UKF. The references beside them: `fit`, the doctor's offline least squares on the whole discharge (an
+//! oracle that sees the future), `uncalibrated` (a new cell's parameters), `previous_cycle` (the offline fit
+//! of the previous cycle carried over: what a calibrator that only re-fits between discharges has) and
+//! `trend` (a capacity-versus-cycle fit on the training cycles, extrapolated).
+
+use crate::predict::{self, Predicted};
+use crate::record::CellRecord;
+use bcal_common::battery::{BatteryModel, BatteryParams, Degradation};
+use bcal_common::measured::calibrator::{Calibrator, RlCalibrator, Uncalibrated};
+use bcal_common::measured::tracker::{Interval, TrackerSpec};
+use bcal_common::policy::PolicyNet;
+use bcal_eval::joint_ukf::{JointUkf, JointUkfSettings};
+use rayon::prelude::*;
+use serde::Serialize;
+
+/// The calibrators and references, by report key.
+pub const METHODS: [(&str, &str); 6] = [
+    ("rl", "RL-LAC"),
+    ("ukf", "Joint UKF"),
+    ("fit", "Offline fit (sees the future)"),
+    ("previous_cycle", "Previous cycle's fit"),
+    ("trend", "Capacity trend"),
+    ("uncalibrated", "Uncalibrated (new cell)"),
+];
+
+/// Everything recorded at one reading.
+#[derive(Clone, Debug, Serialize)]
+pub struct Step {
+    pub t_s: f64,
+    pub estimate: Degradation,
+    pub interval: Option<Interval>,
+    /// Predicted end of discharge, absolute time, s.
+    pub eod: Predicted,
+    /// Predicted capacity at the discharge's current to the cut-off, Ah.
+    pub capacity: Predicted,
+}
+
+/// One method on one discharge.
+#[derive(Clone, Debug, Serialize)]
+pub struct CycleRun {
+    pub cycle: u32,
+    pub steps: Vec<Step>,
+}
+
+/// A streaming calibrator to build per discharge.
+pub enum Streaming<'a> {
+    Rl {
+        spec: TrackerSpec,
+        net: &'a PolicyNet,
+    },
+    Ukf {
+        spec: TrackerSpec,
+        settings: JointUkfSettings,
+    },
+    /// Parameters fixed for the whole discharge (fit, previous cycle, uncalibrated), its state from the
+    /// readings as the RL calibrator's model keeps it.
+    Pinned {
+        spec: TrackerSpec,
+        d: Degradation,
+    },
+}
+
+impl Streaming<'_> {
+    fn build(&self) -> Box<dyn Calibrator + '_> {
+        match self {
+            Streaming::Rl { spec, net } => Box::new(RlCalibrator::new(spec, net)),
+            Streaming::Ukf { spec, settings } => Box::new(JointUkf::new(*settings, spec)),
+            Streaming::Pinned { spec, d } => Box::new(Uncalibrated::pinned(spec, d)),
+        }
+    }
+}
+
+/// The model predictions run on (the calibrator's own: the reference parameters).
+pub fn model() -> BatteryModel {
+    BatteryModel::new(BatteryParams::default(), false).expect("default parameters are valid")
+}
+
+/// Runs `cal` along `record`, predicting at every reading; `knee_s` is added to every predicted end of
+/// discharge (and the charge it carries to every capacity): see [`knee_offset_s`].
+pub fn run_cycle(cal: &Streaming, record: &CellRecord, cutoff_v: f64, knee_s: f64) -> CycleRun {
+    let m = model();
+    let mut c = cal.build();
+    let mut steps = Vec::with_capacity(record.samples.len());
+    for s in &record.samples {
+        c.step(s);
+        let d = c.estimate();
+        let iv = c.interval();
+        let state = |p: &Degradation| c.state_under(p);
+        let eod = predict::eod(&m, &state, &d, iv.as_ref(), s.t_s, record.current_a, cutoff_v).shifted(knee_s);
+        let t_k = predict::temperature_of(c.state().as_ref(), record.ambient_k);
+        let capacity = predict::capacity(&m, &d, iv.as_ref(), record.current_a, cutoff_v, t_k)
+            .shifted(knee_s * record.current_a / 3600.0);
+        steps.push(Step { t_s: s.t_s, estimate: d, interval: iv, eod, capacity });
+    }
+    CycleRun { cycle: record.cycle, steps }
+}
+
+/// Runs a calibrator built per record (`make(record index)`) along every record, on all cores.
+pub fn run_all<'a>(
+    records: &[CellRecord],
+    cutoff_v: f64,
+    knee_s: f64,
+    make: impl Fn(usize) -> Streaming<'a> + Sync,
+) -> Vec<CycleRun> {
+    records.par_iter().enumerate().map(|(k, r)| run_cycle(&make(k), r, cutoff_v, knee_s)).collect()
+}
+
+/// The time between the model's end of discharge and the measured one on the training cycles, s (median):
+/// the model's voltage stops falling when an electrode's surface empties (about 3.0 V at 2 A), while the
+/// real cell drops through its knee to the cut-off a little later. Each training cycle runs from a full
+/// cell under its own offline fit; cycles that did not start full, or never reached the cut-off, are
+/// left out. Zero without such cycles.
+pub fn knee_offset_s(train: &[CellRecord], fits: &[Degradation], cutoff_v: f64) -> f64 {
+    let m = model();
+    let mut offsets: Vec<f64> = train
+        .iter()
+        .zip(fits)
+        .filter_map(|(r, d)| {
+            let eod = r.eod_s?;
+            let start = r.samples.iter().find(|s| s.t_s >= r.load_on_s)?;
+            let x0 = bcal_common::measured::scenario::rest_state(&m, d, m.params.xn_max, start.temperature_k);
+            let profile =
+                bcal_common::battery::LoadProfile::Constant(bcal_common::battery::Load::CurrentA(r.current_a));
+            let q = bcal_common::measured::calibrator::EodQuery {
+                profile: &profile,
+                cutoff_v,
+                dt_s: predict::PREDICT_DT_S,
+                max_s: predict::PREDICT_MAX_S,
+            };
+            let p = bcal_common::measured::calibrator::predict_eod_s(&m, &x0, d, r.load_on_s, &q)?;
+            Some(eod - p)
+        })
+        .collect();
+    if offsets.is_empty() {
+        return 0.0;
+    }
+    offsets.sort_by(f64::total_cmp);
+    offsets[offsets.len() / 2]
+}
+
+/// Capacity against cycle number: ln C = a + b n fitted by least squares on the training cycles (an
+/// exponential fade), extrapolated to later cycles.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct Trend {
+    pub a: f64,
+    pub b: f64,
+    pub cycles: usize,
+}
+
+impl Trend {
+    pub fn fit(points: &[(u32, f64)]) -> Option<Self> {
+        let pts: Vec<(f64, f64)> =
+            points.iter().filter(|(_, c)| *c > 0.0 && c.is_finite()).map(|(n, c)| (f64::from(*n), c.ln())).collect();
+        if pts.len() < 2 {
+            return None;
+        }
+        let n = pts.len() as f64;
+        let (mx, my) = (pts.iter().map(|p| p.0).sum::<f64>() / n, pts.iter().map(|p| p.1).sum::<f64>() / n);
+        let sxx: f64 = pts.iter().map(|p| (p.0 - mx).powi(2)).sum();
+        let sxy: f64 = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+        let b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+        Some(Self { a: my - b * mx, b, cycles: pts.len() })
+    }
+
+    pub fn capacity_ah(&self, cycle: u32) -> f64 {
+        (self.a + self.b * f64::from(cycle)).exp()
+    }
+
+    /// The trend's prediction along a record: its capacity, and the end of discharge it implies (the
+    /// load-on plus capacity / current), the same at every reading.
+    pub fn run(&self, r: &CellRecord) -> CycleRun {
+        let cap = self.capacity_ah(r.cycle);
+        let eod = r.load_on_s + cap * 3600.0 / r.current_a.max(1e-9);
+        let steps = r
+            .samples
+            .iter()
+            .map(|s| Step {
+                t_s: s.t_s,
+                estimate: Degradation { q_mobile_c: f64::NAN, r_o_ohm: f64::NAN },
+                interval: None,
+                eod: Predicted { value: Some(eod), lo: None, hi: None },
+                capacity: Predicted { value: Some(cap), lo: None, hi: None },
+            })
+            .collect();
+        CycleRun { cycle: r.cycle, steps }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_trend_recovers_an_exponential_fade() {
+        let pts: Vec<(u32, f64)> = (1..=40).map(|n| (n, 1.9 * (-0.004 * f64::from(n)).exp())).collect();
+        let t = Trend::fit(&pts).unwrap();
+        assert!((t.b + 0.004).abs() < 1e-12 && (t.capacity_ah(100) - 1.9 * (-0.4f64).exp()).abs() < 1e-9);
+        assert!(Trend::fit(&[(1, 1.0)]).is_none());
+    }
+}

@@ -1,0 +1,194 @@
+//! Scores against what the cycler measured, on held-out discharges:
+//! - capacity: the calibrated model's capacity at the discharge's current down to the cut-off, predicted
+//!   from the data up to 25 / 50 / 100 % of each discharge, against the capacity the metadata states and
+//!   against the charge the data itself shows down to the same voltage (RMSE and MAE, Ah and %);
+//! - end of discharge: the predicted time the voltage reaches the cut-off, made at 10 / 50 / 90 % of each
+//!   discharge, against the measured time (median and 90th percentile of the absolute error, s and % of
+//!   the discharge's duration);
+//! - coverage: how often the 90 % intervals of those predictions hold the measured value.
+
+use crate::record::CellRecord;
+use crate::run::CycleRun;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Fractions of each discharge from which capacity is predicted, %.
+pub const CAPACITY_FRACTIONS_PCT: [u32; 3] = [25, 50, 100];
+/// Fractions of each discharge at which the end of discharge is predicted, %.
+pub const EOD_FRACTIONS_PCT: [u32; 3] = [10, 50, 90];
+
+/// Error statistics of one prediction against one measurement kind.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Errors {
+    pub n: usize,
+    pub rmse: f64,
+    pub mae: f64,
+    /// RMSE and MAE relative to the measured value, %.
+    pub rmse_pct: f64,
+    pub mae_pct: f64,
+    pub bias: f64,
+}
+
+fn errors(pairs: &[(f64, f64)]) -> Errors {
+    let n = pairs.len();
+    if n == 0 {
+        return Errors::default();
+    }
+    let nf = n as f64;
+    let e: Vec<f64> = pairs.iter().map(|(p, m)| p - m).collect();
+    let rel: Vec<f64> = pairs.iter().map(|(p, m)| 100.0 * (p - m) / m).collect();
+    Errors {
+        n,
+        rmse: (e.iter().map(|x| x * x).sum::<f64>() / nf).sqrt(),
+        mae: e.iter().map(|x| x.abs()).sum::<f64>() / nf,
+        rmse_pct: (rel.iter().map(|x| x * x).sum::<f64>() / nf).sqrt(),
+        mae_pct: rel.iter().map(|x| x.abs()).sum::<f64>() / nf,
+        bias: e.iter().sum::<f64>() / nf,
+    }
+}
+
+/// Median and 90th percentile of absolute errors.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Quantiles {
+    pub n: usize,
+    pub median: f64,
+    pub p90: f64,
+    pub mean: f64,
+}
+
+fn quantiles(mut v: Vec<f64>) -> Quantiles {
+    if v.is_empty() {
+        return Quantiles::default();
+    }
+    v.sort_by(f64::total_cmp);
+    let q = |f: f64| v[((v.len() - 1) as f64 * f).round() as usize];
+    Quantiles { n: v.len(), median: q(0.5), p90: q(0.9), mean: v.iter().sum::<f64>() / v.len() as f64 }
+}
+
+/// One method's scores.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct MethodScore {
+    /// Against the metadata's stated capacity, by fraction seen ("25", "50", "100").
+    pub capacity: BTreeMap<String, Errors>,
+    /// Against the charge the data shows down to the cut-off.
+    pub capacity_vs_data: BTreeMap<String, Errors>,
+    /// |predicted - measured end of discharge|, s, by fraction ("10", "50", "90").
+    pub eod_error_s: BTreeMap<String, Quantiles>,
+    /// The same in % of each discharge's duration (load-on to cut-off).
+    pub eod_error_pct: BTreeMap<String, Quantiles>,
+    /// Predictions whose 90 % interval holds the measurement, % (None without intervals).
+    pub coverage_90_pct: BTreeMap<String, Option<f64>>,
+    /// Predictions that failed (the model never reached the cut-off within the horizon).
+    pub failures: usize,
+}
+
+/// Scores one method's runs (`runs[k]` along `records[k]`).
+pub fn score(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
+    let mut s = MethodScore::default();
+    let (mut eod_in, mut eod_n, mut cap_in, mut cap_n) = (0usize, 0usize, 0usize, 0usize);
+    for f in CAPACITY_FRACTIONS_PCT {
+        let (mut stated, mut data) = (Vec::new(), Vec::new());
+        for (r, run) in records.iter().zip(runs) {
+            let Some(k) = r.reading_at_fraction(f64::from(f) / 100.0) else { continue };
+            let p = run.steps[k.min(run.steps.len() - 1)].capacity;
+            let Some(v) = p.value else {
+                s.failures += 1;
+                continue;
+            };
+            if let Some(m) = r.stated_capacity_ah.filter(|c| *c > 0.0) {
+                stated.push((v, m));
+            }
+            if let Some(m) = r.data_capacity_ah {
+                data.push((v, m));
+                if let (Some(lo), Some(hi)) = (p.lo, p.hi) {
+                    cap_n += 1;
+                    cap_in += usize::from(lo <= m && m <= hi);
+                }
+            }
+        }
+        s.capacity.insert(f.to_string(), errors(&stated));
+        s.capacity_vs_data.insert(f.to_string(), errors(&data));
+    }
+    for f in EOD_FRACTIONS_PCT {
+        let (mut abs_s, mut abs_pct) = (Vec::new(), Vec::new());
+        for (r, run) in records.iter().zip(runs) {
+            let (Some(eod), Some(dur), Some(k)) =
+                (r.eod_s, r.discharge_s(), r.reading_at_fraction(f64::from(f) / 100.0))
+            else {
+                continue;
+            };
+            let p = run.steps[k.min(run.steps.len() - 1)].eod;
+            let Some(v) = p.value else {
+                s.failures += 1;
+                continue;
+            };
+            abs_s.push((v - eod).abs());
+            abs_pct.push(100.0 * (v - eod).abs() / dur.max(1.0));
+            if let (Some(lo), Some(hi)) = (p.lo, p.hi) {
+                eod_n += 1;
+                eod_in += usize::from(lo <= eod && eod <= hi);
+            }
+        }
+        s.eod_error_s.insert(f.to_string(), quantiles(abs_s));
+        s.eod_error_pct.insert(f.to_string(), quantiles(abs_pct));
+    }
+    let pct = |a: usize, n: usize| (n > 0).then(|| 100.0 * a as f64 / n as f64);
+    s.coverage_90_pct.insert("eod".into(), pct(eod_in, eod_n));
+    s.coverage_90_pct.insert("capacity".into(), pct(cap_in, cap_n));
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::predict::Predicted;
+    use crate::run::Step;
+    use bcal_common::battery::Degradation;
+    use bcal_common::measured::scenario::{Request, Sample};
+
+    #[test]
+    fn scores_a_hand_made_run() {
+        let samples: Vec<Sample> = (0..11)
+            .map(|k| Sample {
+                t_s: 100.0 * k as f64,
+                voltage_v: 4.0,
+                current_a: 2.0,
+                temperature_k: 298.0,
+                request: Request::Unknown,
+            })
+            .collect();
+        let r = CellRecord {
+            cell: "T".into(),
+            cycle: 1,
+            source: "t".into(),
+            samples,
+            load_on_s: 0.0,
+            eod_s: Some(1000.0),
+            current_a: 2.0,
+            data_capacity_ah: Some(1.0),
+            stated_capacity_ah: Some(1.1),
+            ambient_k: 298.0,
+        };
+        // Predicts an end 50 s late with an interval of +-100 s and a capacity of 1.2 Ah within [1.1, 1.3].
+        let steps = r
+            .samples
+            .iter()
+            .map(|s| Step {
+                t_s: s.t_s,
+                estimate: Degradation::default(),
+                interval: None,
+                eod: Predicted { value: Some(1050.0), lo: Some(950.0), hi: Some(1150.0) },
+                capacity: Predicted { value: Some(1.2), lo: Some(1.1), hi: Some(1.3) },
+            })
+            .collect();
+        let s = score(std::slice::from_ref(&r), &[CycleRun { cycle: 1, steps }]);
+        assert!((s.capacity["50"].rmse - 0.1).abs() < 1e-12);
+        assert!((s.capacity_vs_data["50"].mae - 0.2).abs() < 1e-12);
+        assert!((s.capacity_vs_data["50"].rmse_pct - 20.0).abs() < 1e-9);
+        assert_eq!(s.eod_error_s["90"].median, 50.0);
+        assert!((s.eod_error_pct["10"].p90 - 5.0).abs() < 1e-12);
+        assert_eq!(s.coverage_90_pct["eod"], Some(100.0));
+        // 1.0 Ah measured lies outside [1.1, 1.3].
+        assert_eq!(s.coverage_90_pct["capacity"], Some(0.0));
+    }
+}
