@@ -4,6 +4,7 @@
 #
 #   launch/run.sh [--preset measured|paper-tuned|paper] [--budget-s SECONDS] [--seeds N] [--actors N]
 #                 [--name NAME] [--experiment single-q|single-r|multi]
+#   launch/run.sh --cell ID [--data PATH] [--train-cycles A..B] [--cutoff-v V] [--budget-s SECONDS] [--name NAME]
 #
 # Defaults: preset measured (calibration from what a battery management system measures: voltage, current and
 # temperature through a sensor, any starting charge, changing loads), budget 900 s, one seed, one actor per
@@ -11,6 +12,10 @@
 # (hyperparameters tuned on its validation split) or --preset paper (the paper's own), with --experiment.
 # With --seeds N (N >= 2) it trains and evaluates seeds 1..N into runs/<name>-s<k> and prints their summary
 # (mean, spread and every run's value) from runs/<name>-summary/.
+# With --cell ID: a real cell (default data ../shared/data/nasa-pcoe, training cycles 1..40): the doctor
+# diagnoses the training cycles, a measured-only policy is trained for the cell's own setting (bcal
+# cell-config), and bcal calibrate runs it, the joint UKF and the references on the held-out cycles and
+# scores them against the cycler (runs/<name>/calibration/calibration.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -20,7 +25,11 @@ budget_s=900
 seeds=1
 actors=""
 name=""
-usage() { sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'; }
+cell=""
+data="../shared/data/nasa-pcoe"
+train_cycles="1..40"
+cutoff_args=()
+usage() { sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; }
 while [ $# -gt 0 ]; do
   case "$1" in
     --experiment) experiment="${2:?--experiment needs a value}"; shift 2 ;;
@@ -29,6 +38,10 @@ while [ $# -gt 0 ]; do
     --seeds) seeds="${2:?--seeds needs a value}"; shift 2 ;;
     --actors) actors="${2:?--actors needs a value}"; shift 2 ;;
     --name) name="${2:?--name needs a value}"; shift 2 ;;
+    --cell) cell="${2:?--cell needs a value}"; shift 2 ;;
+    --data) data="${2:?--data needs a value}"; shift 2 ;;
+    --train-cycles) train_cycles="${2:?--train-cycles needs a value}"; shift 2 ;;
+    --cutoff-v) cutoff_args=(--cutoff-v "${2:?--cutoff-v needs a value}"); shift 2 ;;
     -h|--help) usage; exit 0 ;;
     *) echo "run.sh: unknown argument '$1'" >&2; usage >&2; exit 2 ;;
   esac
@@ -39,19 +52,42 @@ if [ "$preset" = measured ] && [ "$experiment" != multi ]; then
   echo "run.sh: the measured setting calibrates qMobile and Ro together (--experiment multi)" >&2; exit 2
 fi
 case "$seeds" in ''|*[!0-9]*|0) echo "run.sh: --seeds must be a whole number >= 1" >&2; exit 2 ;; esac
-[ -n "$name" ] || name="$preset-$(date -u +%Y%m%d-%H%M%S)"
+if [ -n "$cell" ]; then
+  [ -e "$data" ] || { echo "run.sh: no data at $data (pass --data PATH: a NASA PCoE folder or a CSV)" >&2; exit 2; }
+  [ -n "$name" ] || name="cell-$cell-$(date -u +%Y%m%d-%H%M%S)"
+else
+  [ -n "$name" ] || name="$preset-$(date -u +%Y%m%d-%H%M%S)"
+fi
 
 echo "== libtorch"
 bash launch/setup-libtorch.sh
 echo "== build (release)"
 cargo build --release --bins --workspace
 bin=target/release
+actor_args=()
+[ -z "$actors" ] || actor_args=(--actors "$actors")
+
+if [ -n "$cell" ]; then
+  run="runs/$name"
+  mkdir -p "$run"
+  echo "== diagnose the training cycles of $cell ($train_cycles)"
+  "$bin/bcal" diagnose --data "$data" --cell "$cell" --cycles "$train_cycles" "${cutoff_args[@]}" --out "$run/diagnosis"
+  echo "== the cell's training setting"
+  "$bin/bcal" cell-config --data "$data" --cell "$cell" --train-cycles "$train_cycles" "${cutoff_args[@]}" \
+    --budget-s "$budget_s" --out "$run/cell.toml"
+  echo "== train (the cell's setting, budget ${budget_s} s)"
+  "$bin/bcal" train --config "$run/cell.toml" --seed 1 "${actor_args[@]}" --run "$run/train"
+  echo "== calibrate the held-out cycles"
+  "$bin/bcal" calibrate --data "$data" --cell "$cell" --train-cycles "$train_cycles" "${cutoff_args[@]}" \
+    --calibrator "rl:$run/train,ukf,fit" --out "$run/calibration"
+  echo
+  echo "report: $run/calibration/calibration.md (calibration.json, plots, readings/); diagnosis: $run/diagnosis/diagnosis.md"
+  exit 0
+fi
 if [ "$preset" != measured ]; then
   echo "== data set"
   "$bin/bcal" dataset generate --experiment "$experiment"
 fi
-actor_args=()
-[ -z "$actors" ] || actor_args=(--actors "$actors")
 
 runs=()
 for seed in $(seq 1 "$seeds"); do

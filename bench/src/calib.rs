@@ -13,6 +13,7 @@ use bcal_common::config::TrainConfig;
 use bcal_common::dataset::{Dataset, Experiment, Trajectory};
 use bcal_common::math::ModelState;
 use bcal_common::mdp::{model_state_at, MdpSpec};
+use bcal_common::measured::calibrator::Calibrator;
 use bcal_common::policy::{PolicyLayout, PolicyNet, Scratch};
 use bcal_eval::direct::{self, DirectMap};
 use bcal_eval::evaluate::{median_of, spread_by_load, step_cycle, time_net, time_per_call_us, TIMING_REPEATS};
@@ -62,6 +63,61 @@ fn actor_pair(obs_dim: usize, act_dim: usize, hidden: &[usize]) -> anyhow::Resul
     let lac = Lac::new(&v, layout.clone(), 1).context("building the tch actor")?;
     let net = PolicyNet::from_flat(layout, lac.actor_flat_params())?;
     Ok((lac, net))
+}
+
+/// The measured-only setting's steps, per reading, on the default setting's test cells (3 mV noise): the RL
+/// environment's step (what an actor pays per transition), the RL calibrator's step (tracker + 128x128
+/// policy), the window fit's and the joint UKF's (default settings; the evaluator times the tuned one).
+fn measured_rows(steps: usize, push: &mut dyn FnMut(String, String, f64, usize)) -> anyhow::Result<()> {
+    use bcal_common::dataset::Split;
+    use bcal_common::measured::calibrator::{RlCalibrator, WindowFitCalibrator};
+    use bcal_common::measured::env::{MeasuredEnv, MeasuredSpec};
+    use bcal_common::measured::scenario::episode_set;
+    use bcal_common::measured::tracker::OBS_DIM;
+    use bcal_eval::joint_ukf::{JointUkf, JointUkfSettings};
+
+    let spec = MeasuredSpec::default();
+    let episodes = episode_set(&spec.scenario, Split::Test, 4).context("simulating the measured test cells")?;
+    let readings: usize = episodes.iter().map(|e| e.samples.len()).sum();
+    anyhow::ensure!(readings > 0, "the measured test cells have no readings to time on");
+
+    let mut env = MeasuredEnv::new(&spec, 1);
+    let mut obs = [0f32; OBS_DIM];
+    let n = steps.min(20_000);
+    let us = time_per_call_us(n, |_| {
+        black_box(env.step(&spec, &[0.0, 0.0], &mut obs));
+    });
+    push("measured_env".into(), "measured-only RL environment step (sensor + tracker + cost)".into(), us, n);
+
+    let layout = PolicyLayout { obs_dim: OBS_DIM, act_dim: 2, hidden: HIDDEN_DEFAULT.to_vec() };
+    let net = PolicyNet::from_flat(layout.clone(), vec![0.01; layout.n_params()])?;
+    let flat: Vec<(usize, &bcal_common::measured::scenario::Sample)> =
+        episodes.iter().flat_map(|e| e.samples.iter().enumerate()).collect();
+    let t = &spec.tracker;
+    let us = time_readings(&flat, n, &|| Box::new(RlCalibrator::new(t, &net)));
+    push("measured_rl".into(), "measured-only RL calibrator step (tracker + 128x128 policy)".into(), us, n);
+    let us = time_readings(&flat, n, &|| Box::new(WindowFitCalibrator::new(t)));
+    push("measured_window_fit".into(), "measured-only window fit step (Gauss-Newton, 2 params)".into(), us, n);
+    let us = time_readings(&flat, n, &|| Box::new(JointUkf::new(JointUkfSettings::default(), t)));
+    push("measured_joint_ukf".into(), "joint UKF step (9 states, 19 sigma points, default settings)".into(), us, n);
+    Ok(())
+}
+
+/// us per reading of calibrators built by `make`, one fresh calibrator per cell (readings with index 0).
+fn time_readings<'a>(
+    flat: &[(usize, &bcal_common::measured::scenario::Sample)],
+    n: usize,
+    make: &dyn Fn() -> Box<dyn Calibrator + 'a>,
+) -> f64 {
+    let mut cal = make();
+    time_per_call_us(n, |i| {
+        let (k, s) = flat[i % flat.len()];
+        if k == 0 {
+            cal = make();
+        }
+        cal.step(s);
+        black_box(cal.estimate());
+    })
 }
 
 /// Times every calibrator step on test trajectories `ds`; `steps` per row (the model unit gets 20 times as
@@ -138,6 +194,8 @@ pub fn measure(
         median_of(reps),
         ukf_steps,
     );
+
+    measured_rows(steps, &mut |key, label, us, calls| push(&mut rows, key, label, us, calls))?;
 
     // RL policy: pure Rust batch 1 (the actors' and the evaluator's path) and the tch actor.
     let at = step_cycle(&trajs);

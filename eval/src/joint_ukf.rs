@@ -357,6 +357,31 @@ impl JointUkf {
     pub fn state(&self) -> ModelState {
         self.state_of(&self.z)
     }
+
+    /// The filter's mean state given the parameters `d`: the Gaussian conditional mean of the seven states
+    /// on (zq, zr) = d, x + P_xp P_pp^-1 (p - p_mean). The filter's charges are absolute, so another
+    /// qMobile means another state of charge too, and predictions under an interval's corners (where the
+    /// state is re-read under each corner) must move both as the filter's covariance links them.
+    pub fn state_given(&self, d: &Degradation) -> ModelState {
+        if !self.started {
+            return self.state();
+        }
+        let target = self.spec.to_z(d);
+        let dp = nalgebra::Vector2::new(target[0] - self.z[7], target[1] - self.z[8]);
+        let ppp = self.p.fixed_view::<2, 2>(7, 7).into_owned();
+        let Some(inv) = ppp.try_inverse() else {
+            return self.state();
+        };
+        let pxp = self.p.fixed_view::<7, 2>(0, 7).into_owned();
+        let dx = pxp * (inv * dp);
+        let mut z = self.z;
+        for k in 0..7 {
+            z[k] += dx[k];
+        }
+        z[7] = target[0];
+        z[8] = target[1];
+        self.state_of(&z)
+    }
 }
 
 #[cfg(test)]

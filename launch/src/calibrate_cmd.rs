@@ -107,6 +107,44 @@ pub fn read(
     Ok(ds)
 }
 
+/// The policy files of `rl:RUN`: a run folder's checkpoints (best and last by each criterion, duplicates
+/// dropped; the validation cycles choose one), or the one file given.
+fn policy_candidates(p: &Path) -> anyhow::Result<Vec<(PolicyFile, String)>> {
+    let files: Vec<PathBuf> = if p.is_dir() {
+        let v: Vec<PathBuf> = POLICY_CANDIDATES.iter().map(|f| p.join(f)).filter(|f| f.is_file()).collect();
+        if v.is_empty() {
+            bail!(
+                "no policy file in {} (expected {}): train it first (bcal train --run DIR)",
+                p.display(),
+                POLICY_CANDIDATES.join(", ")
+            );
+        }
+        v
+    } else {
+        vec![p.to_path_buf()]
+    };
+    let mut out: Vec<(PolicyFile, String)> = Vec::new();
+    for f in files {
+        let pf = PolicyFile::load(&f).with_context(|| format!("the RL policy {}", f.display()))?;
+        if pf.task.measured().is_none() {
+            bail!(
+                "the policy {} was trained on the {} observation; bcal calibrate runs measured-only policies \
+                 (train one with bcal cell-config and bcal train --config)",
+                f.display(),
+                pf.task.observation_name()
+            );
+        }
+        if !out.iter().any(|(o, _)| o.update_step == pf.update_step) {
+            out.push((pf, f.display().to_string()));
+        }
+    }
+    Ok(out)
+}
+
+/// The policy files a run folder can hold, in order of preference on a tie.
+const POLICY_CANDIDATES: [&str; 4] =
+    [POLICY_BEST, "policy.best-tracking-error.bcalpol", "policy.best-nrmse.bcalpol", "policy.bcalpol"];
+
 /// The cut-off: given, else the documented protocol of a NASA cell, else refused with what to do.
 fn cutoff(given: Option<f64>, data: &Path, cell: &str) -> anyhow::Result<(f64, String)> {
     if let Some(v) = given {
@@ -139,35 +177,29 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         judged.retain(|d| (d.cycle - first) % a.stride == 0);
     }
     // The calibrators asked for.
-    let mut policy: Option<(PolicyFile, String)> = None;
+    let mut policies: Vec<(PolicyFile, String)> = Vec::new();
     let (mut ukf, mut fit) = (false, false);
     for c in &a.calibrator {
         match c.trim() {
             "ukf" => ukf = true,
             "fit" => fit = true,
-            s if s.starts_with("rl:") => {
-                let p = PathBuf::from(&s[3..]);
-                let file = if p.is_dir() { p.join(POLICY_BEST) } else { p };
-                let pf = PolicyFile::load(&file).with_context(|| format!("the RL policy {}", file.display()))?;
-                policy = Some((pf, file.display().to_string()));
-            }
+            s if s.starts_with("rl:") => policies = policy_candidates(Path::new(&s[3..]))?,
             other => bail!("unknown calibrator `{other}`: use rl:RUN, ukf or fit (comma separated)"),
         }
     }
-    // The RL run's own cell setting (its simulated cells) sets up the UKF too, so both are tuned alike.
-    let spec = policy.as_ref().and_then(|(pf, _)| pf.task.measured().cloned());
+    // The RL run's own cell setting (its simulated cells) sets up the UKF too, so both run the same model.
+    let spec = policies.first().and_then(|(pf, _)| pf.task.measured().cloned());
     let input = CalibrateInput {
         cell: a.cell.clone(),
         train,
         judged,
         cutoff_v: cut,
         cutoff_source: cut_source,
-        policy: policy.as_ref().map(|(pf, p)| (pf, p.clone())),
+        policies: policies.iter().map(|(pf, p)| (pf, p.clone())).collect(),
         ukf,
         fit,
         spec,
-        ukf_grid: if a.quick { JointUkfGrid::quick() } else { JointUkfGrid::default() },
-        validation_cells: if a.quick { 12 } else { 48 },
+        ukf_grid: if a.quick { JointUkfGrid::real_cells_quick() } else { JointUkfGrid::real_cells() },
     };
     let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
     cal.report.seconds = started.elapsed().as_secs_f64();

@@ -1,25 +1,24 @@
 //! `bcal calibrate`'s work, top to bottom: prepare the training and judged discharges (readings up to the
 //! cut-off), fit every one offline with the doctor (the `fit` oracle and the previous-cycle reference),
-//! fit the capacity trend on the training cycles, set up the streaming calibrators on the cell's own
-//! simulated validation cells (the joint UKF's settings, the RL interval scale), run every method along
+//! fit the capacity trend on the training cycles, set up the streaming calibrators on validation cycles
+//! (the last training cycles: the joint UKF's settings, the RL policy file, both interval scales; see
+//! [`crate::tune`]), run every method along
 //! every judged discharge, score them against the cycler and assemble the report. Progress goes to a
 //! callback; nothing here prints.
 
 use crate::cellspec::{cell_spec, CellFacts};
 use crate::record::{prepare, CellRecord, RecordSummary};
 use crate::report::{CalibrationReport, MethodEntry};
-use crate::run::{run_all, CycleRun, Streaming, Trend};
+use crate::run::{run_all, run_sequence, CycleRun, Streaming, Trend};
 use crate::score::score;
+use crate::tune;
 use bcal_common::battery::Degradation;
-use bcal_common::dataset::Split;
-use bcal_common::measured::calibrator::{Calibrator, RlCalibrator};
 use bcal_common::measured::env::MeasuredSpec;
-use bcal_common::measured::scenario::episode_set;
 use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::policy::PolicyFile;
 use bcal_doctor::fit::{refit_cycles, FitConfig, FitRecord};
 use bcal_doctor::Discharge;
-use bcal_eval::measured_eval::{interval_scale_on, tune_joint_ukf, JointUkfGrid, Make};
+use bcal_eval::measured_eval::JointUkfGrid;
 use std::collections::BTreeMap;
 use std::time::Instant;
 
@@ -32,15 +31,15 @@ pub struct CalibrateInput<'a> {
     pub judged: Vec<Discharge>,
     pub cutoff_v: f64,
     pub cutoff_source: String,
-    /// The RL policy and where it came from.
-    pub policy: Option<(&'a PolicyFile, String)>,
+    /// The RL policy candidates (a run's checkpoints) and where each came from: the validation cycles
+    /// choose one.
+    pub policies: Vec<(&'a PolicyFile, String)>,
     pub ukf: bool,
     pub fit: bool,
     /// The cell's setting (None: derived from the training cycles here).
     pub spec: Option<MeasuredSpec>,
-    /// The joint UKF's search space and the validation cells everything is chosen on.
+    /// The joint UKF's search space (chosen on the validation cycles).
     pub ukf_grid: JointUkfGrid,
-    pub validation_cells: usize,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -51,7 +50,7 @@ pub enum CalibrateError {
     NothingToJudge(String),
     #[error("the doctor's fit failed: {0}")]
     Fit(#[from] bcal_doctor::DoctorError),
-    #[error("cannot simulate the cell's validation cells: {0}")]
+    #[error("{0}")]
     Validation(String),
     #[error("policy: {0}")]
     Policy(#[from] bcal_common::policy::PolicyError),
@@ -135,8 +134,6 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // The cell's setting: given (the RL run's), else derived from the training cycles.
     let (derived, facts) = cell_spec(&train, &train_fits, cut);
     let spec = input.spec.clone().unwrap_or(derived);
-    let validation = episode_set(&spec.scenario, Split::Validation, input.validation_cells)
-        .map_err(|e| CalibrateError::Validation(e.to_string()))?;
 
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
@@ -148,44 +145,93 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             and, times the current, to every capacity"}),
     );
 
-    // RL: the policy's own calibrator, its interval scale chosen on the cell's validation cells.
-    if let Some((pf, path)) = &input.policy {
-        let Some(task) = pf.task.measured() else {
-            return Err(CalibrateError::PolicyTask { path: path.clone(), observation: pf.task.observation_name() });
-        };
-        let net = pf.net()?;
-        let unit = TrackerSpec { interval_scale: 1.0, ..task.tracker.clone() };
-        let make: Make = Box::new(|| Box::new(RlCalibrator::new(&unit, &net)) as Box<dyn Calibrator>);
-        let scale = interval_scale_on(&unit, &validation, &make);
-        let rl_spec = TrackerSpec { interval_scale: scale, ..task.tracker.clone() };
+    // Every choice of the streaming calibrators is made on the last training cycles.
+    let validation = tune::validation_records(&train);
+    if (input.ukf || !input.policies.is_empty()) && validation.is_empty() {
+        return Err(CalibrateError::Validation(format!(
+            "the streaming calibrators' settings are chosen on the last training cycles, and {} of the training \
+             cycles reach the {cut} V cut-off (at least {} are needed): widen --train-cycles",
+            train.iter().filter(|r| r.eod_s.is_some()).count(),
+            2 * tune::MIN_VALIDATION
+        )));
+    }
+
+    // RL: the run's policy files, the one the validation cycles prefer.
+    if !input.policies.is_empty() {
+        let mut cands = Vec::new();
+        let mut nets = Vec::new();
+        for (pf, path) in &input.policies {
+            let Some(task) = pf.task.measured() else {
+                return Err(CalibrateError::PolicyTask { path: path.clone(), observation: pf.task.observation_name() });
+            };
+            let net = pf.net()?;
+            let mut widths = vec![task.tracker.prior_std_z];
+            widths.extend(tune::RL_PRIOR_STD_Z.iter().filter(|w| **w != task.tracker.prior_std_z));
+            for w in widths {
+                let unit = TrackerSpec { interval_scale: 1.0, prior_std_z: w, ..task.tracker.clone() };
+                nets.push((net.clone(), unit, path.clone(), pf.update_step));
+            }
+        }
+        for (net, unit, path, update) in &nets {
+            cands.push((
+                format!("{path} (update {update}), prior_std_z {}", unit.prior_std_z),
+                Streaming::Rl { spec: unit.clone(), net },
+            ));
+        }
         progress(&format!(
-            "RL-LAC: policy {path} (update {}), 90 % interval scale {scale:.2} (cell validation cells)",
-            pf.update_step
+            "RL-LAC: choosing among {} policy files on {} validation cycles",
+            cands.len(),
+            validation.len()
+        ));
+        let choice = tune::choose(&cands, &validation, cut, knee_s).expect("candidates and validation checked");
+        let (net, unit, path, update) = &nets[choice.index];
+        progress(&format!(
+            "RL-LAC: policy {path} (update {update}, prior_std_z {}); validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
+            unit.prior_std_z,
+            choice.candidates[0].eod_error_pct,
+            choice.interval_scale,
+            choice.validation_eod_coverage_pct.map_or("-".into(), |c| format!("{c:.0} %"))
         ));
         let t0 = Instant::now();
-        let r = run_all(&judged, cut, knee_s, |_| Streaming::Rl { spec: rl_spec.clone(), net: &net });
+        let cal = Streaming::Rl { spec: unit.clone(), net };
+        let cal = choice.last_estimate.map_or_else(|| cal.with_prior(&unit.prior), |d| cal.with_prior(&d));
+        let r = run_sequence(&cal, &judged, cut, knee_s, &[choice.interval_scale], false).0.remove(0);
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("rl", r));
         settings.insert(
             "rl".into(),
-            serde_json::json!({"policy_file": path, "update_step": pf.update_step, "interval_scale": scale,
-                "tracker": rl_spec}),
+            serde_json::json!({"policy_file": path, "update_step": update, "validation": choice, "tracker": unit}),
         );
     }
-    // The joint UKF, tuned on the same validation cells.
+    // The joint UKF: the grid's settings, chosen the same way.
     if input.ukf {
+        let grid = input.ukf_grid.candidates();
         progress(&format!(
-            "joint UKF: tuning {} settings on {} validation cells",
-            input.ukf_grid.candidates().len(),
+            "joint UKF: choosing among {} settings on {} validation cycles",
+            grid.len(),
             validation.len()
         ));
-        let tuning = tune_joint_ukf(&spec.tracker, &validation, &input.ukf_grid);
+        let cands: Vec<(String, Streaming)> = grid
+            .iter()
+            .map(|g| (format!("{g:?}"), Streaming::Ukf { spec: spec.tracker.clone(), settings: *g }))
+            .collect();
+        let choice = tune::choose(&cands, &validation, cut, knee_s).expect("candidates and validation checked");
+        let best = grid[choice.index];
+        progress(&format!(
+            "joint UKF: validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
+            choice.candidates[0].eod_error_pct,
+            choice.interval_scale,
+            choice.validation_eod_coverage_pct.map_or("-".into(), |c| format!("{c:.0} %"))
+        ));
         let t0 = Instant::now();
-        let ukf_spec = spec.tracker.clone();
-        let r = run_all(&judged, cut, knee_s, |_| Streaming::Ukf { spec: ukf_spec.clone(), settings: tuning.best });
+        let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: best };
+        let cal = choice.last_estimate.map_or_else(|| cal.with_prior(&spec.tracker.prior), |d| cal.with_prior(&d));
+        let r = run_sequence(&cal, &judged, cut, knee_s, &[choice.interval_scale], false).0.remove(0);
         progress(&format!("joint UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("ukf", r));
-        settings.insert("ukf".into(), serde_json::to_value(&tuning).unwrap_or_default());
+        let mut top = choice.clone();
+        top.candidates.truncate(5);
+        settings.insert("ukf".into(), serde_json::json!({"settings": best, "validation": top}));
     }
     // The references.
     let pinned = |ds: Vec<Degradation>| {

@@ -13,3 +13,4 @@ pub mod record;
 pub mod report;
 pub mod run;
 pub mod score;
+pub mod tune;

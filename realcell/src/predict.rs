@@ -31,6 +31,14 @@ impl Predicted {
     }
 }
 
+/// Bounds in order: near the empty point the corners' ends can swap by a step of the prediction's grid.
+fn ordered(lo: Option<f64>, hi: Option<f64>) -> Predicted {
+    match (lo, hi) {
+        (Some(a), Some(b)) => Predicted { value: None, lo: Some(a.min(b)), hi: Some(a.max(b)) },
+        _ => Predicted { value: None, lo, hi },
+    }
+}
+
 /// The parameter corners that bound the end of discharge: (earliest, latest).
 fn corners(iv: &Interval) -> (Degradation, Degradation) {
     (
@@ -50,14 +58,38 @@ pub fn eod(
     current_a: f64,
     cutoff_v: f64,
 ) -> Predicted {
+    let value = eod_at(model, state, d, t_now_s, current_a, cutoff_v);
+    Predicted { value, ..eod_bounds(model, state, iv, t_now_s, current_a, cutoff_v) }
+}
+
+fn eod_at(
+    model: &BatteryModel,
+    state: &dyn Fn(&Degradation) -> Option<ModelState>,
+    d: &Degradation,
+    t_now_s: f64,
+    current_a: f64,
+    cutoff_v: f64,
+) -> Option<f64> {
     let profile = LoadProfile::Constant(Load::CurrentA(current_a));
     let q = EodQuery { profile: &profile, cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
-    let at = |p: &Degradation| state(p).and_then(|x| predict_eod_s(model, &x, p, t_now_s, &q));
+    state(d).and_then(|x| predict_eod_s(model, &x, d, t_now_s, &q))
+}
+
+/// Only the interval of [`eod`] (value None): the ends under the interval's corners.
+pub fn eod_bounds(
+    model: &BatteryModel,
+    state: &dyn Fn(&Degradation) -> Option<ModelState>,
+    iv: Option<&Interval>,
+    t_now_s: f64,
+    current_a: f64,
+    cutoff_v: f64,
+) -> Predicted {
+    let at = |p: &Degradation| eod_at(model, state, p, t_now_s, current_a, cutoff_v);
     let (lo, hi) = match iv.map(corners) {
         Some((early, late)) => (at(&early), at(&late)),
         None => (None, None),
     };
-    Predicted { value: at(d), lo, hi }
+    ordered(lo, hi)
 }
 
 /// The capacity a full cell at rest at `t_k` delivers at `current_a` down to `cutoff_v` under `d`, Ah.
@@ -77,12 +109,26 @@ pub fn capacity(
     cutoff_v: f64,
     t_k: f64,
 ) -> Predicted {
+    Predicted {
+        value: capacity_ah(model, d, current_a, cutoff_v, t_k),
+        ..capacity_bounds(model, iv, current_a, cutoff_v, t_k)
+    }
+}
+
+/// Only the interval of [`capacity`] (value None).
+pub fn capacity_bounds(
+    model: &BatteryModel,
+    iv: Option<&Interval>,
+    current_a: f64,
+    cutoff_v: f64,
+    t_k: f64,
+) -> Predicted {
     let at = |p: &Degradation| capacity_ah(model, p, current_a, cutoff_v, t_k);
     let (lo, hi) = match iv.map(corners) {
         Some((small, large)) => (at(&small), at(&large)),
         None => (None, None),
     };
-    Predicted { value: at(d), lo, hi }
+    ordered(lo, hi)
 }
 
 /// The temperature the model runs a capacity prediction at: the state's, else the ambient.

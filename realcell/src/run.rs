@@ -64,7 +64,21 @@ pub enum Streaming<'a> {
     },
 }
 
-impl Streaming<'_> {
+impl<'a> Streaming<'a> {
+    /// The same calibrator starting from `prior` (kept inside its ranges): how a streaming calibrator
+    /// carries what it learnt on one discharge into the next. Pinned references are unchanged.
+    pub fn with_prior(&self, prior: &Degradation) -> Streaming<'a> {
+        let moved = |spec: &TrackerSpec| {
+            let z = spec.to_z(prior);
+            TrackerSpec { prior: spec.from_z(z), ..spec.clone() }
+        };
+        match self {
+            Streaming::Rl { spec, net } => Streaming::Rl { spec: moved(spec), net },
+            Streaming::Ukf { spec, settings } => Streaming::Ukf { spec: moved(spec), settings: *settings },
+            Streaming::Pinned { spec, d } => Streaming::Pinned { spec: spec.clone(), d: *d },
+        }
+    }
+
     fn build(&self) -> Box<dyn Calibrator + '_> {
         match self {
             Streaming::Rl { spec, net } => Box::new(RlCalibrator::new(spec, net)),
@@ -79,34 +93,129 @@ pub fn model() -> BatteryModel {
     BatteryModel::new(BatteryParams::default(), false).expect("default parameters are valid")
 }
 
-/// Runs `cal` along `record`, predicting at every reading; `knee_s` is added to every predicted end of
-/// discharge (and the charge it carries to every capacity): see [`knee_offset_s`].
-pub fn run_cycle(cal: &Streaming, record: &CellRecord, cutoff_v: f64, knee_s: f64) -> CycleRun {
+/// The interval widened (scale > 1) or narrowed about the estimate, kept physical (qMobile > 0, Ro >= 0):
+/// how a calibrator's own interval is calibrated to cover 90 % of measured ends of discharge.
+pub fn scale_interval(iv: &Interval, d: &Degradation, scale: f64) -> Interval {
+    let s =
+        |[lo, hi]: [f64; 2], est: f64, floor: f64| [(est - scale * (est - lo)).max(floor), est + scale * (hi - est)];
+    Interval { q_mobile_c: s(iv.q_mobile_c, d.q_mobile_c, 1.0), r_o_ohm: s(iv.r_o_ohm, d.r_o_ohm, 0.0) }
+}
+
+/// Runs `cal` along `record`, predicting at every reading with the calibrator's interval times `scale`;
+/// `knee_s` is added to every predicted end of discharge (and the charge it carries to every capacity):
+/// see [`knee_offset_s`].
+pub fn run_cycle(cal: &Streaming, record: &CellRecord, cutoff_v: f64, knee_s: f64, scale: f64) -> CycleRun {
+    run_cycle_with(cal, record, cutoff_v, knee_s, &[scale], None).pop().expect("one scale, one run")
+}
+
+/// The reading indices the scores read (every fraction of [`crate::score`]).
+pub fn checkpoints(record: &CellRecord) -> Vec<usize> {
+    let mut v: Vec<usize> = crate::score::CAPACITY_FRACTIONS_PCT
+        .iter()
+        .chain(crate::score::EOD_FRACTIONS_PCT.iter())
+        .filter_map(|f| record.reading_at_fraction(f64::from(*f) / 100.0))
+        .map(|k| k.min(record.samples.len().saturating_sub(1)))
+        .collect();
+    v.sort_unstable();
+    v.dedup();
+    v
+}
+
+/// One run of `cal` along `record` per interval scale, predicting at the readings `only` (sorted; the
+/// other readings keep the estimate and no prediction) or at every reading. The calibrator runs once.
+pub fn run_cycle_with(
+    cal: &Streaming,
+    record: &CellRecord,
+    cutoff_v: f64,
+    knee_s: f64,
+    scales: &[f64],
+    only: Option<&[usize]>,
+) -> Vec<CycleRun> {
     let m = model();
     let mut c = cal.build();
-    let mut steps = Vec::with_capacity(record.samples.len());
-    for s in &record.samples {
+    let mut runs: Vec<CycleRun> = scales
+        .iter()
+        .map(|_| CycleRun { cycle: record.cycle, steps: Vec::with_capacity(record.samples.len()) })
+        .collect();
+    let cap_shift = knee_s * record.current_a / 3600.0;
+    for (k, s) in record.samples.iter().enumerate() {
         c.step(s);
         let d = c.estimate();
         let iv = c.interval();
+        let predict_here = only.is_none_or(|o| o.binary_search(&k).is_ok());
         let state = |p: &Degradation| c.state_under(p);
-        let eod = predict::eod(&m, &state, &d, iv.as_ref(), s.t_s, record.current_a, cutoff_v).shifted(knee_s);
         let t_k = predict::temperature_of(c.state().as_ref(), record.ambient_k);
-        let capacity = predict::capacity(&m, &d, iv.as_ref(), record.current_a, cutoff_v, t_k)
-            .shifted(knee_s * record.current_a / 3600.0);
-        steps.push(Step { t_s: s.t_s, estimate: d, interval: iv, eod, capacity });
+        // The central predictions do not depend on the scale: computed once.
+        let (eod_mid, cap_mid) = if predict_here {
+            (
+                predict::eod(&m, &state, &d, None, s.t_s, record.current_a, cutoff_v).value,
+                predict::capacity(&m, &d, None, record.current_a, cutoff_v, t_k).value,
+            )
+        } else {
+            (None, None)
+        };
+        for (run, &scale) in runs.iter_mut().zip(scales) {
+            let iv = iv.map(|iv| scale_interval(&iv, &d, scale));
+            let (mut eod, mut capacity) = (Predicted::default(), Predicted::default());
+            if predict_here {
+                eod = predict::eod_bounds(&m, &state, iv.as_ref(), s.t_s, record.current_a, cutoff_v);
+                eod.value = eod_mid;
+                capacity = predict::capacity_bounds(&m, iv.as_ref(), record.current_a, cutoff_v, t_k);
+                capacity.value = cap_mid;
+            }
+            run.steps.push(Step {
+                t_s: s.t_s,
+                estimate: d,
+                interval: iv,
+                eod: eod.shifted(knee_s),
+                capacity: capacity.shifted(cap_shift),
+            });
+        }
     }
-    CycleRun { cycle: record.cycle, steps }
+    runs
 }
 
-/// Runs a calibrator built per record (`make(record index)`) along every record, on all cores.
+/// Runs a reference built per record (`make(record index)`) along every record, on all cores.
 pub fn run_all<'a>(
     records: &[CellRecord],
     cutoff_v: f64,
     knee_s: f64,
     make: impl Fn(usize) -> Streaming<'a> + Sync,
 ) -> Vec<CycleRun> {
-    records.par_iter().enumerate().map(|(k, r)| run_cycle(&make(k), r, cutoff_v, knee_s)).collect()
+    records.par_iter().enumerate().map(|(k, r)| run_cycle(&make(k), r, cutoff_v, knee_s, 1.0)).collect()
+}
+
+/// A streaming calibrator along a cell's discharges in order, as a BMS runs it: each discharge starts
+/// from the estimate the previous one ended with (the first from `cal`'s own prior). One run per interval
+/// scale; predictions only at the scores' readings when `checkpoints_only`. Returns the runs and the
+/// last estimate.
+pub fn run_sequence(
+    cal: &Streaming,
+    records: &[CellRecord],
+    cutoff_v: f64,
+    knee_s: f64,
+    scales: &[f64],
+    checkpoints_only: bool,
+) -> (Vec<Vec<CycleRun>>, Option<Degradation>) {
+    let mut out: Vec<Vec<CycleRun>> = scales.iter().map(|_| Vec::with_capacity(records.len())).collect();
+    let mut last: Option<Degradation> = None;
+    for r in records {
+        let carried;
+        let c = match last {
+            Some(d) => {
+                carried = cal.with_prior(&d);
+                &carried
+            }
+            None => cal,
+        };
+        let only = checkpoints_only.then(|| checkpoints(r));
+        let runs = run_cycle_with(c, r, cutoff_v, knee_s, scales, only.as_deref());
+        last = runs.first().and_then(|run| run.steps.last()).map(|s| s.estimate);
+        for (o, run) in out.iter_mut().zip(runs) {
+            o.push(run);
+        }
+    }
+    (out, last)
 }
 
 /// The time between the model's end of discharge and the measured one on the training cycles, s (median):

@@ -76,6 +76,14 @@ fn actor_transitions_all_reach_the_replay_and_sigterm_exits_zero() {
             && a.as_ref().and_then(|v| v["throttled_s"].as_f64()).unwrap_or(0.0) > 0.5
     });
     assert!(throttled, "actor was not throttled\n{}", run.logs());
+    // Once throttled the actor stays stopped: no learner samples, so the limiter never admits more. (How far
+    // it overshot the limit first is what was in flight before the status reached it: scheduling, not a
+    // property to assert; replay.json's received count shows it.)
+    let held = field(&run.json("actors/actor-0.json"), "published_transitions");
+    // Over two of the actor's report periods (it rewrites its json every 2 s).
+    std::thread::sleep(Duration::from_millis(4500));
+    let still = field(&run.json("actors/actor-0.json"), "published_transitions");
+    assert_eq!(still, held, "the actor published {} more while throttled\n{}", still - held, run.logs());
 
     // Stop the actor first so everything it published is on the wire before the replay's final drain.
     let a_status = actor.terminate(Duration::from_secs(10));
@@ -88,8 +96,6 @@ fn actor_transitions_all_reach_the_replay_and_sigterm_exits_zero() {
 
     let published = field(&a, "published_transitions");
     assert!(published >= cap, "published {published} < {cap}");
-    // Overshoot past the limit is bounded by what one status period lets through.
-    assert!(published <= cap + 64 * 32, "published {published}: the limiter did not hold");
     assert_eq!(field(&a, "undelivered_transitions"), 0, "{a:?}");
     assert_eq!(field(&a, "weights_refused"), 1, "{a:?}");
     assert_eq!(field(&r, "received_total"), published, "actor {a:?}\nreplay {r:?}");

@@ -1,0 +1,149 @@
+//! A whole cell life from a generator independent of the code under test (the doctor's test cell: the NASA
+//! model written a second time and integrated by RK4 at 0.5 s), read as a cycler records it: a rest, then
+//! 2 A until the voltage crosses the cut-off under load (the record stops there), sampled every 9-19 s,
+//! 3 mV voltage noise. qMobile fades and Ro grows from cycle to cycle along values off any grid. Train on
+//! the first 12 cycles, judge the next 12: `bcal calibrate`'s pipeline must recover capacity and the end of
+//! discharge where the truth is known, and its references must rank as they should.
+
+#[path = "../../doctor/tests/common/cell.rs"]
+#[allow(dead_code)]
+mod cell;
+
+use bcal_doctor::Discharge;
+use bcal_eval::measured_eval::JointUkfGrid;
+use bcal_realcell::calibrate::{calibrate, CalibrateInput};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal};
+use std::path::PathBuf;
+
+/// Above the model family's floor at 2 A (its surface mole fractions clip near 3.0 V): a cut-off both reach.
+const CUTOFF_V: f64 = 3.1;
+const CURRENT_A: f64 = 2.0;
+const AMBIENT_K: f64 = 297.15;
+
+/// The hidden degradation of cycle n (1-based): a fade that speeds up, off any grid.
+fn truth(n: u32) -> (f64, f64) {
+    let x = f64::from(n - 1);
+    (6913.7 - 31.3 * x - 0.97 * x * x, 0.0987 + 0.00113 * x)
+}
+
+/// One discharge as a cycler writes it, and its true capacity down to the cut-off, Ah.
+fn discharge(n: u32, rng: &mut StdRng) -> (Discharge, f64) {
+    let (q, r) = truth(n);
+    let c = cell::Cell::new(cell::CellParams::base(q, r, AMBIENT_K));
+    let mut s = c.full();
+    let noise = Normal::new(0.0, 0.003).unwrap();
+    let h = 0.5;
+    let rest_s = 30.0 + 10.0 * rng.random::<f64>();
+    let (mut t, mut next) = (0.0f64, 0.0f64);
+    let (mut time_s, mut voltage_v, mut current_a) = (Vec::new(), Vec::new(), Vec::new());
+    let mut drawn_c = 0.0;
+    loop {
+        let i = if t < rest_s { 0.0 } else { CURRENT_A };
+        if t >= next - 1e-9 {
+            let v = c.voltage_v(&s);
+            time_s.push(t);
+            voltage_v.push(v + noise.sample(rng));
+            current_a.push(i + 0.002 * noise.sample(rng) / 0.003);
+            next += 9.0 + 10.0 * rng.random::<f64>();
+            if i > 0.0 && v <= CUTOFF_V {
+                break;
+            }
+        }
+        s = c.rk4(&s, i, h);
+        drawn_c += i * h;
+        t += h;
+        assert!(t < 20_000.0, "cycle {n} never reached the cut-off");
+    }
+    // The true capacity: the charge drawn to the exact crossing, on the fine grid.
+    let mut s = c.full();
+    let mut q_c = 0.0;
+    while c.voltage_v(&s) > CUTOFF_V || q_c == 0.0 {
+        s = c.rk4(&s, CURRENT_A, 0.1);
+        q_c += CURRENT_A * 0.1;
+    }
+    let _ = drawn_c;
+    let d = Discharge {
+        cell: "SYN".into(),
+        cycle: n,
+        source: PathBuf::from(format!("synthetic/{n:03}.csv")),
+        ambient_k: AMBIENT_K,
+        time_s,
+        voltage_v,
+        current_a,
+        temperature_k: None,
+        stated_capacity_ah: None,
+    };
+    (d, q_c / 3600.0)
+}
+
+#[test]
+fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
+    let mut rng = StdRng::seed_from_u64(20261123);
+    let all: Vec<(Discharge, f64)> = (1..=24).map(|n| discharge(n, &mut rng)).collect();
+    let train: Vec<Discharge> = all[..12].iter().map(|(d, _)| d.clone()).collect();
+    let judged: Vec<Discharge> = all[12..].iter().map(|(d, _)| d.clone()).collect();
+    let input = CalibrateInput {
+        cell: "SYN".into(),
+        train,
+        judged,
+        cutoff_v: CUTOFF_V,
+        cutoff_source: "test".into(),
+        policies: Vec::new(),
+        ukf: true,
+        fit: true,
+        spec: None,
+        ukf_grid: JointUkfGrid::real_cells_quick(),
+    };
+    let cal = calibrate(&input, &mut |m| eprintln!("{m}")).expect("the synthetic life calibrates");
+    let r = &cal.report;
+    assert_eq!(r.cycles_judged, (13..=24).collect::<Vec<u32>>());
+    assert_eq!(r.records.reaching_cutoff, 12, "every synthetic record ends at the cut-off under load");
+
+    // The data's own charge to the cut-off is the truth within a sample interval's charge (19 s at 2 A).
+    for (rec, (_, truth_ah)) in cal.judged.iter().zip(&all[12..]) {
+        let data = rec.data_capacity_ah.expect("every record reaches the cut-off");
+        assert!(
+            (data - truth_ah).abs() < 19.0 * CURRENT_A / 3600.0,
+            "cycle {}: data {data} truth {truth_ah}",
+            rec.cycle
+        );
+    }
+    let cap = |m: &str, f: &str| r.methods[m].scores.capacity_vs_data[f].rmse;
+    let eod50 = |m: &str| r.methods[m].scores.eod_error_pct["50"].median;
+    eprintln!(
+        "capacity RMSE from 50 %: fit {:.4} ukf {:.4} previous {:.4} trend {:.4} uncalibrated {:.4} Ah; EOD at 50 %: fit {:.2} ukf {:.2} uncalibrated {:.2} %",
+        cap("fit", "50"),
+        cap("ukf", "50"),
+        cap("previous_cycle", "50"),
+        cap("trend", "50"),
+        cap("uncalibrated", "50"),
+        eod50("fit"),
+        eod50("ukf"),
+        eod50("uncalibrated")
+    );
+    // The offline fit sees the whole discharge of a cell its model describes: capacity to 10 mAh, EOD to 1 %.
+    assert!(cap("fit", "100") < 0.010, "fit {}", cap("fit", "100"));
+    assert!(eod50("fit") < 1.0, "fit EOD {}", eod50("fit"));
+    // The streaming UKF, from half the discharge, beats carrying the last cycle over on a fading cell, and
+    // every calibrated method beats the new-cell model by far.
+    assert!(cap("ukf", "50") < 0.03, "ukf {}", cap("ukf", "50"));
+    assert!(
+        cap("ukf", "100") < cap("previous_cycle", "100"),
+        "ukf {} previous {}",
+        cap("ukf", "100"),
+        cap("previous_cycle", "100")
+    );
+    for m in ["fit", "ukf", "previous_cycle"] {
+        assert!(
+            cap(m, "50") < 0.3 * cap("uncalibrated", "50"),
+            "{m} {} vs uncalibrated {}",
+            cap(m, "50"),
+            cap("uncalibrated", "50")
+        );
+    }
+    // Intervals are calibrated on the validation cycles, and the report says how often they hold.
+    let cov = r.methods["ukf"].scores.coverage_90_pct["eod"].expect("the UKF has intervals");
+    assert!(cov > 40.0, "ukf EOD coverage {cov}");
+}
