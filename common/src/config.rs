@@ -549,9 +549,11 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
     // Sensor: the noise must be what a sensor has; at hundreds of mV or amperes the readings no longer
     // describe the cell (a current that flips sign under a power load, a voltage below zero).
     let s = &sc.sensor;
+    // A rest reads as |i| < REST_CURRENT_A: current noise beyond a quarter of it would read rests as loads.
+    let rest_a = crate::measured::cellmodel::REST_CURRENT_A;
     for (key, v, max) in [
         ("measured.scenario.sensor.voltage_noise_v", s.voltage_noise_v, 0.05),
-        ("measured.scenario.sensor.current_noise_a", s.current_noise_a, 0.5),
+        ("measured.scenario.sensor.current_noise_a", s.current_noise_a, rest_a / 4.0),
         ("measured.scenario.sensor.temperature_noise_k", s.temperature_noise_k, 5.0),
     ] {
         if !(v.is_finite() && (0.0..=max).contains(&v)) {
@@ -597,6 +599,14 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
             ),
         ));
     }
+    if sc.thermal && !tr.use_measured_temperature {
+        return Err(invalid(
+            "measured.tracker.use_measured_temperature",
+            "false".into(),
+            "must be true when measured.scenario.thermal = true: the cells then heat and change with ambient, and \
+             the calibrator's model must follow the temperature it reads",
+        ));
+    }
     if sc.load_kinds.is_empty() {
         return Err(invalid("measured.scenario.load_kinds", "[]".into(), "needs at least one load kind"));
     }
@@ -637,7 +647,8 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
         ("measured.tracker.step_max", tr.step_max),
         ("measured.tracker.cost_scale_v", tr.cost_scale_v),
         ("measured.tracker.window_span_s", tr.window_span_s),
-        ("measured.tracker.interval_scale", tr.interval_scale),
+        ("measured.tracker.interval_scale", tr.interval_scale[0]),
+        ("measured.tracker.interval_scale", tr.interval_scale[1]),
     ] {
         if !(v.is_finite() && v > 0.0) {
             return Err(invalid(key, v.to_string(), "must be a finite number > 0"));
@@ -813,6 +824,14 @@ mod tests {
                 "measured.tracker.max_substep_s",
             ),
             ("experiment = \"single-q\"\n[env]\nobservation = \"Measured\"\n", "experiment"),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.scenario]\nthermal = true\n",
+                "measured.tracker.use_measured_temperature",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.scenario.sensor]\ncurrent_noise_a = 0.1\n",
+                "measured.scenario.sensor.current_noise_a",
+            ),
         ];
         for (text, key) in cases {
             let c = TrainConfig::from_toml(text).unwrap();

@@ -21,7 +21,9 @@
 
 use bcal_common::battery::{BatteryModel, BatteryParams, Degradation};
 use bcal_common::math::{idx, ModelState};
-use bcal_common::measured::cellmodel::{interval_drive, ocv_v, xn_from_rest_voltage, DriveKind};
+use bcal_common::measured::cellmodel::{
+    interval_drive, ocv_v, switch_time_unknown, xn_from_rest_voltage, DriveKind, Settle,
+};
 use bcal_common::measured::scenario::{rest_state, Sample};
 use bcal_common::measured::tracker::{Interval, TrackerSpec};
 use nalgebra::{Cholesky, SMatrix, SVector};
@@ -32,8 +34,14 @@ const N_SIGMA: usize = 2 * N + 1;
 type Vec9 = SVector<f64, N>;
 type Mat9 = SMatrix<f64, N, N>;
 
-/// Scale of each state coordinate: the filter's z is the state divided by this.
-const SCALE: [f64; N] = [1000.0, 1000.0, 1000.0, 1000.0, 0.1, 0.1, 0.1, 1.0, 1.0];
+/// Scale of each state coordinate: the filter's z is the state divided by this. The four charges are held
+/// as fractions of each point's own qMax (mole fraction times the volume share), not in coulombs: the rest
+/// state at a given starting charge is then the same for every qMobile, and the charge the current draws
+/// moves them by i dt / qMax, so qMobile acts on the voltage the way the physics says. (In coulombs the
+/// starting charges scale with qMobile, the filter must carry that link in its covariance, and once the
+/// link weakens a larger qMobile reads as an emptier cell: seen as qMobile running to the top of its range
+/// on 10-20 s piecewise discharges.)
+const SCALE: [f64; N] = [1.0, 1.0, 1.0, 1.0, 0.1, 0.1, 0.1, 1.0, 1.0];
 /// Electrochemical state indices in z order (the model's, without temperature).
 const STATE_IDX: [usize; 7] = [idx::QP_S, idx::QP_B, idx::QN_B, idx::QN_S, idx::V_O, idx::V_SN, idx::V_SP];
 
@@ -98,6 +106,7 @@ pub struct JointUkf {
     wm: [f64; N_SIGMA],
     wc: [f64; N_SIGMA],
     gamma: f64,
+    settle: Settle,
     pub counters: JointUkfCounters,
 }
 
@@ -128,23 +137,30 @@ impl JointUkf {
             wm,
             wc,
             gamma: (n + lambda).sqrt(),
+            settle: Settle::default(),
             counters: JointUkfCounters::default(),
         }
     }
 
+    /// qMax of a point (its own qMobile, clamped to the range), C.
+    fn q_max_of(&self, z: &Vec9) -> f64 {
+        self.model.q_max_c(&degradation(&self.spec, z))
+    }
+
     fn state_of(&self, z: &Vec9) -> ModelState {
         let mut x = ModelState::zeros();
+        let q_max = self.q_max_of(z);
         for (k, i) in STATE_IDX.into_iter().enumerate() {
-            x[i] = z[k] * SCALE[k];
+            x[i] = z[k] * if k < 4 { q_max } else { SCALE[k] };
         }
         x[idx::T_B] = self.t_k;
         x
     }
 
-    fn z_of(x: &ModelState, zq: f64, zr: f64) -> Vec9 {
+    fn z_of(x: &ModelState, zq: f64, zr: f64, q_max: f64) -> Vec9 {
         let mut z = Vec9::zeros();
         for (k, i) in STATE_IDX.into_iter().enumerate() {
-            z[k] = x[i] / SCALE[k];
+            z[k] = x[i] / if k < 4 { q_max } else { SCALE[k] };
         }
         z[7] = zq;
         z[8] = zr;
@@ -187,7 +203,7 @@ impl JointUkf {
             .map(|[xn, zq, zr]| {
                 let d = self.spec.from_z([*zq, *zr]);
                 let xn = xn.clamp(p.xn_min + 1e-3, p.xn_max);
-                Self::z_of(&rest_state(&self.model, &d, xn, self.t_k), *zq, *zr)
+                Self::z_of(&rest_state(&self.model, &d, xn, self.t_k), *zq, *zr, self.model.q_max_c(&d))
             })
             .collect();
         let mean = zs.iter().zip(w).fold(Vec9::zeros(), |a, (z, w)| a + z * w);
@@ -230,7 +246,7 @@ impl JointUkf {
                 x = self.model.step_current(&x, i_a, h, &d);
             }
         }
-        Self::z_of(&x, z[7], z[8])
+        Self::z_of(&x, z[7], z[8], self.model.q_max_c(&d))
     }
 
     fn voltage(&self, z: &Vec9) -> f64 {
@@ -268,6 +284,8 @@ impl JointUkf {
         let prev = self.last.expect("started after a reading");
         let dt = (s.t_s - prev.t_s).max(0.0);
         let parts = interval_drive(&prev, s, self.spec.max_substep_s);
+        // After a switch of unknown time the predicted voltage is off by up to i Ro: predict only.
+        let unsettled = self.settle.unsettled(&prev, s, self.spec.max_substep_s, self.spec.settle_s);
         if self.spec.use_measured_temperature {
             self.t_k = s.temperature_k;
         }
@@ -284,15 +302,16 @@ impl JointUkf {
             pts[1 + j] = self.z + col;
             pts[1 + N + j] = self.z - col;
         }
+        // The model reads the parameters clamped to their ranges (`degradation`); the points keep their own
+        // coordinates so the mean and covariance are not biased at the range's edges.
         for pt in pts.iter_mut() {
-            pt[7] = pt[7].clamp(0.0, 1.0);
-            pt[8] = pt[8].clamp(0.0, 1.0);
             *pt = self.propagate(pt, &parts);
         }
         let mean = (0..N_SIGMA).fold(Vec9::zeros(), |a, k| a + pts[k] * self.wm[k]);
         let mut p =
             (0..N_SIGMA).fold(Mat9::zeros(), |a, k| a + (pts[k] - mean) * (pts[k] - mean).transpose() * self.wc[k]);
-        // Process noise over dt.
+        // Process noise over dt (the charges' in coulombs, at the mean's qMax).
+        let q_max = self.q_max_of(&mean);
         let q = [
             self.s.charge_walk_c_per_sqrt_s,
             self.s.charge_walk_c_per_sqrt_s,
@@ -305,7 +324,23 @@ impl JointUkf {
             self.s.param_walk_per_sqrt_s,
         ];
         for k in 0..N {
-            p[(k, k)] += (q[k] / SCALE[k]).powi(2) * dt;
+            p[(k, k)] += (q[k] / if k < 4 { q_max } else { SCALE[k] }).powi(2) * dt;
+        }
+        // A switch at an unknown time within the interval moves an unknown charge, uniform over dI dt: it
+        // leaves the positive electrode's surface and the negative's together (faster than diffusion).
+        if switch_time_unknown(&prev, s, self.spec.max_substep_s) {
+            let var_c2 = (s.current_a - prev.current_a).powi(2) * dt * dt / 12.0;
+            let v = [1.0 / q_max, 0.0, 0.0, -1.0 / q_max];
+            for a in 0..4 {
+                for b in 0..4 {
+                    p[(a, b)] += var_c2 * v[a] * v[b];
+                }
+            }
+        }
+        if unsettled {
+            self.z = mean;
+            self.p = p;
+            return;
         }
         // Update with the voltage (the propagated points stand in for redrawn ones).
         let ys: Vec<f64> = pts.iter().map(|z| self.voltage(z)).collect();

@@ -224,7 +224,7 @@ struct DirectCalibrator<'a> {
     net: &'a PolicyNet,
     scratch: Scratch,
     spec: TrackerSpec,
-    interval_scale: f64,
+    interval_scale: [f64; 2],
     estimate: Degradation,
 }
 
@@ -269,10 +269,10 @@ impl Calibrator for JointUkf {
     }
 }
 
-fn interval_around(spec: &TrackerSpec, d: &Degradation, sd_z: [f64; 2], k: f64) -> Interval {
+fn interval_around(spec: &TrackerSpec, d: &Degradation, sd_z: [f64; 2], k: [f64; 2]) -> Interval {
     let z = spec.to_z(d);
-    let lo = spec.from_z([z[0] - k * sd_z[0], z[1] - k * sd_z[1]]);
-    let hi = spec.from_z([z[0] + k * sd_z[0], z[1] + k * sd_z[1]]);
+    let lo = spec.from_z([z[0] - k[0] * sd_z[0], z[1] - k[1] * sd_z[1]]);
+    let hi = spec.from_z([z[0] + k[0] * sd_z[0], z[1] + k[1] * sd_z[1]]);
     Interval { q_mobile_c: [lo.q_mobile_c, hi.q_mobile_c], r_o_ohm: [lo.r_o_ohm, hi.r_o_ohm] }
 }
 
@@ -303,15 +303,21 @@ fn run_episode(cal: &mut dyn Calibrator, e: &Episode, model: &BatteryModel, cuto
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct MethodScores {
     /// Table-1 NRMSE over every reading of every test cell, %.
+    #[serde(serialize_with = "crate::metrics::both_keys")]
     pub nrmse_pct: ParamValues,
     /// The same over the readings of each discharge's second half (by time).
+    #[serde(serialize_with = "crate::metrics::both_keys")]
     pub second_half_nrmse_pct: ParamValues,
     /// Median over cells of the time from the first reading after which the estimate stays within 2 % of
-    /// the range, s; absent when more than half the cells never settle.
+    /// the range, s; null when more than half the cells never settle.
+    #[serde(serialize_with = "crate::metrics::both_keys")]
     pub time_to_2pct_s: ParamValues,
     /// Cells whose estimate settles within 2 %, fraction.
+    #[serde(serialize_with = "crate::metrics::both_keys")]
     pub settled_fraction: ParamValues,
-    /// Readings whose 90 % interval holds the truth, % of the readings that have an interval.
+    /// Readings whose 90 % interval holds the truth, % of the readings that have an interval (null for a
+    /// method without intervals).
+    #[serde(serialize_with = "crate::metrics::both_keys")]
     pub coverage_90_pct: ParamValues,
     /// Readings that have an interval, %.
     pub interval_available_pct: f64,
@@ -473,7 +479,7 @@ pub struct MeasuredReport {
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub direct_mapping: Option<TrainLog>,
     /// The 90 % interval scale chosen on validation for each tracker-based method.
-    pub interval_scales: BTreeMap<String, f64>,
+    pub interval_scales: BTreeMap<String, [f64; 2]>,
     pub not_evaluated: BTreeMap<String, String>,
     pub plots: Vec<String>,
     pub notes: Vec<String>,
@@ -525,10 +531,10 @@ pub fn tune_joint_ukf(spec: &TrackerSpec, validation: &[Episode], grid: &JointUk
     }
 }
 
-/// The 90th percentile of |error| / sd over the readings with a spread: the interval scale that covers
-/// 90 % of validation readings (both parameters pooled). `make` builds the calibrator with scale 1.
-pub fn interval_scale_on(spec: &TrackerSpec, episodes: &[Episode], make: &Make) -> f64 {
-    let mut ratios: Vec<f64> = episodes
+/// Per parameter, the 90th percentile of |error| / sd over the readings with a spread: the interval scales
+/// that cover 90 % of validation readings. `make` builds the calibrator with scale 1.
+pub fn interval_scale_on(spec: &TrackerSpec, episodes: &[Episode], make: &Make) -> [f64; 2] {
+    let ratios: Vec<(usize, f64)> = episodes
         .par_iter()
         .flat_map_iter(|e| {
             let mut cal = make();
@@ -546,18 +552,21 @@ pub fn interval_scale_on(spec: &TrackerSpec, episodes: &[Episode], make: &Make) 
                 for k in 0..2 {
                     let half = 0.5 * (hi[k] - lo[k]);
                     if half > 1e-12 {
-                        out.push((truth[k] - est[k]).abs() / half);
+                        out.push((k, (truth[k] - est[k]).abs() / half));
                     }
                 }
             }
             out
         })
         .collect();
-    if ratios.is_empty() {
-        return 1.0;
-    }
-    ratios.sort_by(f64::total_cmp);
-    ratios[((ratios.len() - 1) as f64 * 0.9).round() as usize]
+    [0, 1].map(|k| {
+        let mut r: Vec<f64> = ratios.iter().filter(|(j, _)| *j == k).map(|(_, v)| *v).collect();
+        if r.is_empty() {
+            return 1.0;
+        }
+        r.sort_by(f64::total_cmp);
+        r[((r.len() - 1) as f64 * 0.9).round() as usize]
+    })
 }
 
 /// Readings timed per method on one thread: per reading, us (median of repeats).
@@ -674,13 +683,16 @@ pub fn evaluate_measured(
     // Interval scales of the tracker-based calibrators, chosen on validation.
     let mut rl_spec = spec.tracker.clone();
     if let Some(net) = &net {
-        let unit = TrackerSpec { interval_scale: 1.0, ..spec.tracker.clone() };
+        let unit = TrackerSpec { interval_scale: [1.0; 2], ..spec.tracker.clone() };
         let make: Make = Box::new(|| Box::new(RlCalibrator::new(&unit, net)));
         rl_spec.interval_scale = interval_scale_on(&unit, &validation, &make);
         interval_scales.insert("rl_lac".to_string(), rl_spec.interval_scale);
-        progress(&format!("RL-LAC: 90 % interval scale {:.2} (validation)", rl_spec.interval_scale));
+        progress(&format!(
+            "RL-LAC: 90 % interval scales qMobile {:.2}, Ro {:.2} (validation)",
+            rl_spec.interval_scale[0], rl_spec.interval_scale[1]
+        ));
     }
-    let unit = TrackerSpec { interval_scale: 1.0, ..spec.tracker.clone() };
+    let unit = TrackerSpec { interval_scale: [1.0; 2], ..spec.tracker.clone() };
     let fit_spec = {
         let make: Make = Box::new(|| Box::new(WindowFitCalibrator::new(&unit)));
         TrackerSpec { interval_scale: interval_scale_on(&unit, &validation, &make), ..spec.tracker.clone() }
@@ -707,7 +719,7 @@ pub fn evaluate_measured(
     }
 
     // The direct mapping: pairs from training cells, early stopping on validation cells.
-    let mut dm: Option<(PolicyNet, TrainLog, f64)> = None;
+    let mut dm: Option<(PolicyNet, TrainLog, [f64; 2])> = None;
     if opts.direct_mapping {
         let mut rng = SmallRng::seed_from_u64(input.seed ^ 0xd1ec7);
         let train: Vec<Episode> = (0..opts.direct_train_episodes)
@@ -742,7 +754,7 @@ pub fn evaluate_measured(
                     net: &pure,
                     scratch: Scratch::new(pure.layout()),
                     spec: spec.tracker.clone(),
-                    interval_scale: 1.0,
+                    interval_scale: [1.0; 2],
                     estimate: spec.tracker.prior,
                 })
             });

@@ -118,9 +118,11 @@ pub fn render_markdown(r: &MeasuredReport) -> String {
     for (k, v) in &r.interval_scales {
         let _ = writeln!(
             s,
-            "- {}: 90 % interval = estimate +- {v:.2} standard deviations of its least-squares fit (the scale that \
-             covers 90 % of validation readings).",
-            name_of(k)
+            "- {}: 90 % interval = estimate +- {:.2} (qMobile) and {:.2} (Ro) standard deviations of its \
+             least-squares fit (the scales that cover 90 % of validation readings of each).",
+            name_of(k),
+            v[0],
+            v[1]
         );
     }
     if let Some(u) = &r.ukf {

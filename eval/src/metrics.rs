@@ -40,6 +40,16 @@ pub struct ParamValues {
     pub r_o: Option<f64>,
 }
 
+/// Serialises a [`ParamValues`] with both keys, null where there is no value: the measured-only report, which
+/// always calibrates both parameters, keeps the same keys whether or not a value exists (`serialize_with`).
+pub fn both_keys<S: serde::Serializer>(v: &ParamValues, s: S) -> Result<S::Ok, S::Error> {
+    use serde::ser::SerializeStruct;
+    let mut m = s.serialize_struct("ParamValues", 2)?;
+    m.serialize_field("q_mobile", &v.q_mobile)?;
+    m.serialize_field("r_o", &v.r_o)?;
+    m.end()
+}
+
 impl ParamValues {
     pub fn from_fn(calibrated: Calibrated, mut f: impl FnMut(Param) -> f64) -> Self {
         let (q, r) = match calibrated {

@@ -13,6 +13,7 @@ use bcal_common::dataset::{self, Dataset, Experiment, Split};
 use bcal_common::mdp::MdpSpec;
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::PolicyFile;
+use bcal_common::task::Task;
 use bcal_eval::measured_eval::{evaluate_measured, MeasuredEvalOptions, MeasuredInput};
 use bcal_eval::metrics::Param;
 use bcal_eval::plots::TrainingCurve;
@@ -131,6 +132,19 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         None
     };
 
+    // A policy is evaluated in the setting it was trained for, and the run says which setting it evaluates:
+    // the two must agree.
+    if let (Some(p), Some(c)) = (&policy, &config) {
+        let (trained, run_obs) = (p.task.observation_name(), Task::observation_label(c.env.observation));
+        if trained != run_obs {
+            bail!(
+                "the policy {} was trained on the {trained} observation, but the run {} evaluates the {run_obs} \
+                 observation (its config.toml): pass a policy of that run, or evaluate this policy in its own run",
+                policy_path.display(),
+                run_dir.display()
+            );
+        }
+    }
     // The setting: the policy's task, else the run's observation, else the paper's.
     let measured_spec = match (&policy, &config) {
         (Some(p), _) => p.task.measured().cloned(),

@@ -160,3 +160,30 @@ fn bench_refuses_bad_parts_and_unwritable_output_at_once() {
         assert!(err.contains(want), "{args:?}: stderr lacks `{want}`:\n{err}");
     }
 }
+
+/// A policy is refused by `bcal eval` in a run of another observation kind, naming both kinds.
+#[test]
+fn eval_refuses_a_policy_of_another_observation_naming_both() {
+    use bcal_common::config::TrainConfig;
+    use bcal_common::policy::{PolicyFile, PolicyLayout};
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    // A paper-setting run (FullState) holding a measured-only policy.
+    std::fs::write(run.join("config.toml"), TrainConfig::default().to_toml()).unwrap();
+    let spec = bcal_common::measured::env::MeasuredSpec::default();
+    let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: vec![8] };
+    let pf = PolicyFile {
+        params: vec![0.0; layout.n_params()],
+        layout,
+        task: bcal_common::task::Task::Measured(spec),
+        experiment: bcal_common::dataset::Experiment::Multi,
+        update_step: 1,
+    };
+    pf.save(&run.join("policy.best.bcalpol")).unwrap();
+    let o = bcal(&["eval", "--run", run.to_str().unwrap(), "--quick"], dir.path());
+    let (_, err) = text(&o);
+    assert!(!o.status.success(), "{err}");
+    assert!(err.contains("Measured") && err.contains("FullState"), "{err}");
+    assert!(err.contains("policy.best.bcalpol"), "{err}");
+}

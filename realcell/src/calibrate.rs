@@ -168,7 +168,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             let mut widths = vec![task.tracker.prior_std_z];
             widths.extend(tune::RL_PRIOR_STD_Z.iter().filter(|w| **w != task.tracker.prior_std_z));
             for w in widths {
-                let unit = TrackerSpec { interval_scale: 1.0, prior_std_z: w, ..task.tracker.clone() };
+                let unit = TrackerSpec { interval_scale: [1.0; 2], prior_std_z: w, ..task.tracker.clone() };
                 nets.push((net.clone(), unit, path.clone(), pf.update_step));
             }
         }

@@ -6,7 +6,7 @@
 //! the uncalibrated model ([`Uncalibrated`]). The joint UKF and the direct mapping live in bcal-eval.
 
 use super::scenario::Sample;
-use super::tracker::{Interval, Tracker, TrackerSpec, OBS_DIM};
+use super::tracker::{ActionMode, Interval, Tracker, TrackerSpec, OBS_DIM};
 use crate::battery::{BatteryModel, Degradation, Load, LoadProfile};
 use crate::math::ModelState;
 use crate::policy::{PolicyNet, Scratch};
@@ -75,7 +75,8 @@ pub struct WindowFitCalibrator {
 
 impl WindowFitCalibrator {
     pub fn new(spec: &TrackerSpec) -> Self {
-        Self { tracker: Tracker::new(spec) }
+        // The fit's own step is a zero residual action, whatever the policy's action mode.
+        Self { tracker: Tracker::new(&TrackerSpec { action: ActionMode::Residual, ..spec.clone() }) }
     }
 
     pub fn tracker(&self) -> &Tracker {
@@ -86,9 +87,7 @@ impl WindowFitCalibrator {
 impl Calibrator for WindowFitCalibrator {
     fn step(&mut self, s: &Sample) {
         self.tracker.ingest(s);
-        let step = self.tracker.stats().step;
-        let m = self.tracker.spec().step_max;
-        self.tracker.apply_action(&[(step[0] / m) as f32, (step[1] / m) as f32]);
+        self.tracker.apply_action(&[0.0, 0.0]);
     }
     fn estimate(&self) -> Degradation {
         self.tracker.estimate()

@@ -148,15 +148,45 @@ pub fn interval_drive(prev: &Sample, next: &Sample, max_substep_s: f64) -> [(f64
         Request::PowerW(_) => DriveKind::Power(s.current_a),
         _ => DriveKind::Current(s.current_a),
     };
-    let on = |s: &Sample| s.current_a.abs() >= super::cellmodel::REST_CURRENT_A;
+    if switch_time_unknown(prev, next, max_substep_s) {
+        [(0.5 * dt, kind(prev)), (0.5 * dt, kind(next))]
+    } else {
+        [(dt, kind(prev)), (0.0, kind(prev))]
+    }
+}
+
+/// Whether the load switched between `prev` and `next` at a time the readings cannot tell: another request,
+/// or the current switching on or off, over an interval longer than one model step.
+pub fn switch_time_unknown(prev: &Sample, next: &Sample, max_substep_s: f64) -> bool {
+    let on = |s: &Sample| s.current_a.abs() >= REST_CURRENT_A;
     let switched = match (prev.request, next.request) {
         (Request::Unknown, Request::Unknown) => on(prev) != on(next),
         (a, b) => a != b,
     };
-    if switched && dt > max_substep_s + 1e-9 {
-        [(0.5 * dt, kind(prev)), (0.5 * dt, kind(next))]
-    } else {
-        [(dt, kind(prev)), (0.0, kind(prev))]
+    switched && next.t_s - prev.t_s > max_substep_s + 1e-9
+}
+
+/// When a calibrator may trust its predicted voltage again after a switch of unknown time: the ohmic lag
+/// (time constant t_o = 6.1 s) holds up to i Ro of it, by an amount that depends on when the switch came
+/// (hundreds of millivolts at 10-20 s sampling), so readings before `prev` + `settle_s` are not fitted.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Settle {
+    until_s: f64,
+}
+
+impl Default for Settle {
+    fn default() -> Self {
+        Self { until_s: f64::NEG_INFINITY }
+    }
+}
+
+impl Settle {
+    /// Takes the interval from `prev` to `next`; true while `next` is too close after such a switch.
+    pub fn unsettled(&mut self, prev: &Sample, next: &Sample, max_substep_s: f64, settle_s: f64) -> bool {
+        if switch_time_unknown(prev, next, max_substep_s) {
+            self.until_s = prev.t_s + settle_s;
+        }
+        next.t_s < self.until_s
     }
 }
 

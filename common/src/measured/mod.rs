@@ -16,4 +16,4 @@ pub mod window;
 
 pub use calibrator::Calibrator;
 pub use scenario::{Episode, EpisodeSpec, LoadKind, Sample, ScenarioConfig, SensorConfig};
-pub use tracker::{Interval, Tracker, TrackerSpec, OBS_DIM};
+pub use tracker::{ActionMode, Interval, Tracker, TrackerSpec, OBS_DIM};

@@ -12,7 +12,7 @@
 //! RMS residual under the new estimate once the next reading is in ([`Tracker::cost`]): how well the
 //! estimate explains what was measured, with no true parameter and no true state.
 
-use super::cellmodel::{xn_from_rest_voltage, CellModel, REST_CURRENT_A};
+use super::cellmodel::{xn_from_rest_voltage, CellModel, Settle, REST_CURRENT_A};
 use super::scenario::{Request, Sample};
 use super::window::{FitPoint, FitStats, FitWindow};
 use crate::battery::{BatteryModel, BatteryParams, Degradation};
@@ -32,6 +32,10 @@ pub struct TrackerSpec {
     pub prior: Degradation,
     /// Largest change of each estimate per reading, fraction of its range (the action's scale).
     pub step_max: f64,
+    /// What the policy's action is: "absolute" (the move itself, in units of `step_max`) or "residual" (a
+    /// correction added to the window fit's own Gauss-Newton step, the sum limited to `step_max`): with
+    /// "residual" a zero action is the window fit, and the policy learns where to depart from it.
+    pub action: ActionMode,
     /// Points of the fit window and the time they span, s (earlier readings are summarised).
     pub window_points: usize,
     pub window_span_s: f64,
@@ -41,14 +45,19 @@ pub struct TrackerSpec {
     /// Longest Euler substep of the calibrator's model, s (the reference model's 1 s; below 2 t_o = 12.2 s
     /// for stability).
     pub max_substep_s: f64,
+    /// Readings less than this after the last reading before a load switch of unknown time (between
+    /// readings farther apart than a model step) are left out of the fit, s: until then the ohmic lag
+    /// (t_o = 6.1 s) still holds part of i Ro that depends on when the switch came. 5 t_o, as the doctor's
+    /// settle window; 1 s readings are exact and never wait.
+    pub settle_s: f64,
     /// Scale of the cost ln(1 + rms / cost_scale_v), V: the log keeps residuals from the sensor noise
     /// (3 mV) to a wrong estimate's hundreds of mV within one order, so the critic resolves both.
     pub cost_scale_v: f64,
     /// Residual floor of the intervals' width, V (the sensor's noise).
     pub noise_floor_v: f64,
-    /// Factor on the fit's standard deviations for 90 % intervals, chosen on validation (1.645 for a
-    /// Gaussian fit with independent residuals).
-    pub interval_scale: f64,
+    /// Factors on the fit's standard deviations of qMobile and Ro for their 90 % intervals, chosen on
+    /// validation (1.645 for a Gaussian fit with independent residuals).
+    pub interval_scale: [f64; 2],
     /// The model runs at the measured temperature (thermal cells) instead of its isothermal 292.1 K.
     pub use_measured_temperature: bool,
     /// Cut-off voltage of end-of-discharge predictions, V.
@@ -63,15 +72,17 @@ impl Default for TrackerSpec {
             // The middle of the data ranges: the only prior a calibrator may take from them.
             prior: Degradation { q_mobile_c: 5500.0, r_o_ohm: 0.15 },
             step_max: 0.05,
+            action: ActionMode::Absolute,
             // Chosen on the validation episodes (the window-fit calibrator alone, all readings, NRMSE q / Ro):
             // 48 points over 900 s 16.8 / 6.4 %, 64 over 1800 s 17.7 / 6.9 %, 96 over 3600 s 13.4 / 6.3 %.
             window_points: 96,
             window_span_s: 3600.0,
             prior_std_z: 0.25,
             max_substep_s: 1.0,
+            settle_s: 30.0,
             cost_scale_v: 0.001,
             noise_floor_v: 0.003,
-            interval_scale: 1.645,
+            interval_scale: [1.645, 1.645],
             use_measured_temperature: false,
             cutoff_v: 3.0,
         }
@@ -93,6 +104,15 @@ impl TrackerSpec {
         let v = |z: f64, [lo, hi]: [f64; 2]| lo + z.clamp(0.0, 1.0) * (hi - lo);
         Degradation { q_mobile_c: v(z[0], self.q_mobile_range_c), r_o_ohm: v(z[1], self.r_o_range_ohm) }
     }
+}
+
+/// How the policy's action moves the estimate (see [`TrackerSpec::action`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ActionMode {
+    #[default]
+    Absolute,
+    Residual,
 }
 
 /// A 90 % interval per parameter.
@@ -120,6 +140,7 @@ pub struct Tracker {
     readings: u64,
     /// Statistics at the current estimate, refreshed by `ingest` and `apply_action`.
     stats: FitStats,
+    settle: Settle,
 }
 
 impl Tracker {
@@ -137,6 +158,7 @@ impl Tracker {
             interval_s: 0.0,
             readings: 0,
             stats: FitStats::default(),
+            settle: Settle::default(),
         }
     }
 
@@ -170,6 +192,7 @@ impl Tracker {
     pub fn ingest(&mut self, s: &Sample) {
         let d = self.estimate();
         self.readings += 1;
+        let mut unsettled = false;
         match (&mut self.cell, self.last) {
             (None, _) => {
                 let model = BatteryModel::new(BatteryParams::default(), false).expect("default parameters are valid");
@@ -181,6 +204,7 @@ impl Tracker {
             (Some(cell), Some(prev)) => {
                 let t_k = if self.spec.use_measured_temperature { s.temperature_k } else { cell.track.t_k };
                 cell.advance_between(&prev, s, &d, t_k);
+                unsettled = self.settle.unsettled(&prev, s, self.spec.max_substep_s, self.spec.settle_s);
             }
             (Some(_), None) => unreachable!("a cell exists only after a reading"),
         }
@@ -194,7 +218,9 @@ impl Tracker {
             self.loaded = true;
         }
         let ranges = self.spec.ranges();
-        self.window.push(FitPoint { t_s: s.t_s, track: cell.track, voltage_v: s.voltage_v }, cell, &d, &ranges);
+        if !unsettled {
+            self.window.push(FitPoint { t_s: s.t_s, track: cell.track, voltage_v: s.voltage_v }, cell, &d, &ranges);
+        }
         self.interval_s = self.last.map_or(0.0, |p| s.t_s - p.t_s);
         self.last = Some(*s);
         let prior = self.prior();
@@ -208,10 +234,17 @@ impl Tracker {
             .then(|| (self.spec.to_z(&self.spec.prior), self.spec.prior_std_z, self.spec.noise_floor_v))
     }
 
-    /// Moves the estimate by `action` (each in [-1, 1]) times `step_max`.
+    /// Moves the estimate by `action` (each in [-1, 1]) times `step_max`, on its own or added to the window
+    /// fit's step ([`ActionMode`]).
     pub fn apply_action(&mut self, action: &[f32]) {
-        for (z, a) in self.z.iter_mut().zip(action) {
-            *z = (*z + f64::from(a.clamp(-1.0, 1.0)) * self.spec.step_max).clamp(0.0, 1.0);
+        let m = self.spec.step_max;
+        for ((z, a), fit) in self.z.iter_mut().zip(action).zip(self.stats.step) {
+            let a = f64::from(a.clamp(-1.0, 1.0));
+            let moved = match self.spec.action {
+                ActionMode::Absolute => a,
+                ActionMode::Residual => (fit / m + a).clamp(-1.0, 1.0),
+            };
+            *z = (*z + moved * m).clamp(0.0, 1.0);
         }
         if let Some(cell) = &self.cell {
             self.stats = self.window.stats(cell, &self.spec.from_z(self.z), &self.spec.ranges(), self.prior());
@@ -239,7 +272,10 @@ impl Tracker {
     pub fn interval(&self) -> Option<Interval> {
         let sd = self.stats.std_z(self.spec.noise_floor_v)?;
         let k = self.spec.interval_scale;
-        let (lo, hi) = ([self.z[0] - k * sd[0], self.z[1] - k * sd[1]], [self.z[0] + k * sd[0], self.z[1] + k * sd[1]]);
+        let (lo, hi) = (
+            [self.z[0] - k[0] * sd[0], self.z[1] - k[1] * sd[1]],
+            [self.z[0] + k[0] * sd[0], self.z[1] + k[1] * sd[1]],
+        );
         let (a, b) = (self.spec.from_z(lo), self.spec.from_z(hi));
         Some(Interval { q_mobile_c: [a.q_mobile_c, b.q_mobile_c], r_o_ohm: [a.r_o_ohm, b.r_o_ohm] })
     }
