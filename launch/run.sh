@@ -70,16 +70,26 @@ actor_args=()
 if [ -n "$cell" ]; then
   run="runs/$name"
   mkdir -p "$run"
-  echo "== diagnose the training cycles of $cell ($train_cycles)"
-  "$bin/bcal" diagnose --data "$data" --cell "$cell" --cycles "$train_cycles" "${cutoff_args[@]}" --out "$run/diagnosis"
-  echo "== the cell's training setting"
-  "$bin/bcal" cell-config --data "$data" --cell "$cell" --train-cycles "$train_cycles" "${cutoff_args[@]}" \
-    --budget-s "$budget_s" --out "$run/cell.toml"
+  # The doctor chooses the model on the training cycles alone: it fits their first three quarters and
+  # judges the candidates on the last quarter (the cycles calibrate judges later are never looked at).
+  case "$train_cycles" in
+    *..*) first="${train_cycles%%..*}"; last="${train_cycles##*..}" ;;
+    *) echo "run.sh: --train-cycles must read A..B" >&2; exit 2 ;;
+  esac
+  case "$first$last" in ''|*[!0-9]*) echo "run.sh: --train-cycles must read A..B with whole numbers" >&2; exit 2 ;; esac
+  [ $((last - first)) -ge 7 ] || { echo "run.sh: --train-cycles needs at least 8 cycles" >&2; exit 2; }
+  split=$((first + (last - first + 1) * 3 / 4))
+  echo "== diagnose the training cycles of $cell (fit $first..$((split - 1)), judge $split..$last)"
+  "$bin/bcal" diagnose --data "$data" --cell "$cell" --cycles "$first..$((split - 1))" --holdout "$split..$last" \
+    "${cutoff_args[@]}" --out "$run/diagnosis"
+  echo "== the cell's training setting (on the diagnosed model)"
+  "$bin/bcal" cell-config --data "$data" --cell "$cell" --train-cycles "$train_cycles" --model "$run/diagnosis" \
+    "${cutoff_args[@]}" --budget-s "$budget_s" --out "$run/cell.toml"
   echo "== train (the cell's setting, budget ${budget_s} s)"
   "$bin/bcal" train --config "$run/cell.toml" --seed 1 "${actor_args[@]}" --run "$run/train"
   echo "== calibrate the held-out cycles"
-  "$bin/bcal" calibrate --data "$data" --cell "$cell" --train-cycles "$train_cycles" "${cutoff_args[@]}" \
-    --calibrator "rl:$run/train,ukf,fit" --out "$run/calibration"
+  "$bin/bcal" calibrate --data "$data" --cell "$cell" --train-cycles "$train_cycles" --model "$run/diagnosis" \
+    "${cutoff_args[@]}" --calibrator "rl:$run/train,ukf,fit" --out "$run/calibration"
   echo
   echo "report: $run/calibration/calibration.md (calibration.json, plots, readings/); diagnosis: $run/diagnosis/diagnosis.md"
   exit 0

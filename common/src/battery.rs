@@ -122,6 +122,21 @@ impl Default for BatteryParams {
     }
 }
 
+impl BatteryParams {
+    /// These parameters with the electrode balance shifted (xp_min and xn_max, the mole fractions at full
+    /// charge) and both Butler-Volmer rate constants scaled: the doctor's per-cycle ageing causes
+    /// `electrode_balance` and `charge_transfer`, in the one place that maps them onto the model.
+    pub fn aged(&self, xp_shift: f64, xn_shift: f64, kinetics_scale: f64) -> Self {
+        Self {
+            xp_min: self.xp_min + xp_shift,
+            xn_max: self.xn_max + xn_shift,
+            kn: self.kn * kinetics_scale,
+            kp: self.kp * kinetics_scale,
+            ..self.clone()
+        }
+    }
+}
+
 /// Errors of model construction and simulation.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum ModelError {
@@ -295,6 +310,16 @@ impl BatteryModel {
         x[idx::QN_S] = q_max * p.xn_max * p.vol_s_fraction;
         x[idx::T_B] = p.tb0_k;
         x
+    }
+
+    /// Whether an electrode's surface mole fraction has reached its clip ([`MOLE_FRACTION_CLIP`]): the model
+    /// is empty there and its voltage stops falling (about 3.0 V at 2 A), while a real cell drops through
+    /// its knee to any lower cut-off within a minute or two.
+    #[inline]
+    pub fn surface_empty(&self, x: &ModelState, d: &Degradation) -> bool {
+        let (lo, hi) = MOLE_FRACTION_CLIP;
+        let q_s_max = self.q_s_max_c(d);
+        x[idx::QN_S] / q_s_max <= lo || x[idx::QP_S] / q_s_max >= hi
     }
 
     /// Terminal voltage V = Vep - Ven - Vo - Vsn - Vsp, V (progpy `output`).

@@ -599,6 +599,17 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
             ),
         ));
     }
+    for (key, m) in [("measured.tracker.model", &tr.model), ("measured.scenario.model", &sc.model)] {
+        m.check(key).map_err(|why| invalid(key, format!("{:?}", m.causes), &why))?;
+    }
+    if tr.model.temperature_dependent() && !tr.use_measured_temperature {
+        return Err(invalid(
+            "measured.tracker.use_measured_temperature",
+            "false".into(),
+            "must be true when measured.tracker.model has Arrhenius factors: they act at the cell's measured \
+             temperature",
+        ));
+    }
     if sc.thermal && !tr.use_measured_temperature {
         return Err(invalid(
             "measured.tracker.use_measured_temperature",

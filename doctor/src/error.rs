@@ -57,6 +57,8 @@ pub enum DoctorError {
     CutoffAboveLoad { path: PathBuf, cycle: u32, cutoff_v: f64, first_loaded_v: f64, time_s: f64 },
     #[error("{path}: only {rows} usable samples; a discharge needs at least {min}")]
     TooFewSamples { path: PathBuf, rows: usize, min: usize },
+    #[error("{path}: {why}; pass the diagnosis.json that bcal diagnose wrote")]
+    BadModelFile { path: PathBuf, why: String },
     #[error("no discharge records selected: {why}")]
     NothingSelected { why: String },
     #[error("cycle range `{text}` is not A..B (inclusive, e.g. 1..40)")]

@@ -13,6 +13,7 @@ pub mod analysis;
 pub mod diagnose;
 pub mod error;
 pub mod fit;
+pub mod model_file;
 pub mod plot;
 pub mod read;
 pub mod record;

@@ -268,11 +268,7 @@ impl ExtendedCell {
             tb0_k: ambient_k,
             t_diffusion_s: ext.t_diffusion_s,
             tau_thermal_s: ext.tau_thermal_s,
-            xp_min: base.xp_min + ext.xp_shift,
-            xn_max: base.xn_max + ext.xn_shift,
-            kn: base.kn * ext.kinetics_scale,
-            kp: base.kp * ext.kinetics_scale,
-            ..base.clone()
+            ..base.aged(ext.xp_shift, ext.xn_shift, ext.kinetics_scale)
         };
         let thermal_state = ext.temperature_driven && !measured_temperature;
         let model = BatteryModel::new(params, thermal_state)?;

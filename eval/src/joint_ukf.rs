@@ -19,7 +19,7 @@
 //!
 //! This module never prints.
 
-use bcal_common::battery::{BatteryModel, BatteryParams, Degradation};
+use bcal_common::battery::{BatteryModel, Degradation};
 use bcal_common::math::{idx, ModelState};
 use bcal_common::measured::cellmodel::{
     interval_drive, ocv_v, switch_time_unknown, xn_from_rest_voltage, DriveKind, Settle,
@@ -107,6 +107,11 @@ pub struct JointUkf {
     wc: [f64; N_SIGMA],
     gamma: f64,
     settle: Settle,
+    /// The model's rate constants at the Arrhenius reference, the reference (K, set at the first reading)
+    /// and the Ro factor at the current temperature (the doctor's `thermal`; 1 without it).
+    kn_kp: (f64, f64),
+    ref_k: f64,
+    ro_factor: f64,
     pub counters: JointUkfCounters,
 }
 
@@ -116,7 +121,8 @@ fn degradation(spec: &TrackerSpec, z: &Vec9) -> Degradation {
 
 impl JointUkf {
     pub fn new(settings: JointUkfSettings, spec: &TrackerSpec) -> Self {
-        let model = BatteryModel::new(BatteryParams::default(), false).expect("default parameters are valid");
+        let model = spec.model.model().expect("the config checks the model extension");
+        let (kn_kp, ref_k) = ((model.params.kn, model.params.kp), model.params.tb0_k);
         let n = N as f64;
         let a2 = settings.alpha * settings.alpha;
         let lambda = a2 * n - n;
@@ -138,6 +144,9 @@ impl JointUkf {
             wc,
             gamma: (n + lambda).sqrt(),
             settle: Settle::default(),
+            kn_kp,
+            ref_k,
+            ro_factor: 1.0,
             counters: JointUkfCounters::default(),
         }
     }
@@ -173,6 +182,8 @@ impl JointUkf {
         if self.spec.use_measured_temperature {
             self.t_k = s.temperature_k;
         }
+        self.ref_k = self.spec.model.reference_k.unwrap_or(s.temperature_k);
+        self.at_temperature();
         let xn = xn_from_rest_voltage(&self.model, s.voltage_v, self.t_k);
         let p = &self.model.params;
         // The open-circuit slope maps the voltage noise to a mole-fraction uncertainty (floored: flat parts
@@ -218,11 +229,19 @@ impl JointUkf {
         self.started = true;
     }
 
+    /// The model's rate constants and Ro factor at the current temperature (the doctor's `thermal`).
+    fn at_temperature(&mut self) {
+        if self.spec.model.temperature_dependent() {
+            self.ro_factor = self.spec.model.apply_at(&mut self.model, self.kn_kp, self.t_k, self.ref_k);
+        }
+    }
+
     /// Advances one sigma point over the interval's parts (the RL calibrator's [`interval_drive`]): the
     /// reference model's Euler step in substeps of at most `max_substep_s`, a power load's current
     /// following P / V of this point's own model.
     fn propagate(&self, z: &Vec9, parts: &[(f64, DriveKind); 2]) -> Vec9 {
-        let d = degradation(&self.spec, z);
+        let mut d = degradation(&self.spec, z);
+        d.r_o_ohm *= self.ro_factor;
         let mut x = self.state_of(z);
         for &(dt_s, kind) in parts {
             if dt_s <= 0.0 {
@@ -284,10 +303,12 @@ impl JointUkf {
         let prev = self.last.expect("started after a reading");
         let dt = (s.t_s - prev.t_s).max(0.0);
         let parts = interval_drive(&prev, s, self.spec.max_substep_s);
-        // After a switch of unknown time the predicted voltage is off by up to i Ro: predict only.
-        let unsettled = self.settle.unsettled(&prev, s, self.spec.max_substep_s, self.spec.settle_s);
+        // After a switch of unknown time the predicted voltage is off by up to dI Ro, by how much depends on
+        // when it came: that uncertainty joins the measurement noise.
+        self.settle.unsettled(&prev, s, self.spec.max_substep_s, self.spec.settle_s);
         if self.spec.use_measured_temperature {
             self.t_k = s.temperature_k;
+            self.at_temperature();
         }
         self.last = Some(*s);
         let Some(l) = self.sqrt_p() else {
@@ -337,11 +358,6 @@ impl JointUkf {
                 }
             }
         }
-        if unsettled {
-            self.z = mean;
-            self.p = p;
-            return;
-        }
         // Update with the voltage (the propagated points stand in for redrawn ones).
         let ys: Vec<f64> = pts.iter().map(|z| self.voltage(z)).collect();
         if ys.iter().any(|y| !y.is_finite()) {
@@ -351,7 +367,8 @@ impl JointUkf {
             return;
         }
         let y_mean: f64 = (0..N_SIGMA).map(|k| ys[k] * self.wm[k]).sum();
-        let mut s_yy = self.s.meas_std_v.powi(2);
+        let r_o = degradation(&self.spec, &mean).r_o_ohm * self.ro_factor;
+        let mut s_yy = self.s.meas_std_v.powi(2) + self.settle.voltage_variance_v2(s.t_s, r_o, self.model.params.t_o_s);
         let mut p_zy = Vec9::zeros();
         for k in 0..N_SIGMA {
             let dy = ys[k] - y_mean;

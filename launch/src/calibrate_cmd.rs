@@ -25,9 +25,16 @@ pub struct CalibrateArgs {
     /// (time_s,voltage_v,current_a[,temperature_c][,cycle], current positive while discharging).
     #[arg(long, value_name = "PATH")]
     pub data: PathBuf,
-    /// Cell to read from a NASA folder (battery_id in metadata.csv).
-    #[arg(long, default_value = "B0005")]
-    pub cell: String,
+    /// Cell to read from a NASA folder (battery_id in metadata.csv; required there); for a CSV, the name the
+    /// report gives it (default: the file's name).
+    #[arg(long)]
+    pub cell: Option<String>,
+    /// The doctor's extended model to calibrate (`diagnosis.json` of `bcal diagnose` on the training
+    /// cycles, or its folder): the calibrators then track its per-cycle parameters (electrode balance,
+    /// charge-transfer factor) too, from discharge to discharge, and run its shared ones (Arrhenius
+    /// temperature dependence). Without it, the base model.
+    #[arg(long, value_name = "DIAG")]
+    pub model: Option<PathBuf>,
     /// Cycles to judge, A..B (1-based; NASA: the order of the cell's discharges). Default: those after
     /// --train-cycles.
     #[arg(long, value_name = "A..B")]
@@ -66,8 +73,13 @@ pub struct CellConfigArgs {
     /// Measured data, as for `bcal calibrate`.
     #[arg(long, value_name = "PATH")]
     pub data: PathBuf,
-    #[arg(long, default_value = "B0005")]
-    pub cell: String,
+    /// Cell to read from a NASA folder (required there), as for `bcal calibrate`.
+    #[arg(long)]
+    pub cell: Option<String>,
+    /// The doctor's extended model (`diagnosis.json`), as for `bcal calibrate`: the simulated cells and
+    /// the policy's calibrator run it.
+    #[arg(long, value_name = "DIAG")]
+    pub model: Option<PathBuf>,
     /// Training cycles, A..B.
     #[arg(long, value_name = "A..B", default_value = "1..40")]
     pub train_cycles: String,
@@ -158,8 +170,29 @@ fn cutoff(given: Option<f64>, data: &Path, cell: &str) -> anyhow::Result<(f64, S
     bail!("no cut-off voltage is documented for {cell} in {}; pass --cutoff-v", data.display())
 }
 
+/// The cell's name: given, else (a CSV) the file's name; a NASA folder needs one.
+fn cell_name(given: &Option<String>, data: &Path) -> anyhow::Result<String> {
+    match given {
+        Some(c) => Ok(c.clone()),
+        None if data.is_dir() => {
+            bail!(
+                "{} is a NASA folder: pass --cell with one of its battery_id values (e.g. --cell B0005)",
+                data.display()
+            )
+        }
+        None => Ok(data.file_stem().map_or_else(|| "cell".into(), |s| s.to_string_lossy().into_owned())),
+    }
+}
+
+/// The doctor's model from `--model`, if given.
+fn load_model(path: &Option<PathBuf>) -> anyhow::Result<Option<bcal_doctor::model_file::DiagnosedModel>> {
+    path.as_deref().map(bcal_doctor::model_file::load_model).transpose().map_err(anyhow::Error::from)
+}
+
 pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     let started = Instant::now();
+    let cell = cell_name(&a.cell, &a.data)?;
+    let model = load_model(&a.model)?;
     let train_range = parse_cycle_range(&a.train_cycles)?;
     let judged_range = match &a.cycles {
         Some(c) => parse_cycle_range(c)?,
@@ -168,10 +201,10 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     if judged_range.start() <= train_range.end() && train_range.start() <= judged_range.end() {
         bail!("--cycles {judged_range:?} overlaps --train-cycles {train_range:?}: judge cycles the calibrators were not set up on");
     }
-    let (cut, cut_source) = cutoff(a.cutoff_v, &a.data, &a.cell)?;
+    let (cut, cut_source) = cutoff(a.cutoff_v, &a.data, &cell)?;
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
-    let train = read(&a.data, &a.cell, Some(&train_range), &opts)?;
-    let mut judged = read(&a.data, &a.cell, Some(&judged_range), &opts)?;
+    let train = read(&a.data, &cell, Some(&train_range), &opts)?;
+    let mut judged = read(&a.data, &cell, Some(&judged_range), &opts)?;
     if a.stride > 1 {
         let first = judged.first().map_or(0, |d| d.cycle);
         judged.retain(|d| (d.cycle - first) % a.stride == 0);
@@ -183,14 +216,19 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         match c.trim() {
             "ukf" => ukf = true,
             "fit" => fit = true,
-            s if s.starts_with("rl:") => policies = policy_candidates(Path::new(&s[3..]))?,
+            s if s.starts_with("rl:") => {
+                if !policies.is_empty() {
+                    bail!("--calibrator names rl: twice; give one run folder or policy file");
+                }
+                policies = policy_candidates(Path::new(&s[3..]))?
+            }
             other => bail!("unknown calibrator `{other}`: use rl:RUN, ukf or fit (comma separated)"),
         }
     }
     // The RL run's own cell setting (its simulated cells) sets up the UKF too, so both run the same model.
     let spec = policies.first().and_then(|(pf, _)| pf.task.measured().cloned());
     let input = CalibrateInput {
-        cell: a.cell.clone(),
+        cell,
         train,
         judged,
         cutoff_v: cut,
@@ -200,6 +238,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         fit,
         spec,
         ukf_grid: if a.quick { JointUkfGrid::real_cells_quick() } else { JointUkfGrid::real_cells() },
+        model,
     };
     let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
     cal.report.seconds = started.elapsed().as_secs_f64();
@@ -216,9 +255,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
 
 pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let range = parse_cycle_range(&a.train_cycles)?;
-    let (cut, cut_source) = cutoff(a.cutoff_v, &a.data, &a.cell)?;
+    let cell = cell_name(&a.cell, &a.data)?;
+    let model = load_model(&a.model)?;
+    let (cut, cut_source) = cutoff(a.cutoff_v, &a.data, &cell)?;
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
-    let ds = read(&a.data, &a.cell, Some(&range), &opts)?;
+    let ds = read(&a.data, &cell, Some(&range), &opts)?;
     let mut summary = RecordSummary::default();
     let mut records = Vec::new();
     let mut kept = Vec::new();
@@ -232,26 +273,20 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
         }
     }
     if records.is_empty() {
-        bail!("no usable training discharge of {} in cycles {range:?}: {}", a.cell, summary.refused.join("; "));
+        bail!("no usable training discharge of {cell} in cycles {range:?}: {}", summary.refused.join("; "));
     }
-    let cfg = bcal_doctor::fit::FitConfig::default();
-    let recs: Vec<_> = kept
-        .iter()
-        .filter_map(|d| {
-            d.windows(cfg.load_threshold_a, cfg.v_floor_v).map(|w| bcal_doctor::fit::FitRecord::new(d, w, &cfg))
-        })
-        .collect();
-    let fits = bcal_doctor::fit::refit_cycles(&cfg, &recs, &[], &bcal_doctor::ExtParams::default(), None)?.per_cycle;
+    let (causes, shared) = bcal_realcell::calibrate::model_parts(model.as_ref());
+    let fits = bcal_realcell::calibrate::fits(&kept, &bcal_doctor::fit::FitConfig::default(), &causes, &shared)?;
     let (spec, facts) = cell_spec(&records, &fits, cut);
     let mut c: TrainConfig = Preset::Measured.config();
     c.measured = spec;
     c.learner.time_budget_s = a.budget_s;
     c.validate().with_context(|| "the derived cell setting does not validate")?;
     let header = format!(
-        "# bcal cell-config for {} from cycles {range:?} of {} (cut-off {cut} V: {cut_source}).\n# Read off the training \
-         cycles: {}\n",
-        a.cell,
+        "# bcal cell-config for {cell} from cycles {range:?} of {} (cut-off {cut} V: {cut_source}; model {}).\n# Read off \
+         the training cycles: {}\n",
         a.data.display(),
+        c.measured.tracker.model.label(),
         serde_json::to_string(&facts)?
     );
     bcal_common::fsutil::write_atomic(&a.out, format!("{header}{}", c.to_toml()).as_bytes())

@@ -1,10 +1,15 @@
 //! `bcal calibrate`'s work, top to bottom: prepare the training and judged discharges (readings up to the
-//! cut-off), fit every one offline with the doctor (the `fit` oracle and the previous-cycle reference),
-//! fit the capacity trend on the training cycles, set up the streaming calibrators on validation cycles
-//! (the last training cycles: the joint UKF's settings, the RL policy file, both interval scales; see
-//! [`crate::tune`]), run every method along
-//! every judged discharge, score them against the cycler and assemble the report. Progress goes to a
-//! callback; nothing here prints.
+//! cut-off), fit every one offline with the doctor on the calibrators' model (the base one, or the doctor's
+//! extended one with `--model`: the `fit` oracle, the previous-cycle reference, and the per-cycle values
+//! of the extended model each discharge starts from), fit the capacity trend on the training cycles, set
+//! up the streaming calibrators on validation cycles (the last training cycles: the joint UKF's settings,
+//! the RL policy file, both interval scales; see [`crate::tune`]), run every method along every judged
+//! discharge, score them against the cycler and assemble the report. Progress goes to a callback;
+//! nothing here prints.
+//!
+//! With an extended model the streaming calibrators track qMobile and Ro in real time and the model's
+//! per-cycle parameters (electrode balance, charge-transfer factor) from discharge to discharge: each
+//! discharge runs on the values the doctor fitted on the discharge before it, once that one had ended.
 
 use crate::cellspec::{cell_spec, CellFacts};
 use crate::record::{prepare, CellRecord, RecordSummary};
@@ -14,10 +19,12 @@ use crate::score::score;
 use crate::tune;
 use bcal_common::battery::Degradation;
 use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::policy::PolicyFile;
 use bcal_doctor::fit::{refit_cycles, FitConfig, FitRecord};
-use bcal_doctor::Discharge;
+use bcal_doctor::model_file::DiagnosedModel;
+use bcal_doctor::{Cause, Discharge, ExtParams};
 use bcal_eval::measured_eval::JointUkfGrid;
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -40,12 +47,16 @@ pub struct CalibrateInput<'a> {
     pub spec: Option<MeasuredSpec>,
     /// The joint UKF's search space (chosen on the validation cycles).
     pub ukf_grid: JointUkfGrid,
+    /// The doctor's extended model (`--model diagnosis.json`); None: the base model.
+    pub model: Option<DiagnosedModel>,
 }
 
 #[derive(Debug, thiserror::Error)]
 pub enum CalibrateError {
     #[error("the policy {path} was trained on the {observation} observation; bcal calibrate runs measured-only policies (retrain with --preset measured)")]
     PolicyTask { path: String, observation: String },
+    #[error("the policy {path} was trained on the {trained} model, but this calibration runs the {model} model: train a policy on it (bcal cell-config with the same --model, then bcal train --config)")]
+    PolicyModel { path: String, trained: String, model: String },
     #[error("no usable judged discharge: {0}")]
     NothingToJudge(String),
     #[error("the doctor's fit failed: {0}")]
@@ -54,6 +65,8 @@ pub enum CalibrateError {
     Validation(String),
     #[error("policy: {0}")]
     Policy(#[from] bcal_common::policy::PolicyError),
+    #[error("{path}: {why}")]
+    Model { path: String, why: String },
 }
 
 /// Records that can be calibrated, and the refusals (each naming the record and what to do).
@@ -72,8 +85,34 @@ fn prepare_all(ds: &[Discharge], cutoff_v: f64, summary: &mut RecordSummary) -> 
     (out, kept)
 }
 
-/// The doctor's offline per-cycle fit (base model: qMobile and Ro) of every record.
-fn fits(ds: &[&Discharge], cfg: &FitConfig) -> Result<Vec<Degradation>, CalibrateError> {
+/// One record's model as the calibrators run it: the doctor's causes with the values of `ext` (shared
+/// and per-cycle), at the record's ambient.
+pub fn extension_of(causes: &[Cause], ext: &ExtParams, ambient_k: f64) -> ModelExtension {
+    ModelExtension {
+        causes: causes.iter().map(|c| c.name().to_string()).collect(),
+        xp_shift: ext.xp_shift,
+        xn_shift: ext.xn_shift,
+        kinetics_scale: ext.kinetics_scale,
+        ro_activation_k: ext.ro_activation_k,
+        kinetics_activation_k: ext.kinetics_activation_k,
+        t_diffusion_s: ext.t_diffusion_s,
+        reference_k: Some(ambient_k),
+    }
+}
+
+/// The causes and shared values of `model` (the base model without one).
+pub fn model_parts(model: Option<&DiagnosedModel>) -> (Vec<Cause>, ExtParams) {
+    model.map_or_else(|| (Vec::new(), ExtParams::default()), |m| (m.causes.clone(), m.shared))
+}
+
+/// The doctor's offline per-cycle fit of every record (qMobile, Ro and the model's per-cycle parameters,
+/// its shared ones frozen), with each record's model.
+pub fn fits(
+    ds: &[&Discharge],
+    cfg: &FitConfig,
+    causes: &[Cause],
+    shared: &ExtParams,
+) -> Result<Vec<(Degradation, ModelExtension)>, CalibrateError> {
     let recs: Vec<FitRecord> = ds
         .iter()
         .filter_map(|d| d.windows(cfg.load_threshold_a, cfg.v_floor_v).map(|w| FitRecord::new(d, w, cfg)))
@@ -81,7 +120,30 @@ fn fits(ds: &[&Discharge], cfg: &FitConfig) -> Result<Vec<Degradation>, Calibrat
     if recs.len() != ds.len() {
         return Err(CalibrateError::NothingToJudge("a record without a load window reached the fit".into()));
     }
-    Ok(refit_cycles(cfg, &recs, &[], &bcal_doctor::ExtParams::default(), None)?.per_cycle)
+    let f = refit_cycles(cfg, &recs, causes, shared, None)?;
+    Ok(f.per_cycle
+        .iter()
+        .zip(&f.cycle_ext)
+        .zip(ds)
+        .map(|((d, e), disc)| (*d, extension_of(causes, e, disc.ambient_k)))
+        .collect())
+}
+
+/// The model each record's streaming calibration runs on: the one known before it, the fit of the record
+/// before it (a completed discharge: no look-ahead), at this record's ambient; the first takes `first`.
+fn models_before(
+    records: &[CellRecord],
+    fits: &[(Degradation, ModelExtension)],
+    first: &ModelExtension,
+) -> Vec<ModelExtension> {
+    records
+        .iter()
+        .enumerate()
+        .map(|(k, r)| {
+            let prev = if k == 0 { first.clone() } else { fits[k - 1].1.clone() };
+            ModelExtension { reference_k: Some(r.ambient_k), ..prev }
+        })
+        .collect()
 }
 
 /// What a calibration produced: the report and the runs the figures and per-reading files need.
@@ -114,13 +176,32 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         summary.refused.len()
     ));
 
-    // Offline fits (the doctor, base model) of the training and judged cycles.
+    // The calibrators' model: the base one or the doctor's extended one, which they must be able to run.
+    let (causes, shared) = model_parts(input.model.as_ref());
+    let model_path = input.model.as_ref().map_or_else(String::new, |m| m.path.display().to_string());
+    let neutral = extension_of(&causes, &shared, train.first().unwrap_or(&judged[0]).ambient_k);
+    neutral.check("the model").map_err(|why| CalibrateError::Model { path: model_path.clone(), why })?;
+    if causes.contains(&Cause::Thermal) && input.train.iter().chain(&input.judged).any(|d| d.temperature_k.is_none()) {
+        return Err(CalibrateError::Model {
+            path: model_path,
+            why: "the model's `thermal` cause runs on the cell's measured temperature, and these records have none; \
+                  diagnose without it or use records with a temperature column"
+                .into(),
+        });
+    }
+    let model_label = match &input.model {
+        Some(m) => format!("{} (bcal diagnose of {}: {})", neutral.label(), m.cell, m.path.display()),
+        None => "base (the NASA electrochemistry model; qMobile and Ro calibrated)".into(),
+    };
+    progress(&format!("model: {model_label}"));
+
+    // Offline fits (the doctor, on that model) of the training and judged cycles.
     let fit_cfg = FitConfig::default();
     let t0 = Instant::now();
     let train_ds: Vec<&Discharge> = train_kept.iter().map(|&k| &input.train[k]).collect();
     let judged_ds: Vec<&Discharge> = judged_kept.iter().map(|&k| &input.judged[k]).collect();
-    let train_fits = if train_ds.is_empty() { Vec::new() } else { fits(&train_ds, &fit_cfg)? };
-    let judged_fits = fits(&judged_ds, &fit_cfg)?;
+    let train_fits = if train_ds.is_empty() { Vec::new() } else { fits(&train_ds, &fit_cfg, &causes, &shared)? };
+    let judged_fits = fits(&judged_ds, &fit_cfg, &causes, &shared)?;
     progress(&format!(
         "offline fits of {} cycles in {:.0} s",
         train_fits.len() + judged_fits.len(),
@@ -135,6 +216,11 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let (derived, facts) = cell_spec(&train, &train_fits, cut);
     let spec = input.spec.clone().unwrap_or(derived);
 
+    // The model every discharge's streaming calibration starts on.
+    let train_models = models_before(&train, &train_fits, &neutral);
+    let first_judged = train_fits.last().map_or_else(|| neutral.clone(), |f| f.1.clone());
+    let judged_models = models_before(&judged, &judged_fits, &first_judged);
+
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
     settings.insert("cell_setting".into(), serde_json::to_value(&facts).unwrap_or_default());
@@ -146,7 +232,9 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     );
 
     // Every choice of the streaming calibrators is made on the last training cycles.
-    let validation = tune::validation_records(&train);
+    let validation_idx = tune::validation_records(&train);
+    let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
+    let validation_models: Vec<ModelExtension> = validation_idx.iter().map(|&k| train_models[k].clone()).collect();
     if (input.ukf || !input.policies.is_empty()) && validation.is_empty() {
         return Err(CalibrateError::Validation(format!(
             "the streaming calibrators' settings are chosen on the last training cycles, and {} of the training \
@@ -158,12 +246,18 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
 
     // RL: the run's policy files, the one the validation cycles prefer.
     if !input.policies.is_empty() {
-        let mut cands = Vec::new();
         let mut nets = Vec::new();
         for (pf, path) in &input.policies {
             let Some(task) = pf.task.measured() else {
                 return Err(CalibrateError::PolicyTask { path: path.clone(), observation: pf.task.observation_name() });
             };
+            if !task.tracker.model.same_kind(&neutral) {
+                return Err(CalibrateError::PolicyModel {
+                    path: path.clone(),
+                    trained: task.tracker.model.label(),
+                    model: neutral.label(),
+                });
+            }
             let net = pf.net()?;
             let mut widths = vec![task.tracker.prior_std_z];
             widths.extend(tune::RL_PRIOR_STD_Z.iter().filter(|w| **w != task.tracker.prior_std_z));
@@ -172,18 +266,22 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 nets.push((net.clone(), unit, path.clone(), pf.update_step));
             }
         }
-        for (net, unit, path, update) in &nets {
-            cands.push((
-                format!("{path} (update {update}), prior_std_z {}", unit.prior_std_z),
-                Streaming::Rl { spec: unit.clone(), net },
-            ));
-        }
+        let cands: Vec<(String, Streaming)> = nets
+            .iter()
+            .map(|(net, unit, path, update)| {
+                (
+                    format!("{path} (update {update}), prior_std_z {}", unit.prior_std_z),
+                    Streaming::Rl { spec: unit.clone(), net },
+                )
+            })
+            .collect();
         progress(&format!(
             "RL-LAC: choosing among {} policy files on {} validation cycles",
             cands.len(),
             validation.len()
         ));
-        let choice = tune::choose(&cands, &validation, cut, knee_s).expect("candidates and validation checked");
+        let choice = tune::choose(&cands, &validation, &validation_models, cut, knee_s)
+            .expect("candidates and validation checked");
         let (net, unit, path, update) = &nets[choice.index];
         progress(&format!(
             "RL-LAC: policy {path} (update {update}, prior_std_z {}); validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
@@ -195,7 +293,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let t0 = Instant::now();
         let cal = Streaming::Rl { spec: unit.clone(), net };
         let cal = choice.last_estimate.map_or_else(|| cal.with_prior(&unit.prior), |d| cal.with_prior(&d));
-        let r = run_sequence(&cal, &judged, cut, knee_s, &[choice.interval_scale], false).0.remove(0);
+        let r = run_sequence(&cal, &judged, &judged_models, cut, knee_s, &[choice.interval_scale], false).0.remove(0);
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("rl", r));
         settings.insert(
@@ -215,7 +313,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             .iter()
             .map(|g| (format!("{g:?}"), Streaming::Ukf { spec: spec.tracker.clone(), settings: *g }))
             .collect();
-        let choice = tune::choose(&cands, &validation, cut, knee_s).expect("candidates and validation checked");
+        let choice = tune::choose(&cands, &validation, &validation_models, cut, knee_s)
+            .expect("candidates and validation checked");
         let best = grid[choice.index];
         progress(&format!(
             "joint UKF: validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
@@ -226,23 +325,32 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let t0 = Instant::now();
         let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: best };
         let cal = choice.last_estimate.map_or_else(|| cal.with_prior(&spec.tracker.prior), |d| cal.with_prior(&d));
-        let r = run_sequence(&cal, &judged, cut, knee_s, &[choice.interval_scale], false).0.remove(0);
+        let r = run_sequence(&cal, &judged, &judged_models, cut, knee_s, &[choice.interval_scale], false).0.remove(0);
         progress(&format!("joint UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("ukf", r));
         let mut top = choice.clone();
         top.candidates.truncate(5);
         settings.insert("ukf".into(), serde_json::json!({"settings": best, "validation": top}));
     }
-    // The references.
-    let pinned = |ds: Vec<Degradation>| {
+    // The references: parameters (and extended-model values) pinned for the whole discharge.
+    let pinned = |pins: Vec<(Degradation, ModelExtension)>| {
         let s = spec.tracker.clone();
-        run_all(&judged, cut, knee_s, move |k| Streaming::Pinned { spec: s.clone(), d: ds[k] })
+        run_all(&judged, cut, knee_s, move |k| {
+            Streaming::Pinned { spec: s.clone(), d: pins[k].0 }.with_model(&pins[k].1)
+        })
     };
     if input.fit {
         runs.push(("fit", pinned(judged_fits.clone())));
     }
-    let previous: Vec<Degradation> = (0..judged.len())
-        .map(|k| if k > 0 { judged_fits[k - 1] } else { train_fits.last().copied().unwrap_or(spec.tracker.prior) })
+    let previous: Vec<(Degradation, ModelExtension)> = (0..judged.len())
+        .map(|k| {
+            let prev = if k > 0 {
+                judged_fits[k - 1].clone()
+            } else {
+                train_fits.last().cloned().unwrap_or((spec.tracker.prior, neutral.clone()))
+            };
+            (prev.0, ModelExtension { reference_k: Some(judged[k].ambient_k), ..prev.1 })
+        })
         .collect();
     runs.push(("previous_cycle", pinned(previous)));
     let train_capacities: Vec<(u32, f64)> = train
@@ -253,7 +361,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         runs.push(("trend", judged.iter().map(|r| trend.run(r)).collect()));
         settings.insert("trend".into(), serde_json::to_value(trend).unwrap_or_default());
     }
-    runs.push(("uncalibrated", pinned(vec![Degradation::default(); judged.len()])));
+    // A new cell's model: the base one at the paper's new-cell parameters.
+    let new_cell: Vec<(Degradation, ModelExtension)> = judged
+        .iter()
+        .map(|r| (Degradation::default(), ModelExtension { reference_k: Some(r.ambient_k), ..Default::default() }))
+        .collect();
+    runs.push(("uncalibrated", pinned(new_cell)));
     settings.insert("uncalibrated".into(), serde_json::to_value(Degradation::default()).unwrap_or_default());
 
     let methods: BTreeMap<String, MethodEntry> =
@@ -265,7 +378,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         train_cycles: train.iter().map(|r| r.cycle).collect(),
         cycles_judged: judged.iter().map(|r| r.cycle).collect(),
         records: summary,
-        model: "base (the NASA electrochemistry model; qMobile and Ro calibrated)".into(),
+        model: model_label,
         methods,
         settings: serde_json::Value::Object(settings),
         plots: Vec::new(),

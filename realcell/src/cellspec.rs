@@ -8,6 +8,7 @@
 use crate::record::CellRecord;
 use bcal_common::battery::Degradation;
 use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{LoadKind, ScenarioConfig, SplitLoads, KELVIN_0C};
 use bcal_common::measured::tracker::TrackerSpec;
 use serde::Serialize;
@@ -38,8 +39,17 @@ fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
     v[((v.len() - 1) as f64 * q).round() as usize]
 }
 
-/// The cell's measured-only setting from its training records and their fits.
-pub fn cell_spec(train: &[CellRecord], fits: &[Degradation], cutoff_v: f64) -> (MeasuredSpec, CellFacts) {
+/// The cell's measured-only setting from its training records and their fits (each with its model: the
+/// base one, or the doctor's extended one with the cycle's values). The simulated cells and the
+/// calibrator run the model of the last training cycle, at the cell's ambient, following the measured
+/// temperature when the model has the doctor's `thermal` (isothermal at the ambient otherwise, as the
+/// doctor runs it).
+pub fn cell_spec(
+    train: &[CellRecord],
+    fits_with_models: &[(Degradation, ModelExtension)],
+    cutoff_v: f64,
+) -> (MeasuredSpec, CellFacts) {
+    let fits: Vec<Degradation> = fits_with_models.iter().map(|f| f.0).collect();
     let current_a = quantile(train.iter().map(|r| r.current_a).collect(), 0.5);
     let intervals: Vec<f64> =
         train.iter().flat_map(|r| r.samples.windows(2).map(|w| w[1].t_s - w[0].t_s)).filter(|d| *d > 0.0).collect();
@@ -47,6 +57,11 @@ pub fn cell_spec(train: &[CellRecord], fits: &[Degradation], cutoff_v: f64) -> (
     let rests: Vec<f64> = train.iter().map(|r| r.load_on_s - r.samples[0].t_s).collect();
     let rest_s = [quantile(rests.clone(), 0.1).clamp(1.0, 600.0), quantile(rests, 0.9).clamp(1.0, 600.0)];
     let ambient_c = quantile(train.iter().map(|r| r.ambient_k - KELVIN_0C).collect(), 0.5);
+    let model = ModelExtension {
+        reference_k: Some(ambient_c + KELVIN_0C),
+        ..fits_with_models.last().map(|f| f.1.clone()).unwrap_or_default()
+    };
+    let thermal = model.has("thermal");
     let qs: Vec<f64> = fits.iter().map(|d| d.q_mobile_c).collect();
     let rs: Vec<f64> = fits.iter().map(|d| d.r_o_ohm).collect();
     let (q_lo, q_hi) = (quantile(qs.clone(), 0.0), quantile(qs.clone(), 1.0));
@@ -66,17 +81,19 @@ pub fn cell_spec(train: &[CellRecord], fits: &[Degradation], cutoff_v: f64) -> (
         train: loads.clone(),
         validation: loads.clone(),
         test: loads,
-        thermal: true,
+        thermal,
         ambient_c: [ambient_c - 1.0, ambient_c + 1.0],
         cutoff_v,
+        model: model.clone(),
         ..ScenarioConfig::default()
     };
     let tracker = TrackerSpec {
         q_mobile_range_c: [0.9 * q_data[0], 1.1 * q_data[1]],
         r_o_range_ohm: [0.5 * r_data[0], 1.1 * r_data[1]],
         prior: Degradation { q_mobile_c: quantile(qs, 0.5), r_o_ohm: quantile(rs, 0.5) },
-        use_measured_temperature: true,
+        use_measured_temperature: thermal,
         cutoff_v,
+        model,
         ..TrackerSpec::default()
     };
     let facts =
@@ -115,10 +132,11 @@ mod tests {
             }
         };
         let train = vec![rec(1, 18.0), rec(2, 10.0), rec(3, 18.0)];
+        let base = ModelExtension::default();
         let fits = vec![
-            Degradation { q_mobile_c: 7000.0, r_o_ohm: 0.10 },
-            Degradation { q_mobile_c: 6800.0, r_o_ohm: 0.12 },
-            Degradation { q_mobile_c: 6600.0, r_o_ohm: 0.14 },
+            (Degradation { q_mobile_c: 7000.0, r_o_ohm: 0.10 }, base.clone()),
+            (Degradation { q_mobile_c: 6800.0, r_o_ohm: 0.12 }, base.clone()),
+            (Degradation { q_mobile_c: 6600.0, r_o_ohm: 0.14 }, base),
         ];
         let (spec, facts) = cell_spec(&train, &fits, 2.7);
         assert_eq!(facts.current_a, 2.0);
@@ -126,7 +144,9 @@ mod tests {
         assert!((facts.ambient_c - 24.0).abs() < 1e-9);
         assert_eq!(spec.scenario.q_mobile_c, [3300.0, 7350.0]);
         assert_eq!(spec.tracker.prior, Degradation { q_mobile_c: 6800.0, r_o_ohm: 0.12 });
-        assert!(spec.tracker.use_measured_temperature && spec.scenario.thermal);
+        // The base model runs isothermal at the cell's ambient, as the doctor runs it.
+        assert!(!spec.tracker.use_measured_temperature && !spec.scenario.thermal);
+        assert_eq!(spec.tracker.model.reference_k, Some(297.15));
         // A run config over the measured preset with this setting passes the config's checks.
         let mut c = bcal_common::config::Preset::Measured.config();
         c.measured = spec;

@@ -7,6 +7,7 @@
 use bcal_common::battery::{BatteryModel, Degradation, Load, LoadProfile};
 use bcal_common::math::{idx, ModelState};
 use bcal_common::measured::calibrator::{predict_eod_s, EodQuery};
+use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::rest_state;
 use bcal_common::measured::tracker::Interval;
 use serde::Serialize;
@@ -47,88 +48,111 @@ fn corners(iv: &Interval) -> (Degradation, Degradation) {
     )
 }
 
-/// The predicted end of discharge (absolute time, s) from `state(d)` at `t_now_s` at `current_a`, with the
-/// interval's corners. `state` rebuilds the calibrated state under any parameters (the tracker's model).
-pub fn eod(
-    model: &BatteryModel,
-    state: &dyn Fn(&Degradation) -> Option<ModelState>,
-    d: &Degradation,
-    iv: Option<&Interval>,
-    t_now_s: f64,
-    current_a: f64,
-    cutoff_v: f64,
-) -> Predicted {
-    let value = eod_at(model, state, d, t_now_s, current_a, cutoff_v);
-    Predicted { value, ..eod_bounds(model, state, iv, t_now_s, current_a, cutoff_v) }
+/// The calibrator's model as predictions run it: its parameters (base or extended) with the rate constants
+/// at the cell's temperature now, and the Arrhenius factor on Ro there (1 without the doctor's `thermal`).
+/// The calibrator's state already holds Ro's factor in its ohmic lag, so only the dynamics of the
+/// prediction apply it.
+#[derive(Clone, Debug)]
+pub struct Predictor {
+    pub model: BatteryModel,
+    pub ro_factor: f64,
 }
 
-fn eod_at(
-    model: &BatteryModel,
-    state: &dyn Fn(&Degradation) -> Option<ModelState>,
-    d: &Degradation,
-    t_now_s: f64,
-    current_a: f64,
-    cutoff_v: f64,
-) -> Option<f64> {
-    let profile = LoadProfile::Constant(Load::CurrentA(current_a));
-    let q = EodQuery { profile: &profile, cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
-    state(d).and_then(|x| predict_eod_s(model, &x, d, t_now_s, &q))
-}
-
-/// Only the interval of [`eod`] (value None): the ends under the interval's corners.
-pub fn eod_bounds(
-    model: &BatteryModel,
-    state: &dyn Fn(&Degradation) -> Option<ModelState>,
-    iv: Option<&Interval>,
-    t_now_s: f64,
-    current_a: f64,
-    cutoff_v: f64,
-) -> Predicted {
-    let at = |p: &Degradation| eod_at(model, state, p, t_now_s, current_a, cutoff_v);
-    let (lo, hi) = match iv.map(corners) {
-        Some((early, late)) => (at(&early), at(&late)),
-        None => (None, None),
-    };
-    ordered(lo, hi)
-}
-
-/// The capacity a full cell at rest at `t_k` delivers at `current_a` down to `cutoff_v` under `d`, Ah.
-pub fn capacity_ah(model: &BatteryModel, d: &Degradation, current_a: f64, cutoff_v: f64, t_k: f64) -> Option<f64> {
-    let x0 = rest_state(model, d, model.params.xn_max, t_k);
-    let profile = LoadProfile::Constant(Load::CurrentA(current_a));
-    let q = EodQuery { profile: &profile, cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
-    predict_eod_s(model, &x0, d, 0.0, &q).map(|t| t * current_a / 3600.0)
-}
-
-/// The capacity with the interval's corners (least capacity: least qMobile, most Ro).
-pub fn capacity(
-    model: &BatteryModel,
-    d: &Degradation,
-    iv: Option<&Interval>,
-    current_a: f64,
-    cutoff_v: f64,
-    t_k: f64,
-) -> Predicted {
-    Predicted {
-        value: capacity_ah(model, d, current_a, cutoff_v, t_k),
-        ..capacity_bounds(model, iv, current_a, cutoff_v, t_k)
+impl Predictor {
+    /// The base model, no temperature dependence.
+    pub fn base(model: BatteryModel) -> Self {
+        Self { model, ro_factor: 1.0 }
     }
-}
 
-/// Only the interval of [`capacity`] (value None).
-pub fn capacity_bounds(
-    model: &BatteryModel,
-    iv: Option<&Interval>,
-    current_a: f64,
-    cutoff_v: f64,
-    t_k: f64,
-) -> Predicted {
-    let at = |p: &Degradation| capacity_ah(model, p, current_a, cutoff_v, t_k);
-    let (lo, hi) = match iv.map(corners) {
-        Some((small, large)) => (at(&small), at(&large)),
-        None => (None, None),
-    };
-    ordered(lo, hi)
+    /// `ext`'s model at `t_k` (its Arrhenius reference the extension's, else `t_k` itself).
+    pub fn at(ext: &ModelExtension, t_k: f64) -> Self {
+        let mut model = ext.model().expect("model extensions are checked when loaded");
+        let kn_kp = (model.params.kn, model.params.kp);
+        let ro_factor = ext.apply_at(&mut model, kn_kp, t_k, ext.reference_k.unwrap_or(t_k));
+        Self { model, ro_factor }
+    }
+
+    fn dynamics(&self, d: &Degradation) -> Degradation {
+        Degradation { r_o_ohm: d.r_o_ohm * self.ro_factor, ..*d }
+    }
+
+    /// The predicted end of discharge (absolute time, s) from `state(d)` at `t_now_s` at `current_a`, with
+    /// the interval's corners. `state` rebuilds the calibrated state under any parameters.
+    pub fn eod(
+        &self,
+        state: &dyn Fn(&Degradation) -> Option<ModelState>,
+        d: &Degradation,
+        iv: Option<&Interval>,
+        t_now_s: f64,
+        current_a: f64,
+        cutoff_v: f64,
+    ) -> Predicted {
+        let value = self.eod_at(state, d, t_now_s, current_a, cutoff_v);
+        Predicted { value, ..self.eod_bounds(state, iv, t_now_s, current_a, cutoff_v) }
+    }
+
+    fn eod_at(
+        &self,
+        state: &dyn Fn(&Degradation) -> Option<ModelState>,
+        d: &Degradation,
+        t_now_s: f64,
+        current_a: f64,
+        cutoff_v: f64,
+    ) -> Option<f64> {
+        let profile = LoadProfile::Constant(Load::CurrentA(current_a));
+        let q = EodQuery { profile: &profile, cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
+        state(d).and_then(|x| predict_eod_s(&self.model, &x, &self.dynamics(d), t_now_s, &q))
+    }
+
+    /// Only the interval of [`Predictor::eod`] (value None): the ends under the interval's corners.
+    pub fn eod_bounds(
+        &self,
+        state: &dyn Fn(&Degradation) -> Option<ModelState>,
+        iv: Option<&Interval>,
+        t_now_s: f64,
+        current_a: f64,
+        cutoff_v: f64,
+    ) -> Predicted {
+        let at = |p: &Degradation| self.eod_at(state, p, t_now_s, current_a, cutoff_v);
+        let (lo, hi) = match iv.map(corners) {
+            Some((early, late)) => (at(&early), at(&late)),
+            None => (None, None),
+        };
+        ordered(lo, hi)
+    }
+
+    /// The capacity a full cell at rest at `t_k` delivers at `current_a` down to `cutoff_v` under `d`, Ah.
+    pub fn capacity_ah(&self, d: &Degradation, current_a: f64, cutoff_v: f64, t_k: f64) -> Option<f64> {
+        let x0 = rest_state(&self.model, d, self.model.params.xn_max, t_k);
+        let profile = LoadProfile::Constant(Load::CurrentA(current_a));
+        let q = EodQuery { profile: &profile, cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
+        predict_eod_s(&self.model, &x0, &self.dynamics(d), 0.0, &q).map(|t| t * current_a / 3600.0)
+    }
+
+    /// The capacity with the interval's corners (least capacity: least qMobile, most Ro).
+    pub fn capacity(
+        &self,
+        d: &Degradation,
+        iv: Option<&Interval>,
+        current_a: f64,
+        cutoff_v: f64,
+        t_k: f64,
+    ) -> Predicted {
+        Predicted {
+            value: self.capacity_ah(d, current_a, cutoff_v, t_k),
+            ..self.capacity_bounds(iv, current_a, cutoff_v, t_k)
+        }
+    }
+
+    /// Only the interval of [`Predictor::capacity`] (value None).
+    pub fn capacity_bounds(&self, iv: Option<&Interval>, current_a: f64, cutoff_v: f64, t_k: f64) -> Predicted {
+        let at = |p: &Degradation| self.capacity_ah(p, current_a, cutoff_v, t_k);
+        let (lo, hi) = match iv.map(corners) {
+            Some((small, large)) => (at(&small), at(&large)),
+            None => (None, None),
+        };
+        ordered(lo, hi)
+    }
 }
 
 /// The temperature the model runs a capacity prediction at: the state's, else the ambient.
@@ -143,18 +167,32 @@ mod tests {
     #[test]
     fn capacity_falls_with_qmobile_and_with_resistance_and_the_interval_brackets_it() {
         let m = BatteryModel::default();
+        let p = Predictor::base(m.clone());
         let d = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.15 };
-        let c = capacity_ah(&m, &d, 2.0, 3.0, 298.15).unwrap();
+        let c = p.capacity_ah(&d, 2.0, 3.0, 298.15).unwrap();
         assert!(c > 1.0 && c < 6000.0 / 3600.0, "{c}");
-        assert!(capacity_ah(&m, &Degradation { q_mobile_c: 5000.0, ..d }, 2.0, 3.0, 298.15).unwrap() < c);
-        assert!(capacity_ah(&m, &Degradation { r_o_ohm: 0.25, ..d }, 2.0, 3.0, 298.15).unwrap() < c);
+        assert!(p.capacity_ah(&Degradation { q_mobile_c: 5000.0, ..d }, 2.0, 3.0, 298.15).unwrap() < c);
+        assert!(p.capacity_ah(&Degradation { r_o_ohm: 0.25, ..d }, 2.0, 3.0, 298.15).unwrap() < c);
         let iv = Interval { q_mobile_c: [5800.0, 6200.0], r_o_ohm: [0.14, 0.16] };
-        let p = capacity(&m, &d, Some(&iv), 2.0, 3.0, 298.15);
-        assert!(p.lo.unwrap() < p.value.unwrap() && p.value.unwrap() < p.hi.unwrap(), "{p:?}");
+        let cap = p.capacity(&d, Some(&iv), 2.0, 3.0, 298.15);
+        assert!(cap.lo.unwrap() < cap.value.unwrap() && cap.value.unwrap() < cap.hi.unwrap(), "{cap:?}");
         // A constant-current discharge from full lasts capacity / current.
-        let x0 = |p: &Degradation| Some(rest_state(&m, p, m.params.xn_max, 298.15));
-        let e = eod(&m, &x0, &d, Some(&iv), 0.0, 2.0, 3.0);
+        let x0 = |q: &Degradation| Some(rest_state(&m, q, m.params.xn_max, 298.15));
+        let e = p.eod(&x0, &d, Some(&iv), 0.0, 2.0, 3.0);
         assert!((e.value.unwrap() * 2.0 / 3600.0 - c).abs() < 2.0 * 2.0 / 3600.0);
         assert!(e.lo.unwrap() < e.value.unwrap() && e.value.unwrap() < e.hi.unwrap());
+        // A warm cell with Arrhenius resistance: less resistance, more capacity at the same current.
+        let ext = ModelExtension {
+            causes: vec!["thermal".into()],
+            ro_activation_k: 4000.0,
+            reference_k: Some(298.15),
+            ..Default::default()
+        };
+        let warm = Predictor::at(&ext, 310.0);
+        assert!(warm.ro_factor < 1.0);
+        assert!(
+            warm.capacity_ah(&Degradation { r_o_ohm: 0.25, ..d }, 2.0, 3.0, 298.15).unwrap()
+                > p.capacity_ah(&Degradation { r_o_ohm: 0.25, ..d }, 2.0, 3.0, 298.15).unwrap()
+        );
     }
 }

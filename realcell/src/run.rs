@@ -7,10 +7,11 @@
 //! of the previous cycle carried over: what a calibrator that only re-fits between discharges has) and
 //! `trend` (a capacity-versus-cycle fit on the training cycles, extrapolated).
 
-use crate::predict::{self, Predicted};
+use crate::predict::{self, Predicted, Predictor};
 use crate::record::CellRecord;
-use bcal_common::battery::{BatteryModel, BatteryParams, Degradation};
+use bcal_common::battery::Degradation;
 use bcal_common::measured::calibrator::{Calibrator, RlCalibrator, Uncalibrated};
+use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::tracker::{Interval, TrackerSpec};
 use bcal_common::policy::PolicyNet;
 use bcal_eval::joint_ukf::{JointUkf, JointUkfSettings};
@@ -79,6 +80,29 @@ impl<'a> Streaming<'a> {
         }
     }
 
+    /// The calibrator's setting (its model, ranges, prior).
+    pub fn spec(&self) -> &TrackerSpec {
+        match self {
+            Streaming::Rl { spec, .. } | Streaming::Ukf { spec, .. } | Streaming::Pinned { spec, .. } => spec,
+        }
+    }
+
+    /// The same calibrator on the model `ext` (the base one, or the doctor's extended one with one cycle's
+    /// values), following the measured temperature exactly when the model has the doctor's `thermal` (as
+    /// the doctor runs it: otherwise isothermal at the cell's ambient).
+    pub fn with_model(&self, ext: &ModelExtension) -> Streaming<'a> {
+        let on = |spec: &TrackerSpec| TrackerSpec {
+            model: ext.clone(),
+            use_measured_temperature: ext.has("thermal"),
+            ..spec.clone()
+        };
+        match self {
+            Streaming::Rl { spec, net } => Streaming::Rl { spec: on(spec), net },
+            Streaming::Ukf { spec, settings } => Streaming::Ukf { spec: on(spec), settings: *settings },
+            Streaming::Pinned { spec, d } => Streaming::Pinned { spec: on(spec), d: *d },
+        }
+    }
+
     fn build(&self) -> Box<dyn Calibrator + '_> {
         match self {
             Streaming::Rl { spec, net } => Box::new(RlCalibrator::new(spec, net)),
@@ -86,11 +110,6 @@ impl<'a> Streaming<'a> {
             Streaming::Pinned { spec, d } => Box::new(Uncalibrated::pinned(spec, d)),
         }
     }
-}
-
-/// The model predictions run on (the calibrator's own: the reference parameters).
-pub fn model() -> BatteryModel {
-    BatteryModel::new(BatteryParams::default(), false).expect("default parameters are valid")
 }
 
 /// The interval widened (scale > 1) or narrowed about the estimate, kept physical (qMobile > 0, Ro >= 0):
@@ -131,36 +150,47 @@ pub fn run_cycle_with(
     scales: &[f64],
     only: Option<&[usize]>,
 ) -> Vec<CycleRun> {
-    let m = model();
+    let ext = &cal.spec().model;
+    // Capacity: a full cell at rest in its ambient (the record's start).
+    let at_ambient = Predictor::at(ext, record.ambient_k);
     let mut c = cal.build();
     let mut runs: Vec<CycleRun> = scales
         .iter()
         .map(|_| CycleRun { cycle: record.cycle, steps: Vec::with_capacity(record.samples.len()) })
         .collect();
-    let cap_shift = knee_s * record.current_a / 3600.0;
+    // The current the predictions assume: the mean of the loaded readings so far (no look-ahead).
+    let (mut loaded_sum_a, mut loaded_n) = (0.0, 0u32);
     for (k, s) in record.samples.iter().enumerate() {
         c.step(s);
+        if s.current_a > crate::record::LOAD_THRESHOLD_A {
+            loaded_sum_a += s.current_a;
+            loaded_n += 1;
+        }
+        let current_a = (loaded_n > 0).then(|| loaded_sum_a / f64::from(loaded_n));
         let d = c.estimate();
         let iv = c.interval();
-        let predict_here = only.is_none_or(|o| o.binary_search(&k).is_ok());
+        let predict_here = only.is_none_or(|o| o.binary_search(&k).is_ok()) && current_a.is_some();
+        let current_a = current_a.unwrap_or(0.0);
+        let cap_shift = knee_s * current_a / 3600.0;
         let state = |p: &Degradation| c.state_under(p);
-        let t_k = predict::temperature_of(c.state().as_ref(), record.ambient_k);
+        // End of discharge: the model at the cell's temperature now.
+        let now =
+            predict_here.then(|| Predictor::at(ext, predict::temperature_of(c.state().as_ref(), record.ambient_k)));
         // The central predictions do not depend on the scale: computed once.
-        let (eod_mid, cap_mid) = if predict_here {
-            (
-                predict::eod(&m, &state, &d, None, s.t_s, record.current_a, cutoff_v).value,
-                predict::capacity(&m, &d, None, record.current_a, cutoff_v, t_k).value,
-            )
-        } else {
-            (None, None)
+        let (eod_mid, cap_mid) = match &now {
+            Some(p) => (
+                p.eod(&state, &d, None, s.t_s, current_a, cutoff_v).value,
+                at_ambient.capacity(&d, None, current_a, cutoff_v, record.ambient_k).value,
+            ),
+            None => (None, None),
         };
         for (run, &scale) in runs.iter_mut().zip(scales) {
             let iv = iv.map(|iv| scale_interval(&iv, &d, scale));
             let (mut eod, mut capacity) = (Predicted::default(), Predicted::default());
-            if predict_here {
-                eod = predict::eod_bounds(&m, &state, iv.as_ref(), s.t_s, record.current_a, cutoff_v);
+            if let Some(p) = &now {
+                eod = p.eod_bounds(&state, iv.as_ref(), s.t_s, current_a, cutoff_v);
                 eod.value = eod_mid;
-                capacity = predict::capacity_bounds(&m, iv.as_ref(), record.current_a, cutoff_v, t_k);
+                capacity = at_ambient.capacity_bounds(iv.as_ref(), current_a, cutoff_v, record.ambient_k);
                 capacity.value = cap_mid;
             }
             run.steps.push(Step {
@@ -186,12 +216,14 @@ pub fn run_all<'a>(
 }
 
 /// A streaming calibrator along a cell's discharges in order, as a BMS runs it: each discharge starts
-/// from the estimate the previous one ended with (the first from `cal`'s own prior). One run per interval
-/// scale; predictions only at the scores' readings when `checkpoints_only`. Returns the runs and the
-/// last estimate.
+/// from the estimate the previous one ended with (the first from `cal`'s own prior), on the model
+/// `models[k]` (what the cell was known to be before discharge k). One run per interval scale;
+/// predictions only at the scores' readings when `checkpoints_only`. Returns the runs and the last
+/// estimate.
 pub fn run_sequence(
     cal: &Streaming,
     records: &[CellRecord],
+    models: &[ModelExtension],
     cutoff_v: f64,
     knee_s: f64,
     scales: &[f64],
@@ -199,17 +231,14 @@ pub fn run_sequence(
 ) -> (Vec<Vec<CycleRun>>, Option<Degradation>) {
     let mut out: Vec<Vec<CycleRun>> = scales.iter().map(|_| Vec::with_capacity(records.len())).collect();
     let mut last: Option<Degradation> = None;
-    for r in records {
-        let carried;
+    for (r, ext) in records.iter().zip(models) {
+        let on_model = cal.with_model(ext);
         let c = match last {
-            Some(d) => {
-                carried = cal.with_prior(&d);
-                &carried
-            }
-            None => cal,
+            Some(d) => on_model.with_prior(&d),
+            None => on_model,
         };
         let only = checkpoints_only.then(|| checkpoints(r));
-        let runs = run_cycle_with(c, r, cutoff_v, knee_s, scales, only.as_deref());
+        let runs = run_cycle_with(&c, r, cutoff_v, knee_s, scales, only.as_deref());
         last = runs.first().and_then(|run| run.steps.last()).map(|s| s.estimate);
         for (o, run) in out.iter_mut().zip(runs) {
             o.push(run);
@@ -223,15 +252,16 @@ pub fn run_sequence(
 /// real cell drops through its knee to the cut-off a little later. Each training cycle runs from a full
 /// cell under its own offline fit; cycles that did not start full, or never reached the cut-off, are
 /// left out. Zero without such cycles.
-pub fn knee_offset_s(train: &[CellRecord], fits: &[Degradation], cutoff_v: f64) -> f64 {
-    let m = model();
+pub fn knee_offset_s(train: &[CellRecord], fits: &[(Degradation, ModelExtension)], cutoff_v: f64) -> f64 {
     let mut offsets: Vec<f64> = train
         .iter()
         .zip(fits)
-        .filter_map(|(r, d)| {
+        .filter_map(|(r, (d, ext))| {
             let eod = r.eod_s?;
             let start = r.samples.iter().find(|s| s.t_s >= r.load_on_s)?;
-            let x0 = bcal_common::measured::scenario::rest_state(&m, d, m.params.xn_max, start.temperature_k);
+            let p = Predictor::at(ext, r.ambient_k);
+            let (m, d) = (&p.model, Degradation { r_o_ohm: d.r_o_ohm * p.ro_factor, ..*d });
+            let x0 = bcal_common::measured::scenario::rest_state(m, &d, m.params.xn_max, start.temperature_k);
             let profile =
                 bcal_common::battery::LoadProfile::Constant(bcal_common::battery::Load::CurrentA(r.current_a));
             let q = bcal_common::measured::calibrator::EodQuery {
@@ -240,7 +270,7 @@ pub fn knee_offset_s(train: &[CellRecord], fits: &[Degradation], cutoff_v: f64) 
                 dt_s: predict::PREDICT_DT_S,
                 max_s: predict::PREDICT_MAX_S,
             };
-            let p = bcal_common::measured::calibrator::predict_eod_s(&m, &x0, d, r.load_on_s, &q)?;
+            let p = bcal_common::measured::calibrator::predict_eod_s(m, &x0, &d, r.load_on_s, &q)?;
             Some(eod - p)
         })
         .collect();

@@ -9,6 +9,7 @@ use crate::record::CellRecord;
 use crate::run::{run_sequence, CycleRun, Streaming};
 use crate::score::{score, EOD_FRACTIONS_PCT};
 use bcal_common::battery::Degradation;
+use bcal_common::measured::extension::ModelExtension;
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -25,15 +26,15 @@ pub fn scale_grid() -> Vec<f64> {
 /// real cell the prior is the previous discharge's estimate, as for the joint UKF's grid.
 pub const RL_PRIOR_STD_Z: [f64; 2] = [0.05, 0.1];
 
-/// The validation cycles: the last quarter of the training cycles that reach the cut-off (at least
-/// [`MIN_VALIDATION`]; none when there are fewer than twice that).
-pub fn validation_records(train: &[CellRecord]) -> Vec<CellRecord> {
-    let complete: Vec<&CellRecord> = train.iter().filter(|r| r.eod_s.is_some()).collect();
+/// The validation cycles, as indices into `train`: the last quarter of the training cycles that reach the
+/// cut-off (at least [`MIN_VALIDATION`]; none when there are fewer than twice that).
+pub fn validation_records(train: &[CellRecord]) -> Vec<usize> {
+    let complete: Vec<usize> = (0..train.len()).filter(|&k| train[k].eod_s.is_some()).collect();
     if complete.len() < 2 * MIN_VALIDATION {
         return Vec::new();
     }
     let n = ((complete.len() as f64 * VALIDATION_SHARE).ceil() as usize).max(MIN_VALIDATION);
-    complete[complete.len() - n..].iter().map(|r| (*r).clone()).collect()
+    complete[complete.len() - n..].to_vec()
 }
 
 /// The objective every choice minimises: the mean absolute end-of-discharge error, % of the discharge,
@@ -78,11 +79,12 @@ pub struct Choice {
 }
 
 /// Chooses among `candidates` (label, calibrator) by [`objective`] on `records` (each run along them in
-/// order, carrying its estimate from one to the next), then the interval scale whose end-of-discharge
-/// coverage on them is nearest 90 % (the smaller scale on a tie).
+/// order on the records' `models`, carrying its estimate from one to the next), then the interval scale
+/// whose end-of-discharge coverage on them is nearest 90 % (the smaller scale on a tie).
 pub fn choose(
     candidates: &[(String, Streaming<'_>)],
     records: &[CellRecord],
+    models: &[ModelExtension],
     cutoff_v: f64,
     knee_s: f64,
 ) -> Option<Choice> {
@@ -93,14 +95,14 @@ pub fn choose(
         .par_iter()
         .enumerate()
         .map(|(k, (_, cal))| {
-            let runs = run_sequence(cal, records, cutoff_v, knee_s, &[1.0], true).0.pop().unwrap_or_default();
+            let runs = run_sequence(cal, records, models, cutoff_v, knee_s, &[1.0], true).0.pop().unwrap_or_default();
             (k, objective(records, &runs))
         })
         .collect();
     scored.sort_by(|a, b| a.1.total_cmp(&b.1));
     let index = scored[0].0;
     let scales = scale_grid();
-    let (runs, last_estimate) = run_sequence(&candidates[index].1, records, cutoff_v, knee_s, &scales, true);
+    let (runs, last_estimate) = run_sequence(&candidates[index].1, records, models, cutoff_v, knee_s, &scales, true);
     let mut best: Option<(f64, Option<f64>)> = None;
     for (scale, runs) in scales.iter().zip(&runs) {
         let cov = score(records, runs).coverage_90_pct.get("eod").copied().flatten();

@@ -95,6 +95,7 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
         fit: true,
         spec: None,
         ukf_grid: JointUkfGrid::real_cells_quick(),
+        model: None,
     };
     let cal = calibrate(&input, &mut |m| eprintln!("{m}")).expect("the synthetic life calibrates");
     let r = &cal.report;

@@ -164,8 +164,6 @@ pub struct EodQuery<'a> {
 /// `max_s` or the model fails.
 pub fn predict_eod_s(model: &BatteryModel, x: &ModelState, d: &Degradation, t_now_s: f64, q: &EodQuery) -> Option<f64> {
     let (profile, cutoff_v, dt_s) = (q.profile, q.cutoff_v, q.dt_s);
-    let (lo, hi) = crate::battery::MOLE_FRACTION_CLIP;
-    let q_s_max = model.q_max_c(d) * model.params.vol_s_fraction;
     let mut x = *x;
     let mut t = t_now_s;
     while t - t_now_s <= q.max_s {
@@ -173,8 +171,7 @@ pub fn predict_eod_s(model: &BatteryModel, x: &ModelState, d: &Degradation, t_no
         if !v.is_finite() {
             return None;
         }
-        let empty = x[crate::math::idx::QN_S] / q_s_max <= lo || x[crate::math::idx::QP_S] / q_s_max >= hi;
-        if v < cutoff_v || empty {
+        if v < cutoff_v || model.surface_empty(&x, d) {
             return Some(t);
         }
         let i = match profile.at(t) {

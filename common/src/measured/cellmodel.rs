@@ -15,6 +15,7 @@
 //! reproduces the reference to floating-point precision); substeps must stay below 2 t_o (12.2 s) for the
 //! ohmic lag to be stable, and the default 1 s is the reference's own step.
 
+use super::extension::ModelExtension;
 use super::scenario::{rest_state, Request, Sample};
 use crate::battery::{BatteryModel, Degradation};
 use crate::math::{idx, ModelState};
@@ -45,6 +46,9 @@ pub struct CellModel {
     pub track: Track,
     /// Longest integration substep, s.
     pub max_substep_s: f64,
+    /// Arrhenius temperature dependence (the doctor's `thermal`) and its reference temperature, K, with
+    /// the model's rate constants at the reference.
+    arrhenius: Option<(ModelExtension, f64, (f64, f64))>,
 }
 
 impl CellModel {
@@ -55,7 +59,18 @@ impl CellModel {
             xn0,
             track: Track { dq_c: [0.0; 4], current_lag_a: 0.0, vsn_v: 0.0, vsp_v: 0.0, t_k },
             max_substep_s,
+            arrhenius: None,
         }
+    }
+
+    /// The same cell whose Ro and rate constants follow `ext`'s Arrhenius factors against `ref_k` (no
+    /// change when `ext` has none).
+    pub fn with_arrhenius(mut self, ext: &ModelExtension, ref_k: f64) -> Self {
+        if ext.temperature_dependent() {
+            let kn_kp = (self.model.params.kn, self.model.params.kp);
+            self.arrhenius = Some((ext.clone(), ref_k, kn_kp));
+        }
+        self
     }
 
     /// The full model state under parameters `d`.
@@ -100,6 +115,11 @@ impl CellModel {
         let t_o = self.model.params.t_o_s;
         let (t0, step_t) = (self.track.t_k, (t_end_k - self.track.t_k) / n);
         for k in 0..n as usize {
+            // Ro(T) = Ro g(T): the ohmic lag follows i g(T), so Vo = Ro lag still holds for any Ro.
+            let ro_factor = match &self.arrhenius {
+                Some((ext, ref_k, kn_kp)) => ext.apply_at(&mut self.model, *kn_kp, self.track.t_k, *ref_k),
+                None => 1.0,
+            };
             let x = self.state(&self.track, d);
             let current_a = match drive {
                 Drive::Current(i) => i,
@@ -119,7 +139,7 @@ impl CellModel {
                 tr.dq_c[j] += dx[s] * h;
             }
             // Vo = Ro * lag, and Vo' = (i Ro - Vo) / t_o, so lag' = (i - lag) / t_o.
-            tr.current_lag_a += (current_a - tr.current_lag_a) / t_o * h;
+            tr.current_lag_a += (current_a * ro_factor - tr.current_lag_a) / t_o * h;
             tr.vsn_v += dx[idx::V_SN] * h;
             tr.vsp_v += dx[idx::V_SP] * h;
             tr.t_k = t0 + step_t * (k + 1) as f64;
@@ -172,11 +192,13 @@ pub fn switch_time_unknown(prev: &Sample, next: &Sample, max_substep_s: f64) -> 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Settle {
     until_s: f64,
+    /// The last switch of unknown time: the readings around it (s) and the current's change, A.
+    switch: Option<(f64, f64, f64)>,
 }
 
 impl Default for Settle {
     fn default() -> Self {
-        Self { until_s: f64::NEG_INFINITY }
+        Self { until_s: f64::NEG_INFINITY, switch: None }
     }
 }
 
@@ -185,8 +207,22 @@ impl Settle {
     pub fn unsettled(&mut self, prev: &Sample, next: &Sample, max_substep_s: f64, settle_s: f64) -> bool {
         if switch_time_unknown(prev, next, max_substep_s) {
             self.until_s = prev.t_s + settle_s;
+            self.switch = Some((prev.t_s, next.t_s, next.current_a - prev.current_a));
         }
         next.t_s < self.until_s
+    }
+
+    /// Variance of the predicted voltage at `t_s` from the last switch's unknown time, V^2: the ohmic lag
+    /// (time constant `t_o_s`) still holds exp(-(t - t_switch) / t_o) of the jump dI Ro, for a switch time
+    /// uniform between the readings around it (a spread of that fraction over the interval, / sqrt(12)).
+    /// Zero once the lag has forgotten (and for 1 s readings, whose switches are exact).
+    pub fn voltage_variance_v2(&self, t_s: f64, r_o_ohm: f64, t_o_s: f64) -> f64 {
+        let Some((a, b, di)) = self.switch else { return 0.0 };
+        if t_s < b {
+            return 0.0;
+        }
+        let spread = (-(t_s - b) / t_o_s).exp() - (-(t_s - a) / t_o_s).exp();
+        (di * r_o_ohm * spread).powi(2) / 12.0
     }
 }
 

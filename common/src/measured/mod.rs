@@ -10,10 +10,12 @@
 pub mod calibrator;
 pub mod cellmodel;
 pub mod env;
+pub mod extension;
 pub mod scenario;
 pub mod tracker;
 pub mod window;
 
 pub use calibrator::Calibrator;
+pub use extension::ModelExtension;
 pub use scenario::{Episode, EpisodeSpec, LoadKind, Sample, ScenarioConfig, SensorConfig};
 pub use tracker::{ActionMode, Interval, Tracker, TrackerSpec, OBS_DIM};

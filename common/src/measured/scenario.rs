@@ -120,6 +120,8 @@ pub struct ScenarioConfig {
     pub validation_episodes: usize,
     pub test_episodes: usize,
     pub sensor: SensorConfig,
+    /// The true cells' model: the base one, or the doctor's extended one (a real cell's setting).
+    pub model: super::extension::ModelExtension,
 }
 
 impl Default for ScenarioConfig {
@@ -145,6 +147,7 @@ impl Default for ScenarioConfig {
             validation_episodes: 48,
             test_episodes: 96,
             sensor: SensorConfig::default(),
+            model: super::extension::ModelExtension::default(),
         }
     }
 }
@@ -230,7 +233,8 @@ pub struct Episode {
     pub samples: Vec<Sample>,
     /// Noise-free terminal voltage at each sample, V (scoring and plots only).
     pub true_voltage_v: Vec<f64>,
-    /// Time the true voltage first fell below the cut-off, s; `None` when the episode hit its length limit.
+    /// Time the true voltage first fell below the cut-off (or the model emptied above it: an electrode's
+    /// surface at its clip, [`BatteryModel::surface_empty`]), s; `None` when the episode hit its length limit.
     pub eod_s: Option<f64>,
 }
 
@@ -293,16 +297,19 @@ pub fn draw_spec(cfg: &ScenarioConfig, split: Split, rng: &mut SmallRng) -> Epis
             LoadProfile::Piecewise(segs)
         }
     };
-    let ambient_k = if cfg.thermal { KELVIN_0C + uniform(rng, cfg.ambient_c) } else { BatteryParams::default().tb0_k };
+    let ambient_k = if cfg.thermal { KELVIN_0C + uniform(rng, cfg.ambient_c) } else { cfg.model.params().tb0_k };
     let interval_s = cfg.sample_interval_s[rng.random_range(0..cfg.sample_interval_s.len())];
     EpisodeSpec { truth, soc0, kind, profile, rest_s, ambient_k, interval_s, noise_seed: rng.random() }
 }
 
-/// Simulates `spec` to the cut-off and reads it through the sensor.
+/// Simulates `spec` to the cut-off (or until the model is empty) and reads it through the sensor.
 pub fn simulate(cfg: &ScenarioConfig, spec: &EpisodeSpec) -> Result<Episode, ModelError> {
-    let params = BatteryParams { tb0_k: spec.ambient_k, ..BatteryParams::default() };
-    let model = BatteryModel::new(params, cfg.thermal)?;
+    let params = BatteryParams { tb0_k: spec.ambient_k, ..cfg.model.params() };
+    let mut model = BatteryModel::new(params, cfg.thermal)?;
     model.check_degradation(&spec.truth)?;
+    let kn_kp = (model.params.kn, model.params.kp);
+    let ref_k = cfg.model.reference_k.unwrap_or(spec.ambient_k);
+    let arrhenius = cfg.model.temperature_dependent();
     let mut rng = SmallRng::seed_from_u64(spec.noise_seed);
     let s = &cfg.sensor;
     let normal = |sd: f64| Normal::new(0.0, sd.max(0.0)).expect("finite standard deviation");
@@ -315,7 +322,12 @@ pub fn simulate(cfg: &ScenarioConfig, spec: &EpisodeSpec) -> Result<Episode, Mod
     let mut true_voltage_v = Vec::new();
     let mut eod_s = None;
     loop {
-        let v = model.voltage_v(&x, &spec.truth);
+        // The doctor's thermal extension: Ro and the rate constants at the cell's temperature.
+        let mut truth = spec.truth;
+        if arrhenius {
+            truth.r_o_ohm *= cfg.model.apply_at(&mut model, kn_kp, x[idx::T_B], ref_k);
+        }
+        let v = model.voltage_v(&x, &truth);
         if !v.is_finite() || x.iter().any(|q| !q.is_finite()) {
             return Err(ModelError::NonFinite { t_s });
         }
@@ -330,7 +342,7 @@ pub fn simulate(cfg: &ScenarioConfig, spec: &EpisodeSpec) -> Result<Episode, Mod
             }
         };
         let under_load = t_s >= spec.rest_s;
-        let ended = under_load && v < cfg.cutoff_v;
+        let ended = under_load && (v < cfg.cutoff_v || model.surface_empty(&x, &truth));
         // The cut-off reading is taken under load, as a cycler reads it before it opens the circuit.
         if t_s + 1e-9 >= next_sample_s || ended {
             samples.push(Sample {
@@ -350,7 +362,7 @@ pub fn simulate(cfg: &ScenarioConfig, spec: &EpisodeSpec) -> Result<Episode, Mod
         if t_s >= cfg.max_duration_s {
             break;
         }
-        x = model.step_current(&x, i, dt, &spec.truth);
+        x = model.step_current(&x, i, dt, &truth);
         t_s += dt;
     }
     Ok(Episode { spec: spec.clone(), samples, true_voltage_v, eod_s })

@@ -13,9 +13,10 @@
 //! estimate explains what was measured, with no true parameter and no true state.
 
 use super::cellmodel::{xn_from_rest_voltage, CellModel, Settle, REST_CURRENT_A};
+use super::extension::ModelExtension;
 use super::scenario::{Request, Sample};
 use super::window::{FitPoint, FitStats, FitWindow};
-use crate::battery::{BatteryModel, BatteryParams, Degradation};
+use crate::battery::{BatteryModel, Degradation};
 use serde::{Deserialize, Serialize};
 
 /// Features of [`Tracker::observe`].
@@ -62,6 +63,8 @@ pub struct TrackerSpec {
     pub use_measured_temperature: bool,
     /// Cut-off voltage of end-of-discharge predictions, V.
     pub cutoff_v: f64,
+    /// The calibrator's model: the base one, or the doctor's extended one (`bcal calibrate --model`).
+    pub model: ModelExtension,
 }
 
 impl Default for TrackerSpec {
@@ -85,6 +88,7 @@ impl Default for TrackerSpec {
             interval_scale: [1.645, 1.645],
             use_measured_temperature: false,
             cutoff_v: 3.0,
+            model: ModelExtension::default(),
         }
     }
 }
@@ -195,10 +199,14 @@ impl Tracker {
         let mut unsettled = false;
         match (&mut self.cell, self.last) {
             (None, _) => {
-                let model = BatteryModel::new(BatteryParams::default(), false).expect("default parameters are valid");
+                let model = self.spec.model.model().expect("the config checks the model extension");
                 let t_k = self.temperature_of(s, &model);
                 let xn0 = xn_from_rest_voltage(&model, s.voltage_v, t_k);
-                self.cell = Some(CellModel::at_rest(model, xn0, t_k, self.spec.max_substep_s));
+                let ref_k = self.spec.model.reference_k.unwrap_or(s.temperature_k);
+                self.cell = Some(
+                    CellModel::at_rest(model, xn0, t_k, self.spec.max_substep_s)
+                        .with_arrhenius(&self.spec.model, ref_k),
+                );
                 self.start_t_s = s.t_s;
             }
             (Some(cell), Some(prev)) => {

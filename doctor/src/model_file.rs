@@ -1,0 +1,98 @@
+//! Reading back the model a diagnosis chose (`diagnosis.json`'s `extended` part): its causes and the
+//! shared parameters fitted on the training cycles. `bcal calibrate --model` and `bcal cell-config
+//! --model` run the calibrators on it; the per-cycle parameters are calibrated again on every cycle.
+
+use crate::sim::{Cause, ExtParams};
+use crate::DoctorError;
+use bcal_common::text::shown;
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// The extended model of a diagnosis.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DiagnosedModel {
+    /// The cell the diagnosis was made on.
+    pub cell: String,
+    /// Where it was read from.
+    pub path: PathBuf,
+    /// The causes of the extended model, in the doctor's order (empty: the base model won).
+    pub causes: Vec<Cause>,
+    /// The shared parameters (per-cycle ones at their neutral values), with what the causes switch on.
+    pub shared: ExtParams,
+}
+
+#[derive(Deserialize)]
+struct File {
+    cell: String,
+    extended: Extended,
+}
+
+#[derive(Deserialize)]
+struct Extended {
+    causes: Vec<String>,
+    params: BTreeMap<String, f64>,
+}
+
+/// Reads `path` (a `diagnosis.json` written by `bcal diagnose`, or the folder holding one).
+pub fn load_model(path: &Path) -> Result<DiagnosedModel, DoctorError> {
+    let file = if path.is_dir() { path.join("diagnosis.json") } else { path.to_path_buf() };
+    let text = std::fs::read_to_string(&file).map_err(|source| DoctorError::Io { path: file.clone(), source })?;
+    let bad = |why: String| DoctorError::BadModelFile { path: file.clone(), why };
+    let f: File =
+        serde_json::from_str(&text).map_err(|e| bad(format!("not a diagnosis written by bcal diagnose ({e})")))?;
+    let mut causes = Vec::new();
+    let mut shared = ExtParams::default();
+    for name in &f.extended.causes {
+        let c = Cause::ALL
+            .into_iter()
+            .find(|c| c.name() == name)
+            .ok_or_else(|| bad(format!("unknown cause `{}`", shown(name, 40))))?;
+        shared.enable(c);
+        causes.push(c);
+    }
+    for (name, value) in &f.extended.params {
+        // With or without a measured temperature, `thermal` has its own parameter set: accept either.
+        let known =
+            causes.iter().flat_map(|c| c.params(true).into_iter().chain(c.params(false))).any(|s| s.name == name);
+        if !known {
+            return Err(bad(format!(
+                "parameter `{}` belongs to none of the causes {:?}",
+                shown(name, 40),
+                f.extended.causes
+            )));
+        }
+        if !value.is_finite() {
+            return Err(bad(format!("parameter `{name}` = {value} is not a finite number")));
+        }
+        shared.set(name, *value);
+    }
+    Ok(DiagnosedModel { cell: f.cell, path: file, causes, shared })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_diagnosis_reads_back_its_causes_and_shared_values_and_bad_files_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("diagnosis.json");
+        std::fs::write(
+            &p,
+            r#"{"cell":"B0005","extended":{"causes":["electrode_balance","charge_transfer","thermal"],
+                "params":{"kinetics_activation_k":512.75,"ro_activation_k":4015.08},"cycle_params":["xp_shift"]}}"#,
+        )
+        .unwrap();
+        let m = load_model(dir.path()).unwrap();
+        assert_eq!(m.causes, vec![Cause::ElectrodeBalance, Cause::ChargeTransfer, Cause::Thermal]);
+        assert!(m.shared.temperature_driven && m.shared.ro_activation_k == 4015.08);
+        assert_eq!((m.shared.xp_shift, m.shared.kinetics_scale), (0.0, 1.0));
+        std::fs::write(&p, r#"{"cell":"B0005","extended":{"causes":["gremlins"],"params":{}}}"#).unwrap();
+        let e = load_model(&p).unwrap_err().to_string();
+        assert!(e.contains("gremlins") && e.contains("diagnosis.json"), "{e}");
+        std::fs::write(&p, "not json").unwrap();
+        assert!(load_model(&p).unwrap_err().to_string().contains("bcal diagnose"));
+        assert!(load_model(&dir.path().join("missing.json")).is_err());
+    }
+}
