@@ -194,7 +194,10 @@ impl JointUkf {
             / (2.0 * h))
             .abs()
             .max(1e-3);
-        let xn_std = (self.s.meas_std_v / slope).clamp(0.005, 0.1);
+        // A rest at or above a full cell's open-circuit voltage is a full cell: the spread must not reach
+        // past the electrode's full point, where the points would be clamped and the mean pulled down.
+        let room = (p.xn_max - xn) / 3f64.sqrt();
+        let xn_std = (self.s.meas_std_v / slope).clamp(0.005, 0.1).min(room.max(0.001));
         let prior = self.spec.to_z(&self.spec.prior);
         let mean3 = [xn, prior[0], prior[1]];
         let std3 = [xn_std, self.s.prior_std_z[0], self.s.prior_std_z[1]];

@@ -14,7 +14,7 @@
 use crate::cellspec::{cell_spec, CellFacts};
 use crate::record::{prepare, CellRecord, RecordSummary};
 use crate::report::{CalibrationReport, MethodEntry};
-use crate::run::{run_all, run_sequence, CycleRun, Streaming, Trend};
+use crate::run::{knee_s, knees_before, run_all, run_sequence, Before, CycleRun, Streaming, Trend};
 use crate::score::score;
 use crate::tune;
 use bcal_common::battery::Degradation;
@@ -129,19 +129,24 @@ pub fn fits(
         .collect())
 }
 
-/// The model each record's streaming calibration runs on: the one known before it, the fit of the record
-/// before it (a completed discharge: no look-ahead), at this record's ambient; the first takes `first`.
-fn models_before(
+/// What each record's calibration knows before it starts (no look-ahead: only discharges that ended): the
+/// parameters and model values fitted on the record before it (the first takes `first`), at this record's
+/// ambient, and the model's knee over the discharges before it (`earlier_knees` those before `records`).
+fn before(
     records: &[CellRecord],
     fits: &[(Degradation, ModelExtension)],
-    first: &ModelExtension,
-) -> Vec<ModelExtension> {
+    first: &(Degradation, ModelExtension),
+    earlier_knees: &[f64],
+    cutoff_v: f64,
+) -> Vec<Before> {
+    let knees: Vec<Option<f64>> = records.iter().zip(fits).map(|(r, f)| knee_s(r, f, cutoff_v)).collect();
     records
         .iter()
+        .zip(knees_before(earlier_knees, &knees))
         .enumerate()
-        .map(|(k, r)| {
-            let prev = if k == 0 { first.clone() } else { fits[k - 1].1.clone() };
-            ModelExtension { reference_k: Some(r.ambient_k), ..prev }
+        .map(|(k, (r, knee_s))| {
+            let prev = if k == 0 { first.clone() } else { fits[k - 1].clone() };
+            Before { prior: prev.0, model: ModelExtension { reference_k: Some(r.ambient_k), ..prev.1 }, knee_s }
         })
         .collect()
 }
@@ -208,33 +213,43 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         t0.elapsed().as_secs_f64()
     ));
 
-    // The model's knee: how much later than the model's own end the training cycles reached the cut-off.
-    let knee_s = crate::run::knee_offset_s(&train, &train_fits, cut);
-    progress(&format!("model knee: the training cycles reach {cut} V a median {knee_s:.0} s after the model empties"));
+    // The model's knee: how much later than the model's own end the last discharges reached the cut-off.
+    let train_knees: Vec<f64> = train.iter().zip(&train_fits).filter_map(|(r, f)| knee_s(r, f, cut)).collect();
+    let knee_median = {
+        let mut v = train_knees.clone();
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(0.0)
+    };
+    progress(&format!(
+        "model knee: the training cycles reach {cut} V a median {knee_median:.0} s after the model empties (each \
+         discharge takes the median of the {} before it)",
+        crate::run::KNEE_WINDOW
+    ));
 
     // The cell's setting: given (the RL run's), else derived from the training cycles.
     let (derived, facts) = cell_spec(&train, &train_fits, cut);
     let spec = input.spec.clone().unwrap_or(derived);
 
-    // The model every discharge's streaming calibration starts on.
-    let train_models = models_before(&train, &train_fits, &neutral);
-    let first_judged = train_fits.last().map_or_else(|| neutral.clone(), |f| f.1.clone());
-    let judged_models = models_before(&judged, &judged_fits, &first_judged);
+    // What every discharge's calibration starts with.
+    let train_before = before(&train, &train_fits, &(spec.tracker.prior, neutral.clone()), &[], cut);
+    let first_judged = train_fits.last().cloned().unwrap_or((spec.tracker.prior, neutral.clone()));
+    let judged_before = before(&judged, &judged_fits, &first_judged, &train_knees, cut);
 
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
     settings.insert("cell_setting".into(), serde_json::to_value(&facts).unwrap_or_default());
     settings.insert(
         "model_knee_s".into(),
-        serde_json::json!({"value": knee_s, "what": "median of (measured cut-off time - the model's end of discharge) over \
-            the training cycles under their offline fits; added to every model-based end-of-discharge prediction \
-            and, times the current, to every capacity"}),
+        serde_json::json!({"training_median": knee_median, "window": crate::run::KNEE_WINDOW,
+            "what": "measured cut-off time - the model's end of discharge under the record's offline fit, from a full \
+            cell; each discharge adds the median over the last `window` discharges before it to every model-based \
+            end-of-discharge prediction and, times the current, to every capacity"}),
     );
 
     // Every choice of the streaming calibrators is made on the last training cycles.
     let validation_idx = tune::validation_records(&train);
     let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
-    let validation_models: Vec<ModelExtension> = validation_idx.iter().map(|&k| train_models[k].clone()).collect();
+    let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
     if (input.ukf || !input.policies.is_empty()) && validation.is_empty() {
         return Err(CalibrateError::Validation(format!(
             "the streaming calibrators' settings are chosen on the last training cycles, and {} of the training \
@@ -280,8 +295,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             cands.len(),
             validation.len()
         ));
-        let choice = tune::choose(&cands, &validation, &validation_models, cut, knee_s)
-            .expect("candidates and validation checked");
+        let choice =
+            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
         let (net, unit, path, update) = &nets[choice.index];
         progress(&format!(
             "RL-LAC: policy {path} (update {update}, prior_std_z {}); validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
@@ -292,8 +307,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         ));
         let t0 = Instant::now();
         let cal = Streaming::Rl { spec: unit.clone(), net };
-        let cal = choice.last_estimate.map_or_else(|| cal.with_prior(&unit.prior), |d| cal.with_prior(&d));
-        let r = run_sequence(&cal, &judged, &judged_models, cut, knee_s, &[choice.interval_scale], false).0.remove(0);
+        let r = run_sequence(&cal, &judged, &judged_before, cut, &[choice.interval_scale], false).0.remove(0);
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("rl", r));
         settings.insert(
@@ -313,8 +327,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             .iter()
             .map(|g| (format!("{g:?}"), Streaming::Ukf { spec: spec.tracker.clone(), settings: *g }))
             .collect();
-        let choice = tune::choose(&cands, &validation, &validation_models, cut, knee_s)
-            .expect("candidates and validation checked");
+        let choice =
+            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
         let best = grid[choice.index];
         progress(&format!(
             "joint UKF: validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
@@ -324,8 +338,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         ));
         let t0 = Instant::now();
         let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: best };
-        let cal = choice.last_estimate.map_or_else(|| cal.with_prior(&spec.tracker.prior), |d| cal.with_prior(&d));
-        let r = run_sequence(&cal, &judged, &judged_models, cut, knee_s, &[choice.interval_scale], false).0.remove(0);
+        let r = run_sequence(&cal, &judged, &judged_before, cut, &[choice.interval_scale], false).0.remove(0);
         progress(&format!("joint UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("ukf", r));
         let mut top = choice.clone();
@@ -333,25 +346,21 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         settings.insert("ukf".into(), serde_json::json!({"settings": best, "validation": top}));
     }
     // The references: parameters (and extended-model values) pinned for the whole discharge.
+    // Each with its own model and the knee every method gets.
     let pinned = |pins: Vec<(Degradation, ModelExtension)>| {
         let s = spec.tracker.clone();
-        run_all(&judged, cut, knee_s, move |k| {
-            Streaming::Pinned { spec: s.clone(), d: pins[k].0 }.with_model(&pins[k].1)
-        })
+        let b: Vec<Before> = pins
+            .iter()
+            .zip(&judged_before)
+            .map(|((d, m), jb)| Before { prior: *d, model: m.clone(), knee_s: jb.knee_s })
+            .collect();
+        run_all(&judged, &b, cut, move |k| Streaming::Pinned { spec: s.clone(), d: pins[k].0 })
     };
     if input.fit {
         runs.push(("fit", pinned(judged_fits.clone())));
     }
-    let previous: Vec<(Degradation, ModelExtension)> = (0..judged.len())
-        .map(|k| {
-            let prev = if k > 0 {
-                judged_fits[k - 1].clone()
-            } else {
-                train_fits.last().cloned().unwrap_or((spec.tracker.prior, neutral.clone()))
-            };
-            (prev.0, ModelExtension { reference_k: Some(judged[k].ambient_k), ..prev.1 })
-        })
-        .collect();
+    let previous: Vec<(Degradation, ModelExtension)> =
+        judged_before.iter().map(|b| (b.prior, b.model.clone())).collect();
     runs.push(("previous_cycle", pinned(previous)));
     let train_capacities: Vec<(u32, f64)> = train
         .iter()

@@ -205,40 +205,49 @@ pub fn run_cycle_with(
     runs
 }
 
+/// What is known of the cell before a discharge, from the discharges before it (each complete by then):
+/// the parameters and model values the doctor fitted on the last one, and the model's knee (see
+/// [`knee_s`]). A streaming calibrator starts each discharge there, as a BMS that runs the doctor's fit
+/// between discharges would.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Before {
+    pub prior: Degradation,
+    pub model: ModelExtension,
+    pub knee_s: f64,
+}
+
 /// Runs a reference built per record (`make(record index)`) along every record, on all cores.
 pub fn run_all<'a>(
     records: &[CellRecord],
+    before: &[Before],
     cutoff_v: f64,
-    knee_s: f64,
     make: impl Fn(usize) -> Streaming<'a> + Sync,
 ) -> Vec<CycleRun> {
-    records.par_iter().enumerate().map(|(k, r)| run_cycle(&make(k), r, cutoff_v, knee_s, 1.0)).collect()
+    records
+        .par_iter()
+        .enumerate()
+        .map(|(k, r)| run_cycle(&make(k).with_model(&before[k].model), r, cutoff_v, before[k].knee_s, 1.0))
+        .collect()
 }
 
 /// A streaming calibrator along a cell's discharges in order, as a BMS runs it: each discharge starts
-/// from the estimate the previous one ended with (the first from `cal`'s own prior), on the model
-/// `models[k]` (what the cell was known to be before discharge k). One run per interval scale;
-/// predictions only at the scores' readings when `checkpoints_only`. Returns the runs and the last
-/// estimate.
+/// from what was known before it (`before[k]`: the last discharge's offline fit). One run per interval
+/// scale; predictions only at the scores' readings when `checkpoints_only`. Returns the runs and the
+/// calibrator's last estimate.
 pub fn run_sequence(
     cal: &Streaming,
     records: &[CellRecord],
-    models: &[ModelExtension],
+    before: &[Before],
     cutoff_v: f64,
-    knee_s: f64,
     scales: &[f64],
     checkpoints_only: bool,
 ) -> (Vec<Vec<CycleRun>>, Option<Degradation>) {
     let mut out: Vec<Vec<CycleRun>> = scales.iter().map(|_| Vec::with_capacity(records.len())).collect();
     let mut last: Option<Degradation> = None;
-    for (r, ext) in records.iter().zip(models) {
-        let on_model = cal.with_model(ext);
-        let c = match last {
-            Some(d) => on_model.with_prior(&d),
-            None => on_model,
-        };
+    for (r, b) in records.iter().zip(before) {
+        let c = cal.with_model(&b.model).with_prior(&b.prior);
         let only = checkpoints_only.then(|| checkpoints(r));
-        let runs = run_cycle_with(&c, r, cutoff_v, knee_s, scales, only.as_deref());
+        let runs = run_cycle_with(&c, r, cutoff_v, b.knee_s, scales, only.as_deref());
         last = runs.first().and_then(|run| run.steps.last()).map(|s| s.estimate);
         for (o, run) in out.iter_mut().zip(runs) {
             o.push(run);
@@ -247,38 +256,63 @@ pub fn run_sequence(
     (out, last)
 }
 
-/// The time between the model's end of discharge and the measured one on the training cycles, s (median):
-/// the model's voltage stops falling when an electrode's surface empties (about 3.0 V at 2 A), while the
-/// real cell drops through its knee to the cut-off a little later. Each training cycle runs from a full
-/// cell under its own offline fit; cycles that did not start full, or never reached the cut-off, are
-/// left out. Zero without such cycles.
-pub fn knee_offset_s(train: &[CellRecord], fits: &[(Degradation, ModelExtension)], cutoff_v: f64) -> f64 {
-    let mut offsets: Vec<f64> = train
-        .iter()
-        .zip(fits)
-        .filter_map(|(r, (d, ext))| {
-            let eod = r.eod_s?;
-            let start = r.samples.iter().find(|s| s.t_s >= r.load_on_s)?;
-            let p = Predictor::at(ext, r.ambient_k);
-            let (m, d) = (&p.model, Degradation { r_o_ohm: d.r_o_ohm * p.ro_factor, ..*d });
-            let x0 = bcal_common::measured::scenario::rest_state(m, &d, m.params.xn_max, start.temperature_k);
-            let profile =
-                bcal_common::battery::LoadProfile::Constant(bcal_common::battery::Load::CurrentA(r.current_a));
-            let q = bcal_common::measured::calibrator::EodQuery {
-                profile: &profile,
-                cutoff_v,
-                dt_s: predict::PREDICT_DT_S,
-                max_s: predict::PREDICT_MAX_S,
-            };
-            let p = bcal_common::measured::calibrator::predict_eod_s(m, &x0, &d, r.load_on_s, &q)?;
-            Some(eod - p)
-        })
-        .collect();
-    if offsets.is_empty() {
-        return 0.0;
+/// How many of the latest discharges the model's knee is taken over (median).
+pub const KNEE_WINDOW: usize = 3;
+
+/// The model's knee on one complete discharge, s: the measured time at the cut-off minus the end the
+/// record's own offline fit predicts from its start. The model's voltage stops falling when an electrode's
+/// surface empties (about 3.0 V at 2 A), while the real cell drops through its knee to a lower cut-off a
+/// little later, and by how much drifts with age. None for a record that never reached the cut-off, or
+/// did not start full (its rest lies more than the doctor's partial-start drop below a full cell's
+/// open-circuit voltage).
+pub fn knee_s(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64) -> Option<f64> {
+    let (d, ext) = fit;
+    let eod = r.eod_s?;
+    let first = r.samples.first()?;
+    let start = r.samples.iter().find(|s| s.t_s >= r.load_on_s)?;
+    let p = Predictor::at(ext, r.ambient_k);
+    let m = &p.model;
+    let full_ocv = bcal_common::measured::cellmodel::ocv_v(m, m.params.xn_max, first.temperature_k);
+    if first.t_s < r.load_on_s && full_ocv - first.voltage_v > bcal_doctor::record::PARTIAL_START_DROP_V {
+        return None;
     }
-    offsets.sort_by(f64::total_cmp);
-    offsets[offsets.len() / 2]
+    let dyn_d = Degradation { r_o_ohm: d.r_o_ohm * p.ro_factor, ..*d };
+    let x0 = bcal_common::measured::scenario::rest_state(m, d, m.params.xn_max, start.temperature_k);
+    let profile = bcal_common::battery::LoadProfile::Constant(bcal_common::battery::Load::CurrentA(r.current_a));
+    let q = bcal_common::measured::calibrator::EodQuery {
+        profile: &profile,
+        cutoff_v,
+        dt_s: predict::PREDICT_DT_S,
+        max_s: predict::PREDICT_MAX_S,
+    };
+    let model_eod = bcal_common::measured::calibrator::predict_eod_s(m, &x0, &dyn_d, r.load_on_s, &q)?;
+    Some(eod - model_eod)
+}
+
+/// The knee each discharge of a sequence runs with: the median of [`knee_s`] over the last [`KNEE_WINDOW`]
+/// discharges before it that have one (`earlier` first, the knees of discharges before the sequence);
+/// zero before any.
+pub fn knees_before(earlier: &[f64], knees: &[Option<f64>]) -> Vec<f64> {
+    let mut seen: Vec<f64> = earlier.to_vec();
+    knees
+        .iter()
+        .map(|k| {
+            let last: Vec<f64> = seen.iter().rev().take(KNEE_WINDOW).copied().collect();
+            if let Some(v) = k {
+                seen.push(*v);
+            }
+            median(last).unwrap_or(0.0)
+        })
+        .collect()
+}
+
+fn median(mut v: Vec<f64>) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
 }
 
 /// Capacity against cycle number: ln C = a + b n fitted by least squares on the training cycles (an

@@ -6,10 +6,8 @@
 //! own error on a real cell, which dominates).
 
 use crate::record::CellRecord;
-use crate::run::{run_sequence, CycleRun, Streaming};
+use crate::run::{run_sequence, Before, CycleRun, Streaming};
 use crate::score::{score, EOD_FRACTIONS_PCT};
-use bcal_common::battery::Degradation;
-use bcal_common::measured::extension::ModelExtension;
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -73,20 +71,16 @@ pub struct Choice {
     /// The interval scale and the coverage of the measured ends it gave on validation, %.
     pub interval_scale: f64,
     pub validation_eod_coverage_pct: Option<f64>,
-    /// The chosen calibrator's estimate at the end of the validation cycles: where it starts the judged
-    /// ones (it runs on, as on a BMS).
-    pub last_estimate: Option<Degradation>,
 }
 
 /// Chooses among `candidates` (label, calibrator) by [`objective`] on `records` (each run along them in
-/// order on the records' `models`, carrying its estimate from one to the next), then the interval scale
+/// order with what was known before each, carrying its estimate from one to the next), then the interval scale
 /// whose end-of-discharge coverage on them is nearest 90 % (the smaller scale on a tie).
 pub fn choose(
     candidates: &[(String, Streaming<'_>)],
     records: &[CellRecord],
-    models: &[ModelExtension],
+    before: &[Before],
     cutoff_v: f64,
-    knee_s: f64,
 ) -> Option<Choice> {
     if candidates.is_empty() || records.is_empty() {
         return None;
@@ -95,14 +89,14 @@ pub fn choose(
         .par_iter()
         .enumerate()
         .map(|(k, (_, cal))| {
-            let runs = run_sequence(cal, records, models, cutoff_v, knee_s, &[1.0], true).0.pop().unwrap_or_default();
+            let runs = run_sequence(cal, records, before, cutoff_v, &[1.0], true).0.pop().unwrap_or_default();
             (k, objective(records, &runs))
         })
         .collect();
     scored.sort_by(|a, b| a.1.total_cmp(&b.1));
     let index = scored[0].0;
     let scales = scale_grid();
-    let (runs, last_estimate) = run_sequence(&candidates[index].1, records, models, cutoff_v, knee_s, &scales, true);
+    let runs = run_sequence(&candidates[index].1, records, before, cutoff_v, &scales, true).0;
     let mut best: Option<(f64, Option<f64>)> = None;
     for (scale, runs) in scales.iter().zip(&runs) {
         let cov = score(records, runs).coverage_90_pct.get("eod").copied().flatten();
@@ -127,7 +121,6 @@ pub fn choose(
             .collect(),
         interval_scale,
         validation_eod_coverage_pct,
-        last_estimate,
     })
 }
 
