@@ -16,6 +16,7 @@ pub mod mdp;
 pub mod measured;
 pub mod nrmse;
 pub mod policy;
+pub mod stats;
 pub mod task;
 pub mod text;
 pub mod wire;

@@ -26,6 +26,7 @@ use bcal_common::measured::scenario::{episode_set, Episode, ScenarioConfig};
 use bcal_common::measured::tracker::{Interval, Tracker, TrackerSpec, OBS_DIM};
 use bcal_common::nrmse::Param;
 use bcal_common::policy::{PolicyNet, Scratch};
+use bcal_common::stats::median;
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
@@ -338,15 +339,6 @@ pub struct EodSummary {
     pub bias_s: f64,
     pub n: usize,
     pub failures: usize,
-}
-
-fn median(v: &mut [f64]) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
 }
 
 /// Scores traces of test episodes.

@@ -11,6 +11,7 @@ use bcal_common::battery::{BatteryModel, Degradation, Load, LoadProfile};
 use bcal_common::dataset::Trajectory;
 use bcal_common::mdp::{model_state_at, Calibrated};
 pub use bcal_common::nrmse::Param;
+use bcal_common::stats::{median, quantile as percentile};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -114,24 +115,6 @@ pub struct Accuracy {
     /// 95th percentile of the absolute per-step error, %.
     pub p95_abs_err_pct: ParamValues,
     pub convergence: Convergence,
-}
-
-fn median(v: &mut [f64]) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
-}
-
-fn percentile(v: &mut [f64], q: f64) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let k = ((v.len() - 1) as f64 * q).round() as usize;
-    Some(v[k])
 }
 
 /// The median estimate of a trajectory (per parameter), the method's per-cycle answer.

@@ -214,8 +214,7 @@ fn traj_order(trajs: &[TrajEstimates], p: Param) -> Vec<usize> {
 }
 
 fn quantile(v: &mut [f64], q: f64) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * q).round() as usize]
+    bcal_common::stats::quantile(v, q).unwrap_or(f64::NAN)
 }
 
 fn draw_params<DB: DrawingBackend>(

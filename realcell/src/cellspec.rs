@@ -32,11 +32,7 @@ pub struct CellFacts {
 }
 
 fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * q).round() as usize]
+    bcal_common::stats::quantile(&mut v, q).unwrap_or(f64::NAN)
 }
 
 /// The cell's measured-only setting from its training records and their fits (each with its model: the

@@ -301,18 +301,10 @@ pub fn knees_before(earlier: &[f64], knees: &[Option<f64>]) -> Vec<f64> {
             if let Some(v) = k {
                 seen.push(*v);
             }
-            median(last).unwrap_or(0.0)
+            let mut last = last;
+            bcal_common::stats::median(&mut last).unwrap_or(0.0)
         })
         .collect()
-}
-
-fn median(mut v: Vec<f64>) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
 }
 
 /// Capacity against cycle number: ln C = a + b n fitted by least squares on the training cycles (an

@@ -60,9 +60,9 @@ fn quantiles(mut v: Vec<f64>) -> Quantiles {
     if v.is_empty() {
         return Quantiles::default();
     }
-    v.sort_by(f64::total_cmp);
-    let q = |f: f64| v[((v.len() - 1) as f64 * f).round() as usize];
-    Quantiles { n: v.len(), median: q(0.5), p90: q(0.9), mean: v.iter().sum::<f64>() / v.len() as f64 }
+    let (n, mean) = (v.len(), v.iter().sum::<f64>() / v.len() as f64);
+    let mut q = |f: f64| bcal_common::stats::quantile(&mut v, f).unwrap_or(f64::NAN);
+    Quantiles { n, median: q(0.5), p90: q(0.9), mean }
 }
 
 /// One method's scores.
