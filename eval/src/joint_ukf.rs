@@ -26,7 +26,7 @@ use bcal_common::measured::cellmodel::{
 };
 use bcal_common::measured::scenario::{rest_state, Sample};
 use bcal_common::measured::tracker::{Interval, TrackerSpec};
-use nalgebra::{Cholesky, SMatrix, SVector};
+use nalgebra::{SMatrix, SVector};
 use serde::{Deserialize, Serialize};
 
 const N: usize = 9;
@@ -75,21 +75,8 @@ impl Default for JointUkfSettings {
     }
 }
 
-/// Numerical rescues of one run.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub struct JointUkfCounters {
-    pub jittered: u64,
-    pub covariance_resets: u64,
-    pub skipped_updates: u64,
-}
-
-impl JointUkfCounters {
-    pub fn add(&mut self, o: &JointUkfCounters) {
-        self.jittered += o.jittered;
-        self.covariance_resets += o.covariance_resets;
-        self.skipped_updates += o.skipped_updates;
-    }
-}
+/// Numerical rescues of one run (the paper-setting UKF's counters).
+pub type JointUkfCounters = crate::ukf::UkfCounters;
 
 /// The filter along one discharge.
 #[derive(Clone, Debug)]
@@ -277,23 +264,7 @@ impl JointUkf {
     }
 
     fn sqrt_p(&mut self) -> Option<Mat9> {
-        if let Some(c) = Cholesky::new(self.p) {
-            return Some(c.l());
-        }
-        let scale = (self.p.trace().abs() / N as f64).max(1e-18);
-        let mut jitter = 1e-10 * scale;
-        for _ in 0..3 {
-            let pj = self.p + Mat9::identity() * jitter;
-            if let Some(c) = Cholesky::new(pj) {
-                self.counters.jittered += 1;
-                self.p = pj;
-                return Some(c.l());
-            }
-            jitter *= 1e3;
-        }
-        self.counters.covariance_resets += 1;
-        self.p = self.p0;
-        Cholesky::new(self.p).map(|c| c.l())
+        crate::ukf::sqrt_or_rescue(&mut self.p, &self.p0, 1e-10, &mut self.counters)
     }
 
     /// Takes one reading.

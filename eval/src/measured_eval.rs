@@ -15,7 +15,7 @@ use crate::evaluate::{median_of, PolicyInput, TIMING_REPEATS};
 use crate::joint_ukf::{JointUkf, JointUkfCounters, JointUkfSettings};
 use crate::metrics::ParamValues;
 use crate::plots::TrainingCurve;
-use bcal_common::battery::{BatteryModel, BatteryParams, Degradation};
+use bcal_common::battery::{BatteryModel, Degradation};
 use bcal_common::dataset::Split;
 use bcal_common::math::ModelState;
 use bcal_common::measured::calibrator::{
@@ -619,7 +619,9 @@ pub fn evaluate_measured(
     let started = Instant::now();
     let spec = input.spec;
     let sc = &spec.scenario;
-    let model = BatteryModel::new(BatteryParams::default(), false).expect("default parameters are valid");
+    // End-of-discharge predictions run the calibrators' own model.
+    let model =
+        spec.tracker.model.model().map_err(|e| MeasuredEvalError::Episodes { split: "model", why: e.to_string() })?;
     let cutoff_v = spec.tracker.cutoff_v;
     let n_val = opts.validation_episodes.unwrap_or(sc.validation_episodes);
     let n_test = opts.test_episodes.unwrap_or(sc.test_episodes);

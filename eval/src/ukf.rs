@@ -66,6 +66,34 @@ pub struct UkfCounters {
     pub skipped_updates: u64,
 }
 
+/// Lower Cholesky factor of the covariance `p`: as it is, else with diagonal jitter growing from
+/// `jitter0` times its mean variance (the jittered `p` is kept), else after resetting `p` to `p0`; `None`
+/// only when even that fails. Every rescue is counted.
+pub fn sqrt_or_rescue<const M: usize>(
+    p: &mut SMatrix<f64, M, M>,
+    p0: &SMatrix<f64, M, M>,
+    jitter0: f64,
+    counters: &mut UkfCounters,
+) -> Option<SMatrix<f64, M, M>> {
+    if let Some(c) = Cholesky::new(*p) {
+        return Some(c.l());
+    }
+    let scale = (p.trace().abs() / M as f64).max(1e-18);
+    let mut jitter = jitter0 * scale;
+    for _ in 0..JITTER_TRIES {
+        let pj = *p + SMatrix::<f64, M, M>::identity() * jitter;
+        if let Some(c) = Cholesky::new(pj) {
+            counters.jittered += 1;
+            *p = pj;
+            return Some(c.l());
+        }
+        jitter *= 1e3;
+    }
+    counters.covariance_resets += 1;
+    *p = *p0;
+    Cholesky::new(*p).map(|c| c.l())
+}
+
 impl UkfCounters {
     pub fn add(&mut self, o: &UkfCounters) {
         self.jittered += o.jittered;
@@ -140,25 +168,8 @@ impl<const N: usize> Ukf<N> {
         &self.settings
     }
 
-    /// Lower Cholesky factor of P, with jitter on failure; `None` only if P had to be reset and still fails.
     fn sqrt_p(&mut self) -> Option<SMatrix<f64, N, N>> {
-        if let Some(c) = Cholesky::new(self.p) {
-            return Some(c.l());
-        }
-        let scale = (self.p.trace().abs() / N as f64).max(1e-18);
-        let mut jitter = 1e-12 * scale;
-        for _ in 0..JITTER_TRIES {
-            let pj = self.p + SMatrix::<f64, N, N>::identity() * jitter;
-            if let Some(c) = Cholesky::new(pj) {
-                self.counters.jittered += 1;
-                self.p = pj;
-                return Some(c.l());
-            }
-            jitter *= 1e3;
-        }
-        self.counters.covariance_resets += 1;
-        self.p = self.p0;
-        Cholesky::new(self.p).map(|c| c.l())
+        sqrt_or_rescue(&mut self.p, &self.p0, 1e-12, &mut self.counters)
     }
 
     /// One predict-update cycle: random-walk prediction, sigma points through `h` (parameters -> predicted

@@ -28,6 +28,34 @@ pub trait Calibrator {
     }
 }
 
+/// What a calibrator built on a [`Tracker`] (field `tracker`) answers: the tracker's estimate, its interval
+/// (or none) and the model state under any parameters.
+macro_rules! tracker_calibrator {
+    () => {
+        fn interval(&self) -> Option<Interval> {
+            self.tracker.interval()
+        }
+        tracker_calibrator!(@state);
+    };
+    (no_interval) => {
+        fn interval(&self) -> Option<Interval> {
+            None
+        }
+        tracker_calibrator!(@state);
+    };
+    (@state) => {
+        fn estimate(&self) -> Degradation {
+            self.tracker.estimate()
+        }
+        fn state(&self) -> Option<ModelState> {
+            tracker_state(&self.tracker)
+        }
+        fn state_under(&self, d: &Degradation) -> Option<ModelState> {
+            self.tracker.cell().map(|c| c.state(&c.track, d))
+        }
+    };
+}
+
 /// The RL policy as a calibrator: its tracker reads, the policy's deterministic action moves the estimate.
 pub struct RlCalibrator<'a> {
     tracker: Tracker,
@@ -54,18 +82,7 @@ impl Calibrator for RlCalibrator<'_> {
         self.net.act_deterministic(&self.obs, &mut self.scratch, &mut a);
         self.tracker.apply_action(&a);
     }
-    fn estimate(&self) -> Degradation {
-        self.tracker.estimate()
-    }
-    fn interval(&self) -> Option<Interval> {
-        self.tracker.interval()
-    }
-    fn state(&self) -> Option<ModelState> {
-        tracker_state(&self.tracker)
-    }
-    fn state_under(&self, d: &Degradation) -> Option<ModelState> {
-        self.tracker.cell().map(|c| c.state(&c.track, d))
-    }
+    tracker_calibrator!();
 }
 
 /// The tracker following its own fit step (as far as `step_max` allows per reading), no learning.
@@ -89,18 +106,7 @@ impl Calibrator for WindowFitCalibrator {
         self.tracker.ingest(s);
         self.tracker.apply_action(&[0.0, 0.0]);
     }
-    fn estimate(&self) -> Degradation {
-        self.tracker.estimate()
-    }
-    fn interval(&self) -> Option<Interval> {
-        self.tracker.interval()
-    }
-    fn state(&self) -> Option<ModelState> {
-        tracker_state(&self.tracker)
-    }
-    fn state_under(&self, d: &Degradation) -> Option<ModelState> {
-        self.tracker.cell().map(|c| c.state(&c.track, d))
-    }
+    tracker_calibrator!();
 }
 
 /// A model that never calibrates during the discharge: parameters fixed from the start (the prior, a new
@@ -127,18 +133,7 @@ impl Calibrator for Uncalibrated {
     fn step(&mut self, s: &Sample) {
         self.tracker.ingest(s);
     }
-    fn estimate(&self) -> Degradation {
-        self.tracker.estimate()
-    }
-    fn interval(&self) -> Option<Interval> {
-        None
-    }
-    fn state(&self) -> Option<ModelState> {
-        tracker_state(&self.tracker)
-    }
-    fn state_under(&self, d: &Degradation) -> Option<ModelState> {
-        self.tracker.cell().map(|c| c.state(&c.track, d))
-    }
+    tracker_calibrator!(no_interval);
 }
 
 /// The model state of a tracker under its current estimate.
