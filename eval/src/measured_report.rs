@@ -240,7 +240,8 @@ pub fn reading(r: &MeasuredReport) -> Vec<String> {
     out
 }
 
-/// Estimates versus time with 90 % bands for a few test cells, RL and the joint UKF side by side.
+/// Estimates versus time with 90 % bands for a few test cells, RL and the joint UKF side by side: a row per
+/// cell and parameter, a column per method, the truth in black.
 fn draw_estimates<DB: DrawingBackend>(
     root: &DrawingArea<DB, plotters::coord::Shift>,
     episodes: &[&Episode],
@@ -249,29 +250,35 @@ fn draw_estimates<DB: DrawingBackend>(
 ) -> Result<(), String> {
     let err = |e: &dyn std::fmt::Display| e.to_string();
     root.fill(&WHITE).map_err(|e| err(&e))?;
-    let rows = root.split_evenly((episodes.len().max(1), 2));
+    let cols = series.len().max(1);
+    let panels = root.split_evenly((episodes.len().max(1) * 2, cols));
     for (k, e) in episodes.iter().enumerate() {
         for (j, p) in Param::BOTH.into_iter().enumerate() {
-            let area = &rows[k * 2 + j];
-            let t_end = e.samples.last().map_or(1.0, |s| s.t_s).max(1.0);
-            let truth = p.value(&e.spec.truth);
-            let [lo, hi] = p.range();
-            let pad = 0.35 * (hi - lo);
-            let mut b = ChartBuilder::on(area);
-            b.margin(8);
-            if text {
-                b.caption(
-                    format!("{} ({}, {:.0} s): {}", p.label(), e.spec.kind.name(), t_end, p.unit()),
-                    ("sans-serif", 13),
-                )
-                .x_label_area_size(28)
-                .y_label_area_size(55);
-            }
-            let mut chart = b.build_cartesian_2d(0.0..t_end, (lo - pad)..(hi + pad)).map_err(|e| err(&e))?;
-            if text {
-                chart.configure_mesh().x_desc("time, s").light_line_style(TRANSPARENT).draw().map_err(|e| err(&e))?;
-            }
-            for (name, color, traces) in series {
+            for (m, (name, color, traces)) in series.iter().enumerate() {
+                let area = &panels[(k * 2 + j) * cols + m];
+                let t_end = e.samples.last().map_or(1.0, |s| s.t_s).max(1.0);
+                let truth = p.value(&e.spec.truth);
+                let [lo, hi] = p.range();
+                let pad = 0.35 * (hi - lo);
+                let mut b = ChartBuilder::on(area);
+                b.margin(8);
+                if text {
+                    b.caption(
+                        format!("{name}: {} ({}, {:.0} s), {}", p.label(), e.spec.kind.name(), t_end, p.unit()),
+                        ("sans-serif", 13),
+                    )
+                    .x_label_area_size(28)
+                    .y_label_area_size(55);
+                }
+                let mut chart = b.build_cartesian_2d(0.0..t_end, (lo - pad)..(hi + pad)).map_err(|e| err(&e))?;
+                if text {
+                    chart
+                        .configure_mesh()
+                        .x_desc("time, s")
+                        .light_line_style(TRANSPARENT)
+                        .draw()
+                        .map_err(|e| err(&e))?;
+                }
                 let t = traces[k];
                 let band: Vec<(f64, f64, f64)> = e
                     .samples
@@ -279,11 +286,7 @@ fn draw_estimates<DB: DrawingBackend>(
                     .zip(&t.intervals)
                     .filter_map(|(s, iv)| {
                         iv.map(|iv| {
-                            let (a, b) = if p == Param::QMobile {
-                                (iv.q_mobile_c[0], iv.q_mobile_c[1])
-                            } else {
-                                (iv.r_o_ohm[0], iv.r_o_ohm[1])
-                            };
+                            let [a, b] = if p == Param::QMobile { iv.q_mobile_c } else { iv.r_o_ohm };
                             (s.t_s, a, b)
                         })
                     })
@@ -292,29 +295,14 @@ fn draw_estimates<DB: DrawingBackend>(
                     let mut poly: Vec<(f64, f64)> = band.iter().map(|b| (b.0, b.2)).collect();
                     poly.extend(band.iter().rev().map(|b| (b.0, b.1)));
                     chart
-                        .draw_series(std::iter::once(Polygon::new(poly, color.mix(0.15).filled())))
+                        .draw_series(std::iter::once(Polygon::new(poly, color.mix(0.2).filled())))
                         .map_err(|e| err(&e))?;
                 }
                 let line: Vec<(f64, f64)> =
                     e.samples.iter().zip(&t.estimates).map(|(s, d)| (s.t_s, p.value(d))).collect();
-                let s = chart.draw_series(LineSeries::new(line, color.stroke_width(2))).map_err(|e| err(&e))?;
-                if text {
-                    let c = *color;
-                    s.label(*name).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
-                }
-            }
-            let s = chart
-                .draw_series(LineSeries::new(vec![(0.0, truth), (t_end, truth)], BLACK.stroke_width(1)))
-                .map_err(|e| err(&e))?;
-            if text {
-                s.label("truth").legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK));
+                chart.draw_series(LineSeries::new(line, color.stroke_width(2))).map_err(|e| err(&e))?;
                 chart
-                    .configure_series_labels()
-                    .background_style(WHITE.mix(0.8))
-                    .border_style(BLACK)
-                    .label_font(("sans-serif", 11))
-                    .position(SeriesLabelPosition::UpperRight)
-                    .draw()
+                    .draw_series(LineSeries::new(vec![(0.0, truth), (t_end, truth)], BLACK.stroke_width(1)))
                     .map_err(|e| err(&e))?;
             }
         }
@@ -349,7 +337,7 @@ pub fn write_outputs(eval: &mut MeasuredEvaluation, dir: &Path, plot_episodes: u
             .collect();
     if !picks.is_empty() && !series.is_empty() {
         let eps: Vec<&Episode> = picks.iter().map(|&i| &eval.episodes[i]).collect();
-        let size = (1200, 280 * picks.len() as u32 + 20);
+        let size = (1200, 2 * 240 * picks.len() as u32 + 20);
         for ext in ["png", "svg"] {
             let name = format!("estimates_vs_time.{ext}");
             let path = dir.join(&name);

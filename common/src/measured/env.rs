@@ -172,9 +172,10 @@ mod tests {
 
     #[test]
     fn a_policy_that_holds_the_prior_scores_the_prior() {
-        let spec = MeasuredSpec::default();
+        let mut spec = MeasuredSpec::default();
+        spec.tracker.action = crate::measured::tracker::ActionMode::Absolute;
         let eps = crate::measured::scenario::episode_set(&spec.scenario, Split::Validation, 3).unwrap();
-        // Zero weights: mean 0, so the action is 0 and the estimate stays at the prior.
+        // Zero weights: mean 0, so the action is 0 and, as absolute moves, the estimate stays at the prior.
         let layout = PolicyLayout { obs_dim: OBS_DIM, act_dim: 2, hidden: vec![8] };
         let net = PolicyNet::from_flat(layout.clone(), vec![0.0; layout.n_params()]).unwrap();
         let score = validate_policy(&spec.tracker, &eps, &net);

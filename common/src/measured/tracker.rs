@@ -75,7 +75,10 @@ impl Default for TrackerSpec {
             // The middle of the data ranges: the only prior a calibrator may take from them.
             prior: Degradation { q_mobile_c: 5500.0, r_o_ohm: 0.15 },
             step_max: 0.05,
-            action: ActionMode::Absolute,
+            // Chosen on the validation cells (300 s runs, seed 1, best policy by validation tracking error):
+            // residual 1.3746 (NRMSE q / Ro 11.2 / 5.7 %), absolute 1.3715 (11.6 / 6.0 %); the label-free
+            // score ties, the NRMSE favours residual. docs/tuning.md.
+            action: ActionMode::Residual,
             // Chosen on the validation episodes (the window-fit calibrator alone, all readings, NRMSE q / Ro):
             // 48 points over 900 s 16.8 / 6.4 %, 64 over 1800 s 17.7 / 6.9 %, 96 over 3600 s 13.4 / 6.3 %.
             window_points: 96,
@@ -111,10 +114,9 @@ impl TrackerSpec {
 }
 
 /// How the policy's action moves the estimate (see [`TrackerSpec::action`]).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum ActionMode {
-    #[default]
     Absolute,
     Residual,
 }
@@ -358,7 +360,7 @@ mod tests {
         let mut rng = rand::rngs::SmallRng::seed_from_u64(5);
         let spec = draw_spec(&cfg, Split::Train, &mut rng);
         let ep = simulate(&cfg, &spec).unwrap();
-        let ts = TrackerSpec::default();
+        let ts = TrackerSpec { action: ActionMode::Absolute, ..TrackerSpec::default() };
         let mut tr = Tracker::new(&ts);
         let mut obs = [0f32; OBS_DIM];
         let mut costs = Vec::new();
