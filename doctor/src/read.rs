@@ -48,6 +48,11 @@ pub const MAX_CELL_CURRENT_A: f64 = 100.0;
 /// Largest charge one discharge record plausibly draws, Ah: a larger one is refused as time in
 /// milliseconds (which multiplies the charge by 1000).
 pub const MAX_RECORD_CHARGE_AH: f64 = 500.0;
+/// Longest time a record may stay under load (above [`LOADED_A`]), s: two days, beyond a C/40 discharge. A
+/// 10-minute partial discharge logged in milliseconds reads as a week.
+pub const MAX_LOADED_S: f64 = 172_800.0;
+/// Current above which a sample counts as loaded for [`MAX_LOADED_S`], A.
+const LOADED_A: f64 = 0.05;
 
 /// Least evidence the sign decision needs, V of voltage change (see [`SignEvidence`]).
 pub const MIN_SIGN_EVIDENCE_V: f64 = 0.02;
@@ -1037,20 +1042,32 @@ fn charge_drawn_ah(t: &[f64], i: &[f64]) -> f64 {
         / 3600.0
 }
 
-/// Refuses a record that draws more charge than a cell holds: its time is most likely in milliseconds.
+/// Refuses a record that draws more charge than a cell holds, or stays under load for longer than any
+/// discharge lasts ([`MAX_LOADED_S`]): its time is most likely in milliseconds.
 fn plausible_charge(d: Discharge, time_header: &str) -> Result<Discharge, DoctorError> {
     let q_ah = d.charge_ah(0, d.len());
-    if q_ah <= MAX_RECORD_CHARGE_AH {
-        return Ok(d);
-    }
-    Err(DoctorError::SuspectUnit {
-        path: d.source.clone(),
-        column: shown(time_header, 60),
-        why: format!(
+    let loaded_s: f64 =
+        d.time_s.windows(2).zip(&d.current_a).filter(|(_, i)| **i > LOADED_A).map(|(t, _)| t[1] - t[0]).sum();
+    let why = if q_ah > MAX_RECORD_CHARGE_AH {
+        format!(
             "gives cycle {} a discharge of {} Ah, more than a cell holds ({MAX_RECORD_CHARGE_AH} Ah)",
             d.cycle,
             short(q_ah)
-        ),
+        )
+    } else if loaded_s > MAX_LOADED_S {
+        format!(
+            "keeps cycle {} under load for {} days, longer than a discharge lasts ({} days)",
+            d.cycle,
+            short(loaded_s / 86_400.0),
+            short(MAX_LOADED_S / 86_400.0)
+        )
+    } else {
+        return Ok(d);
+    };
+    Err(DoctorError::SuspectUnit {
+        path: d.source.clone(),
+        column: shown(time_header, 60),
+        why,
         hint: "if time is in milliseconds, name the column time_ms (or `Test Time / ms`), or divide it by 1000".into(),
     })
 }

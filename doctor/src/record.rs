@@ -25,6 +25,26 @@ pub const CELSIUS_TO_KELVIN: f64 = 273.15;
 /// at 2.7 V, B0007 at 2.2 V) and a common 18650 cut-off; give the cell's own when it differs.
 pub const DEFAULT_CUTOFF_V: f64 = 2.5;
 
+/// The cut-off the records themselves show, V, when nobody gives one: a cycler stops a discharge at its
+/// cut-off under load, so records that end still loaded end just below it. It is read when at least two
+/// records (and a quarter of them) end under load, within 100 mV of each other at the 10th and 90th
+/// percentiles, below 3.6 V: the highest such end voltage (every one of them then counts as complete).
+/// None otherwise (the caller's default decides and says so).
+pub fn infer_cutoff_v(ds: &[Discharge], load_threshold_a: f64) -> Option<f64> {
+    let mut ends: Vec<f64> = ds
+        .iter()
+        .filter(|d| d.current_a.last().is_some_and(|i| *i > load_threshold_a))
+        .filter_map(|d| d.voltage_v.last().copied())
+        .collect();
+    if ends.len() < 2 || 4 * ends.len() < ds.len() {
+        return None;
+    }
+    let lo = bcal_common::stats::quantile(&mut ends, 0.1)?;
+    let hi = bcal_common::stats::quantile(&mut ends, 0.9)?;
+    let top = bcal_common::stats::quantile(&mut ends, 1.0)?;
+    (hi - lo <= 0.1 && top < 3.6).then_some(top)
+}
+
 /// A discharge starts partly discharged when the mean voltage of its rest before the load lies more than
 /// this below the base model's full-cell open-circuit voltage at the rest temperature, V. Chosen on the
 /// NASA records in `../shared` (every one charged CC-CV to 4.2 V before it; `tests/nasa_as_it_is.rs`): they

@@ -216,6 +216,27 @@ fn discharges_that_stop_at_the_cutoff_without_a_rest_are_complete_and_diagnosed(
     let err = diagnose(&cfg, &records[..2], &records[2..]).unwrap_err().to_string();
     assert!(err.contains("above the default cut-off 2.5 V (none given): truncated"), "{err}");
     assert_eq!(DEFAULT_CUTOFF_V, 2.5);
+    // The records themselves show the cut-off (`bcal diagnose` and `bcal calibrate` read it when nobody
+    // gives one): they all end under load just below 2.75 V, and with it they are complete again.
+    let read = bcal_doctor::record::infer_cutoff_v(&records, 0.05).expect("the records show their cut-off");
+    assert!(read <= cutoff_v && read > cutoff_v - 0.05, "{read}");
+    cfg.cutoff_v = Some(read);
+    assert_eq!(diagnose(&cfg, &records[..2], &records[2..]).unwrap().ended_at_cutoff_count, 3);
+    // Records that end at rest (a relaxation logged after the cut-off) show none.
+    let (relaxed, _) = read_csv(
+        &write(
+            dir.path(),
+            "relaxed.csv",
+            &csv_of(
+                "Test Time / s,Voltage / V,Current / A,Cycle Count / 1",
+                &cycling(cutoff_v, true),
+                |&(t, v, i, _, c)| format!("{t},{v},{},{c}", -i),
+            ),
+        ),
+        &ReadOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(bcal_doctor::record::infer_cutoff_v(&relaxed, 0.05), None);
 }
 
 #[test]
@@ -340,6 +361,15 @@ fn milliamperes_and_milliseconds_are_converted_when_named_and_refused_with_a_hin
     );
     let msg = read_csv(&path, &ReadOptions::default()).unwrap_err().to_string();
     assert!(msg.contains("ms.csv") && msg.contains("`time_s`") && msg.contains("time_ms"), "{msg}");
+    // A short partial discharge in milliseconds holds a plausible charge but lasts a week: refused too.
+    let partial: Vec<Sample> = c.log.iter().filter(|s| s.0 < c.log[0].0 + 600.0).copied().collect();
+    let path = write(
+        dir.path(),
+        "ms_partial.csv",
+        &csv_of("time_s,voltage_v,current_a", &partial, |s| format!("{},{},{}", 1e3 * s.0, s.1, s.2)),
+    );
+    let msg = read_csv(&path, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(msg.contains("ms_partial.csv") && msg.contains("days") && msg.contains("time_ms"), "{msg}");
     // Millivolts under a volts name: the existing refusal, now also naming the column to rename.
     let path = write(
         dir.path(),

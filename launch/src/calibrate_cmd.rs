@@ -157,21 +157,39 @@ fn policy_candidates(p: &Path) -> anyhow::Result<Vec<(PolicyFile, String)>> {
 const POLICY_CANDIDATES: [&str; 4] =
     [POLICY_BEST, "policy.best-tracking-error.bcalpol", "policy.best-nrmse.bcalpol", "policy.bcalpol"];
 
-/// The cut-off: given, else the documented protocol of a NASA cell, else refused with what to do.
-fn cutoff(given: Option<f64>, data: &Path, cell: &str) -> anyhow::Result<(f64, String)> {
+/// The cut-off: given, else the documented protocol of a NASA cell, else what the records show (where
+/// the discharges that end under load end), else None.
+pub fn cutoff(given: Option<f64>, data: &Path, cell: &str, records: &[Discharge]) -> Option<(f64, String)> {
     if let Some(v) = given {
-        return Ok((v, "--cutoff-v".into()));
+        return Some((v, "--cutoff-v".into()));
     }
     if data.is_dir() {
         if let Some(v) = bcal_doctor::read::nasa_cutoff_v(data, cell) {
-            return Ok((v, "the cell's documented protocol (extra_infos)".into()));
+            return Some((v, "the cell's documented protocol (extra_infos)".into()));
         }
     }
-    bail!("no cut-off voltage is documented for {cell} in {}; pass --cutoff-v", data.display())
+    bcal_doctor::record::infer_cutoff_v(records, bcal_realcell::record::LOAD_THRESHOLD_A)
+        .map(|v| (v, format!("read off the data: the discharges that end under load end at or below {v:.3} V")))
+}
+
+/// [`cutoff`], or a refusal saying what to do.
+fn cutoff_or_refuse(
+    given: Option<f64>,
+    data: &Path,
+    cell: &str,
+    records: &[Discharge],
+) -> anyhow::Result<(f64, String)> {
+    cutoff(given, data, cell, records).ok_or_else(|| {
+        anyhow::anyhow!(
+            "no cut-off voltage is documented for {cell} in {} and the records do not show one (too few end under \
+             load at one voltage); pass --cutoff-v",
+            data.display()
+        )
+    })
 }
 
 /// The cell's name: given, else (a CSV) the file's name; a NASA folder needs one.
-fn cell_name(given: &Option<String>, data: &Path) -> anyhow::Result<String> {
+pub fn cell_name(given: &Option<String>, data: &Path) -> anyhow::Result<String> {
     match given {
         Some(c) => Ok(c.clone()),
         None if data.is_dir() => {
@@ -201,10 +219,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     if judged_range.start() <= train_range.end() && train_range.start() <= judged_range.end() {
         bail!("--cycles {judged_range:?} overlaps --train-cycles {train_range:?}: judge cycles the calibrators were not set up on");
     }
-    let (cut, cut_source) = cutoff(a.cutoff_v, &a.data, &cell)?;
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
     let train = read(&a.data, &cell, Some(&train_range), &opts)?;
     let mut judged = read(&a.data, &cell, Some(&judged_range), &opts)?;
+    let all: Vec<Discharge> = train.iter().chain(&judged).cloned().collect();
+    let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &a.data, &cell, &all)?;
     if a.stride > 1 {
         let first = judged.first().map_or(0, |d| d.cycle);
         judged.retain(|d| (d.cycle - first) % a.stride == 0);
@@ -257,9 +276,9 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let range = parse_cycle_range(&a.train_cycles)?;
     let cell = cell_name(&a.cell, &a.data)?;
     let model = load_model(&a.model)?;
-    let (cut, cut_source) = cutoff(a.cutoff_v, &a.data, &cell)?;
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
     let ds = read(&a.data, &cell, Some(&range), &opts)?;
+    let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &a.data, &cell, &ds)?;
     let mut summary = RecordSummary::default();
     let mut records = Vec::new();
     let mut kept = Vec::new();

@@ -3,7 +3,7 @@
 //! `diagnosis.json`, `diagnosis.md` and residual plots into `--out`.
 
 use anyhow::Context;
-use bcal_doctor::read::{nasa_cutoff_v, parse_cycle_range, CurrentSign, ReadOptions};
+use bcal_doctor::read::{parse_cycle_range, CurrentSign, ReadOptions};
 use bcal_doctor::{diagnose, Cause, DiagnoseConfig, Discharge};
 use clap::ValueEnum;
 use std::ops::RangeInclusive;
@@ -15,9 +15,10 @@ pub struct DiagnoseArgs {
     /// columns time_s,voltage_v,current_a[,temperature_c][,cycle] (current positive while discharging).
     #[arg(long, value_name = "PATH")]
     pub data: PathBuf,
-    /// Cell to read from a NASA folder (battery_id in metadata.csv).
-    #[arg(long, default_value = "B0005")]
-    pub cell: String,
+    /// Cell to read from a NASA folder (battery_id in metadata.csv; required there); for a CSV, the name the
+    /// report gives it (default: the file's name).
+    #[arg(long)]
+    pub cell: Option<String>,
     /// Training cycles A..B (inclusive, 1-based; NASA: order of the cell's discharges). Default: the first
     /// third of the cycles present when --holdout is not given either, else every cycle before --holdout.
     #[arg(long, value_name = "A..B")]
@@ -93,11 +94,12 @@ impl From<CauseArg> for Cause {
 }
 
 /// Reads every record, then splits it into training and held-out sets.
-fn load(a: &DiagnoseArgs) -> anyhow::Result<(Vec<Discharge>, Vec<Discharge>)> {
+fn load(a: &DiagnoseArgs) -> anyhow::Result<(String, Vec<Discharge>, Vec<Discharge>)> {
     let cycles = a.cycles.as_deref().map(parse_cycle_range).transpose()?;
     let holdout = a.holdout.as_deref().map(parse_cycle_range).transpose()?;
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
-    let all: Vec<Discharge> = crate::calibrate_cmd::read(&a.data, &a.cell, None, &opts)?;
+    let cell = crate::calibrate_cmd::cell_name(&a.cell, &a.data)?;
+    let all: Vec<Discharge> = crate::calibrate_cmd::read(&a.data, &cell, None, &opts)?;
     anyhow::ensure!(!all.is_empty(), "{} holds no discharge record", a.data.display());
     let last = all.iter().map(|d| d.cycle).max().unwrap_or(1);
     let first = all.iter().map(|d| d.cycle).min().unwrap_or(1);
@@ -117,13 +119,18 @@ fn load(a: &DiagnoseArgs) -> anyhow::Result<(Vec<Discharge>, Vec<Discharge>)> {
     let (train, held) = (pick(&train_r), pick(&held_r));
     anyhow::ensure!(!train.is_empty(), "no training record in cycles {train_r:?}");
     anyhow::ensure!(!held.is_empty(), "no held-out record in cycles {held_r:?}");
-    Ok((train, held))
+    Ok((cell, train, held))
 }
 
 pub fn run(a: DiagnoseArgs) -> anyhow::Result<()> {
-    let (train, held) = load(&a)?;
+    let (cell, train, held) = load(&a)?;
+    let all: Vec<Discharge> = train.iter().chain(&held).cloned().collect();
+    let cut = crate::calibrate_cmd::cutoff(a.cutoff_v, &a.data, &cell, &all);
+    if let Some((v, why)) = &cut {
+        eprintln!("cut-off {v} V: {why}");
+    }
     let mut cfg = DiagnoseConfig {
-        cutoff_v: a.cutoff_v.or_else(|| a.data.is_dir().then(|| nasa_cutoff_v(&a.data, &a.cell)).flatten()),
+        cutoff_v: cut.map(|c| c.0),
         max_causes: a.max_causes,
         min_gain_pct: a.min_gain_pct,
         ..DiagnoseConfig::default()
