@@ -89,8 +89,9 @@ impl JointUkfGrid {
         Self {
             meas_std_v: vec![0.003, 0.01, 0.02, 0.04],
             voltage_walk_v_per_sqrt_s: vec![1e-4, 1e-3, 5e-3],
-            // Tighter priors too: on a real cell the prior is the previous discharge's estimate.
-            prior_std_z: vec![[0.05, 0.05], [0.1, 0.1], [0.25, 0.15]],
+            // Tighter priors too: on a real cell the prior is the previous discharge's fit, and a cell
+            // changes by a fraction of a percent from one discharge to the next.
+            prior_std_z: vec![[0.01, 0.01], [0.02, 0.02], [0.05, 0.05], [0.1, 0.1]],
             ..Self::default()
         }
     }

@@ -22,7 +22,7 @@ pub fn scale_grid() -> Vec<f64> {
 
 /// The RL tracker's prior widths tried beside the one it was trained with (fractions of each range): on a
 /// real cell the prior is the previous discharge's estimate, as for the joint UKF's grid.
-pub const RL_PRIOR_STD_Z: [f64; 2] = [0.05, 0.1];
+pub const RL_PRIOR_STD_Z: [f64; 4] = [0.01, 0.02, 0.05, 0.1];
 
 /// The validation cycles, as indices into `train`: the last quarter of the training cycles that reach the
 /// cut-off (at least [`MIN_VALIDATION`]; none when there are fewer than twice that).
