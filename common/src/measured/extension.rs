@@ -83,7 +83,7 @@ impl ModelExtension {
     /// The Arrhenius factors (Ro, rate constants) at `t_k` against the reference `ref_k`.
     #[inline]
     pub fn factors(&self, t_k: f64, ref_k: f64) -> (f64, f64) {
-        if !self.temperature_dependent() || !(t_k > 0.0 && ref_k > 0.0) {
+        if !(self.temperature_dependent() && t_k > 0.0 && ref_k > 0.0) {
             return (1.0, 1.0);
         }
         let inv = 1.0 / t_k - 1.0 / ref_k;
