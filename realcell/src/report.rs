@@ -143,8 +143,6 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
         }
         let _ = writeln!(s, "{row} {} |", m.coverage_90_pct.map_or("-".into(), |c| format!("{c:.1}")));
     }
-    let _ =
-        writeln!(s, "\n## Setup\n\n```json\n{}\n```", serde_json::to_string_pretty(&r.settings).unwrap_or_default());
     let _ = writeln!(s, "\n## Reading\n");
     for line in reading(r) {
         let _ = writeln!(s, "- {line}");
@@ -158,6 +156,11 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
     for n in &r.notes {
         let _ = writeln!(s, "\nNote: {n}");
     }
+    let _ = writeln!(
+        s,
+        "\n## Setup (every choice, and what it was made on)\n\n```json\n{}\n```",
+        serde_json::to_string_pretty(&r.settings).unwrap_or_default()
+    );
     let _ = writeln!(s, "\nCalibration took {:.0} s.", r.seconds);
     s
 }
