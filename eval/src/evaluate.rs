@@ -711,7 +711,7 @@ mod tests {
         // The zero policy answers the middle of the action range: Ro 0.15 against truths 0.1 and 0.2 is 50 %.
         let rl_r = v["methods"]["rl_lac"]["nrmse_pct"]["r_o"].as_f64().unwrap();
         assert!((rl_r - 50.0).abs() < 1e-6, "{rl_r}");
-        // The filter, tuned on training trajectories, is far better than the zero policy.
+        // The filter, tuned on validation trajectories, is far better than the zero policy.
         assert!(v["methods"]["ukf"]["nrmse_pct"]["q_mobile"].as_f64().unwrap() < 1.0);
         assert_eq!(v["paper"]["table1_nrmse_pct"]["multi_parameter"]["ukf"]["q_mobile"], 19.75);
         assert!(v["methods"]["ukf"]["ukf"]["settings"]["r_std"].is_number());

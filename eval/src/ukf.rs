@@ -32,7 +32,8 @@ pub const PRIOR_MEAN: f64 = 0.5;
 const JITTER_TRIES: usize = 3;
 
 /// Every setting of the filter. The defaults lie in the best region of [`tune`]'s search on all three
-/// experiments (the known-parameter tests use them); the evaluation always tunes its own on training data.
+/// experiments (the known-parameter tests use them); the evaluation always tunes its own on the validation
+/// split.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct UkfSettings {
     /// Random-walk standard deviation of each normalised parameter per step (1 = the whole data range).

@@ -43,12 +43,13 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "A..B", default_value = "1..40")]
     pub train_cycles: String,
     /// Calibrators, comma separated: `rl:RUN` (the RL policy of a measured-only run folder, or a policy file),
-    /// `ukf` (the joint UKF, tuned on the cell's simulated validation cells), `fit` (the doctor's offline
+    /// `ukf` (the joint UKF, its settings chosen on the last training cycles), `fit` (the doctor's offline
     /// least squares on the whole discharge: an oracle that sees the future). The references (uncalibrated,
     /// previous cycle, capacity trend) always run.
     #[arg(long, value_delimiter = ',', default_value = "ukf,fit")]
     pub calibrator: Vec<String>,
-    /// Cut-off voltage of the end-of-discharge predictions, V (default: the cell's documented protocol).
+    /// Cut-off voltage of the end-of-discharge predictions, V (default: the cell's documented protocol, else
+    /// what the training records show: where their discharges end under load).
     #[arg(long, value_parser = crate::cli::positive_f64)]
     pub cutoff_v: Option<f64>,
     /// Ambient temperature for a generic CSV without a temperature column, deg C.
@@ -57,13 +58,14 @@ pub struct CalibrateArgs {
     /// Which sign of the current is discharge: `auto` decides from the data and says what it chose.
     #[arg(long, default_value = "auto")]
     pub current_sign: CurrentSign,
-    /// Use every N-th judged cycle (a whole-life run stays quick).
+    /// Use every N-th judged cycle (a whole-life run stays quick; the previous-cycle reference and each
+    /// discharge's start then come from the judged cycle N before).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
     pub stride: u32,
-    /// A quick run: a small UKF grid and fewer validation cells.
+    /// A quick run: a small joint UKF grid.
     #[arg(long)]
     pub quick: bool,
-    /// Output folder for calibration.json, calibration.md, the figures and readings/<method>/<cycle>.csv.
+    /// Output folder for calibration.json, calibration.md, the figures and readings/<method>/<cell>-<cycle>.csv.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
 }
@@ -222,8 +224,8 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
     let train = read(&a.data, &cell, Some(&train_range), &opts)?;
     let mut judged = read(&a.data, &cell, Some(&judged_range), &opts)?;
-    let all: Vec<Discharge> = train.iter().chain(&judged).cloned().collect();
-    let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &a.data, &cell, &all)?;
+    // Read off the training records only, as cell-config does: the judged ones are not looked at.
+    let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &a.data, &cell, &train)?;
     if a.stride > 1 {
         let first = judged.first().map_or(0, |d| d.cycle);
         judged.retain(|d| (d.cycle - first) % a.stride == 0);

@@ -326,6 +326,9 @@ fn run_measured(
         _ => {}
     }
     if let Some(n) = a.dm_updates {
+        if n == 0 {
+            bail!("--dm-updates must be at least 1");
+        }
         opts.direct.max_updates = n;
     }
     let policy_input = match &policy {

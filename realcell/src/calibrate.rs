@@ -307,7 +307,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         ));
         let t0 = Instant::now();
         let cal = Streaming::Rl { spec: unit.clone(), net };
-        let r = run_sequence(&cal, &judged, &judged_before, cut, &[choice.interval_scale], false).0.remove(0);
+        let r = run_sequence(&cal, &judged, &judged_before, cut, &[choice.interval_scale], false).remove(0);
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("rl", r));
         settings.insert(
@@ -338,7 +338,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         ));
         let t0 = Instant::now();
         let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: best };
-        let r = run_sequence(&cal, &judged, &judged_before, cut, &[choice.interval_scale], false).0.remove(0);
+        let r = run_sequence(&cal, &judged, &judged_before, cut, &[choice.interval_scale], false).remove(0);
         progress(&format!("joint UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("ukf", r));
         let mut top = choice.clone();

@@ -29,8 +29,9 @@ pub struct MethodEntry {
     pub capacity_rmse_ah_vs_data: BTreeMap<String, f64>,
     /// End-of-discharge error, % of the discharge's duration, median and p90, by fraction seen.
     pub eod_error_pct: BTreeMap<String, Quantiles>,
-    /// Predictions (capacity and end of discharge) whose 90 % interval holds the measurement, % (null for a
-    /// method without intervals).
+    /// The mean of the capacity and the end-of-discharge coverage: % of each kind of prediction whose 90 %
+    /// interval holds the measurement, averaged over the two kinds (null for a method without intervals;
+    /// `scores.coverage_90_pct` has each).
     pub coverage_90_pct: Option<f64>,
     pub scores: MethodScore,
 }

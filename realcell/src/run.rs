@@ -66,8 +66,8 @@ pub enum Streaming<'a> {
 }
 
 impl<'a> Streaming<'a> {
-    /// The same calibrator starting from `prior` (kept inside its ranges): how a streaming calibrator
-    /// carries what it learnt on one discharge into the next. Pinned references are unchanged.
+    /// The same calibrator starting from `prior` (kept inside its ranges): where each discharge starts (the
+    /// last discharge's offline fit, see [`Before`]). Pinned references are unchanged.
     pub fn with_prior(&self, prior: &Degradation) -> Streaming<'a> {
         let moved = |spec: &TrackerSpec| {
             let z = spec.to_z(prior);
@@ -230,10 +230,10 @@ pub fn run_all<'a>(
         .collect()
 }
 
-/// A streaming calibrator along a cell's discharges in order, as a BMS runs it: each discharge starts
-/// from what was known before it (`before[k]`: the last discharge's offline fit). One run per interval
-/// scale; predictions only at the scores' readings when `checkpoints_only`. Returns the runs and the
-/// calibrator's last estimate.
+/// A streaming calibrator along a cell's discharges, each read one reading at a time from what was known
+/// before it (`before[k]`: the last discharge's offline fit and the model's knee), so the discharges are
+/// independent and run on all cores. One run per interval scale (outer), per discharge (inner);
+/// predictions only at the scores' readings when `checkpoints_only`.
 pub fn run_sequence(
     cal: &Streaming,
     records: &[CellRecord],
@@ -241,19 +241,23 @@ pub fn run_sequence(
     cutoff_v: f64,
     scales: &[f64],
     checkpoints_only: bool,
-) -> (Vec<Vec<CycleRun>>, Option<Degradation>) {
+) -> Vec<Vec<CycleRun>> {
+    let per_record: Vec<Vec<CycleRun>> = records
+        .par_iter()
+        .zip(before)
+        .map(|(r, b)| {
+            let c = cal.with_model(&b.model).with_prior(&b.prior);
+            let only = checkpoints_only.then(|| checkpoints(r));
+            run_cycle_with(&c, r, cutoff_v, b.knee_s, scales, only.as_deref())
+        })
+        .collect();
     let mut out: Vec<Vec<CycleRun>> = scales.iter().map(|_| Vec::with_capacity(records.len())).collect();
-    let mut last: Option<Degradation> = None;
-    for (r, b) in records.iter().zip(before) {
-        let c = cal.with_model(&b.model).with_prior(&b.prior);
-        let only = checkpoints_only.then(|| checkpoints(r));
-        let runs = run_cycle_with(&c, r, cutoff_v, b.knee_s, scales, only.as_deref());
-        last = runs.first().and_then(|run| run.steps.last()).map(|s| s.estimate);
+    for runs in per_record {
         for (o, run) in out.iter_mut().zip(runs) {
             o.push(run);
         }
     }
-    (out, last)
+    out
 }
 
 /// How many of the latest discharges the model's knee is taken over (median).
@@ -277,7 +281,9 @@ pub fn knee_s(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64
         return None;
     }
     let dyn_d = Degradation { r_o_ohm: d.r_o_ohm * p.ro_factor, ..*d };
-    let x0 = bcal_common::measured::scenario::rest_state(m, d, m.params.xn_max, start.temperature_k);
+    // The temperature the calibrators run at: measured with the doctor's thermal, else the ambient.
+    let t_k = if ext.has("thermal") { start.temperature_k } else { m.params.tb0_k };
+    let x0 = bcal_common::measured::scenario::rest_state(m, d, m.params.xn_max, t_k);
     let profile = bcal_common::battery::LoadProfile::Constant(bcal_common::battery::Load::CurrentA(r.current_a));
     let q = bcal_common::measured::calibrator::EodQuery {
         profile: &profile,

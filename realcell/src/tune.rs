@@ -74,7 +74,7 @@ pub struct Choice {
 }
 
 /// Chooses among `candidates` (label, calibrator) by [`objective`] on `records` (each run along them in
-/// order with what was known before each, carrying its estimate from one to the next), then the interval scale
+/// order, each discharge starting from what was known before it), then the interval scale
 /// whose end-of-discharge coverage on them is nearest 90 % (the smaller scale on a tie).
 pub fn choose(
     candidates: &[(String, Streaming<'_>)],
@@ -89,14 +89,14 @@ pub fn choose(
         .par_iter()
         .enumerate()
         .map(|(k, (_, cal))| {
-            let runs = run_sequence(cal, records, before, cutoff_v, &[1.0], true).0.pop().unwrap_or_default();
+            let runs = run_sequence(cal, records, before, cutoff_v, &[1.0], true).pop().unwrap_or_default();
             (k, objective(records, &runs))
         })
         .collect();
     scored.sort_by(|a, b| a.1.total_cmp(&b.1));
     let index = scored[0].0;
     let scales = scale_grid();
-    let runs = run_sequence(&candidates[index].1, records, before, cutoff_v, &scales, true).0;
+    let runs = run_sequence(&candidates[index].1, records, before, cutoff_v, &scales, true);
     let mut best: Option<(f64, Option<f64>)> = None;
     for (scale, runs) in scales.iter().zip(&runs) {
         let cov = score(records, runs).coverage_90_pct.get("eod").copied().flatten();
