@@ -20,12 +20,22 @@ pub struct DiagnosedModel {
     pub causes: Vec<Cause>,
     /// The shared parameters (per-cycle ones at their neutral values), with what the causes switch on.
     pub shared: ExtParams,
+    /// The cycles the diagnosis fitted or judged (its model has seen them).
+    pub cycles: Vec<u32>,
 }
 
 #[derive(Deserialize)]
 struct File {
     cell: String,
     extended: Extended,
+    #[serde(default)]
+    records: Vec<Record>,
+}
+
+#[derive(Deserialize)]
+struct Record {
+    cycle: u32,
+    role: String,
 }
 
 #[derive(Deserialize)]
@@ -67,7 +77,8 @@ pub fn load_model(path: &Path) -> Result<DiagnosedModel, DoctorError> {
         }
         shared.set(name, *value);
     }
-    Ok(DiagnosedModel { cell: f.cell, path: file, causes, shared })
+    let cycles = f.records.iter().filter(|r| r.role == "train" || r.role == "heldout").map(|r| r.cycle).collect();
+    Ok(DiagnosedModel { cell: f.cell, path: file, causes, shared, cycles })
 }
 
 #[cfg(test)]
@@ -81,13 +92,15 @@ mod tests {
         std::fs::write(
             &p,
             r#"{"cell":"B0005","extended":{"causes":["electrode_balance","charge_transfer","thermal"],
-                "params":{"kinetics_activation_k":512.75,"ro_activation_k":4015.08},"cycle_params":["xp_shift"]}}"#,
+                "params":{"kinetics_activation_k":512.75,"ro_activation_k":4015.08},"cycle_params":["xp_shift"]},
+                "records":[{"cycle":1,"role":"train"},{"cycle":2,"role":"heldout"},{"cycle":3,"role":"excluded"}]}"#,
         )
         .unwrap();
         let m = load_model(dir.path()).unwrap();
         assert_eq!(m.causes, vec![Cause::ElectrodeBalance, Cause::ChargeTransfer, Cause::Thermal]);
         assert!(m.shared.temperature_driven && m.shared.ro_activation_k == 4015.08);
         assert_eq!((m.shared.xp_shift, m.shared.kinetics_scale), (0.0, 1.0));
+        assert_eq!(m.cycles, vec![1, 2]);
         std::fs::write(&p, r#"{"cell":"B0005","extended":{"causes":["gremlins"],"params":{}}}"#).unwrap();
         let e = load_model(&p).unwrap_err().to_string();
         assert!(e.contains("gremlins") && e.contains("diagnosis.json"), "{e}");

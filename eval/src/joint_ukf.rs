@@ -4,8 +4,8 @@
 //! the bar the RL calibrator must clear.
 //!
 //! - State z = [qpS, qpB, qnB, qnS, Vo, Vsn, Vsp, zq, zr], parameters as z units over the calibrator's
-//!   ranges (the same as the RL calibrator's). The filter works in scaled coordinates (charges / 1000 C,
-//!   overpotentials / 0.1 V) so one covariance holds numbers of one order.
+//!   ranges (the same as the RL calibrator's). The filter works in scaled coordinates (charges as fractions
+//!   of each point's own qMax, overpotentials / 0.1 V) so one covariance holds numbers of one order.
 //! - Prediction: every sigma point's cell advanced over the interval by the reference model's Euler step
 //!   (in substeps), driven exactly as the RL calibrator's model is (the load read at the previous reading
 //!   held, a switch at mid-interval), under that point's parameters; parameters follow a random walk.
@@ -385,14 +385,14 @@ impl JointUkf {
     }
 
     /// The filter's mean state given the parameters `d`: the Gaussian conditional mean of the seven states
-    /// on (zq, zr) = d, x + P_xp P_pp^-1 (p - p_mean). The filter's charges are absolute, so another
-    /// qMobile means another state of charge too, and predictions under an interval's corners (where the
-    /// state is re-read under each corner) must move both as the filter's covariance links them.
+    /// on (zq, zr) = d, x + P_xp P_pp^-1 (p - p_mean): predictions under an interval's corners (where the
+    /// state is re-read under each corner) move the state as the filter's covariance links it to the
+    /// parameters. `d` is taken inside the ranges, as the model reads every point.
     pub fn state_given(&self, d: &Degradation) -> ModelState {
         if !self.started {
             return self.state();
         }
-        let target = self.spec.to_z(d);
+        let target = self.spec.to_z(d).map(|z| z.clamp(0.0, 1.0));
         let dp = nalgebra::Vector2::new(target[0] - self.z[7], target[1] - self.z[8]);
         let ppp = self.p.fixed_view::<2, 2>(7, 7).into_owned();
         let Some(inv) = ppp.try_inverse() else {

@@ -15,13 +15,14 @@ use crate::evaluate::{median_of, PolicyInput, TIMING_REPEATS};
 use crate::joint_ukf::{JointUkf, JointUkfCounters, JointUkfSettings};
 use crate::metrics::ParamValues;
 use crate::plots::TrainingCurve;
-use bcal_common::battery::{BatteryModel, Degradation};
+use bcal_common::battery::Degradation;
 use bcal_common::dataset::Split;
 use bcal_common::math::ModelState;
 use bcal_common::measured::calibrator::{
     predict_eod_s, tracker_state, Calibrator, EodQuery, RlCalibrator, Uncalibrated, WindowFitCalibrator,
 };
 use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{episode_set, Episode, ScenarioConfig};
 use bcal_common::measured::tracker::{Interval, Tracker, TrackerSpec, OBS_DIM};
 use bcal_common::nrmse::Param;
@@ -278,8 +279,12 @@ fn interval_around(spec: &TrackerSpec, d: &Degradation, sd_z: [f64; 2], k: [f64;
     Interval { q_mobile_c: [lo.q_mobile_c, hi.q_mobile_c], r_o_ohm: [lo.r_o_ohm, hi.r_o_ohm] }
 }
 
-/// Runs a calibrator along an episode, predicting the end of discharge at the set fractions.
-fn run_episode(cal: &mut dyn Calibrator, e: &Episode, model: &BatteryModel, cutoff_v: f64) -> Trace {
+/// Runs a calibrator along an episode, predicting the end of discharge at the set fractions on the
+/// calibrators' model `ext` (its Arrhenius factors, if any, at the cell's temperature then).
+fn run_episode(cal: &mut dyn Calibrator, e: &Episode, ext: &ModelExtension, cutoff_v: f64) -> Trace {
+    let base = ext.model().expect("the config checks the model extension");
+    let kn_kp = (base.params.kn, base.params.kp);
+    let ref_k = ext.reference_k.unwrap_or(e.samples.first().map_or(base.params.tb0_k, |s| s.temperature_k));
     let n = e.samples.len();
     let end = e.eod_s.unwrap_or_else(|| e.samples[n - 1].t_s);
     let start = e.spec.rest_s;
@@ -293,7 +298,9 @@ fn run_episode(cal: &mut dyn Calibrator, e: &Episode, model: &BatteryModel, cuto
         while next < at.len() && s.t_s >= at[next] {
             out.eod_pred_s[next] = cal.state().and_then(|x| {
                 let q = EodQuery { profile: &e.spec.profile, cutoff_v, dt_s: 1.0, max_s: 4.0 * (end + 100.0) };
-                predict_eod_s(model, &x, &cal.estimate(), s.t_s, &q)
+                let (mut model, mut d) = (base.clone(), cal.estimate());
+                d.r_o_ohm *= ext.apply_at(&mut model, kn_kp, x[bcal_common::math::idx::T_B], ref_k);
+                predict_eod_s(&model, &x, &d, s.t_s, &q)
             });
             next += 1;
         }
@@ -620,9 +627,8 @@ pub fn evaluate_measured(
     let started = Instant::now();
     let spec = input.spec;
     let sc = &spec.scenario;
-    // End-of-discharge predictions run the calibrators' own model.
-    let model =
-        spec.tracker.model.model().map_err(|e| MeasuredEvalError::Episodes { split: "model", why: e.to_string() })?;
+    // End-of-discharge predictions run the calibrators' own model: it must build.
+    spec.tracker.model.model().map_err(|e| MeasuredEvalError::Episodes { split: "model", why: e.to_string() })?;
     let cutoff_v = spec.tracker.cutoff_v;
     let n_val = opts.validation_episodes.unwrap_or(sc.validation_episodes);
     let n_test = opts.test_episodes.unwrap_or(sc.test_episodes);
@@ -805,7 +811,7 @@ pub fn evaluate_measured(
         let mut scores = BTreeMap::new();
         for (key, make) in &methods {
             let traces: Vec<Trace> =
-                test.par_iter().map(|e| run_episode(make().as_mut(), e, &model, cutoff_v)).collect();
+                test.par_iter().map(|e| run_episode(make().as_mut(), e, &spec.tracker.model, cutoff_v)).collect();
             let mut m = score(&test, &traces);
             if headline {
                 m.step_us = Some(time_method(&test, opts.timing_readings, make));

@@ -218,8 +218,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         Some(c) => parse_cycle_range(c)?,
         None => (*train_range.end() + 1)..=u32::MAX,
     };
-    if judged_range.start() <= train_range.end() && train_range.start() <= judged_range.end() {
-        bail!("--cycles {judged_range:?} overlaps --train-cycles {train_range:?}: judge cycles the calibrators were not set up on");
+    if judged_range.start() <= train_range.end() {
+        bail!(
+            "--cycles {judged_range:?} must come after --train-cycles {train_range:?}: the calibrators are set up on \
+             earlier discharges and judged on later ones, as a cell ages"
+        );
     }
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
     let train = read(&a.data, &cell, Some(&train_range), &opts)?;

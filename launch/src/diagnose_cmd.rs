@@ -124,8 +124,7 @@ fn load(a: &DiagnoseArgs) -> anyhow::Result<(String, Vec<Discharge>, Vec<Dischar
 
 pub fn run(a: DiagnoseArgs) -> anyhow::Result<()> {
     let (cell, train, held) = load(&a)?;
-    let all: Vec<Discharge> = train.iter().chain(&held).cloned().collect();
-    let cut = crate::calibrate_cmd::cutoff(a.cutoff_v, &a.data, &cell, &all);
+    let cut = crate::calibrate_cmd::cutoff(a.cutoff_v, &a.data, &cell, &train);
     if let Some((v, why)) = &cut {
         eprintln!("cut-off {v} V: {why}");
     }

@@ -194,6 +194,16 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 .into(),
         });
     }
+    if let Some(c) = input.model.as_ref().and_then(|m| judged.iter().find(|r| m.cycles.contains(&r.cycle))) {
+        return Err(CalibrateError::Model {
+            path: model_path,
+            why: format!(
+                "the model was diagnosed on cycle {}, which this calibration judges: diagnose on the training \
+                 cycles only (bcal diagnose --cycles and --holdout within --train-cycles)",
+                c.cycle
+            ),
+        });
+    }
     let model_label = match &input.model {
         Some(m) => format!("{} (bcal diagnose of {}: {})", neutral.label(), m.cell, m.path.display()),
         None => "base (the NASA electrochemistry model; qMobile and Ro calibrated)".into(),

@@ -274,15 +274,15 @@ pub fn knee_s(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64
     let eod = r.eod_s?;
     let first = r.samples.first()?;
     let start = r.samples.iter().find(|s| s.t_s >= r.load_on_s)?;
-    let p = Predictor::at(ext, r.ambient_k);
+    // The temperature the calibrators run at: measured with the doctor's thermal, else the ambient.
+    let t_k = if ext.has("thermal") { start.temperature_k } else { r.ambient_k };
+    let p = Predictor::at(ext, t_k);
     let m = &p.model;
     let full_ocv = bcal_common::measured::cellmodel::ocv_v(m, m.params.xn_max, first.temperature_k);
     if first.t_s < r.load_on_s && full_ocv - first.voltage_v > bcal_doctor::record::PARTIAL_START_DROP_V {
         return None;
     }
     let dyn_d = Degradation { r_o_ohm: d.r_o_ohm * p.ro_factor, ..*d };
-    // The temperature the calibrators run at: measured with the doctor's thermal, else the ambient.
-    let t_k = if ext.has("thermal") { start.temperature_k } else { m.params.tb0_k };
     let x0 = bcal_common::measured::scenario::rest_state(m, d, m.params.xn_max, t_k);
     let profile = bcal_common::battery::LoadProfile::Constant(bcal_common::battery::Load::CurrentA(r.current_a));
     let q = bcal_common::measured::calibrator::EodQuery {
@@ -345,16 +345,24 @@ impl Trend {
     /// load-on plus capacity / current), the same at every reading.
     pub fn run(&self, r: &CellRecord) -> CycleRun {
         let cap = self.capacity_ah(r.cycle);
-        let eod = r.load_on_s + cap * 3600.0 / r.current_a.max(1e-9);
+        // At the mean loaded current so far, as every method predicts (no look-ahead).
+        let (mut sum_a, mut n) = (0.0, 0u32);
         let steps = r
             .samples
             .iter()
-            .map(|s| Step {
-                t_s: s.t_s,
-                estimate: Degradation { q_mobile_c: f64::NAN, r_o_ohm: f64::NAN },
-                interval: None,
-                eod: Predicted { value: Some(eod), lo: None, hi: None },
-                capacity: Predicted { value: Some(cap), lo: None, hi: None },
+            .map(|s| {
+                if s.current_a > crate::record::LOAD_THRESHOLD_A {
+                    sum_a += s.current_a;
+                    n += 1;
+                }
+                let eod = (n > 0).then(|| r.load_on_s + cap * 3600.0 / (sum_a / f64::from(n)));
+                Step {
+                    t_s: s.t_s,
+                    estimate: Degradation { q_mobile_c: f64::NAN, r_o_ohm: f64::NAN },
+                    interval: None,
+                    eod: Predicted { value: eod, lo: None, hi: None },
+                    capacity: Predicted { value: Some(cap), lo: None, hi: None },
+                }
             })
             .collect();
         CycleRun { cycle: r.cycle, steps }

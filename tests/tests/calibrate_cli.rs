@@ -1,0 +1,128 @@
+//! `bcal calibrate` refuses what it cannot honestly run, each with one line that names the file and what to
+//! do: judged cycles before the training ones, a NASA folder without a cell, a policy trained on another
+//! observation or another model, and a model diagnosed on the cycles it would be judged on. The data is a
+//! small generic CSV written here from the base model (a rest, then 2 A to below the cut-off).
+
+use bcal_common::battery::{BatteryModel, Degradation, Load};
+use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::policy::{PolicyFile, PolicyLayout};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+const CUTOFF_V: f64 = 3.05;
+
+/// Eight discharges of a slowly fading cell, one row every 10 s, current positive while discharging.
+fn write_cycles(dir: &Path) -> PathBuf {
+    let m = BatteryModel::default();
+    let mut text = String::from("time_s,voltage_v,current_a,cycle\n");
+    for cycle in 1..=8u32 {
+        let d = Degradation { q_mobile_c: 7000.0 - 40.0 * f64::from(cycle), r_o_ohm: 0.12 };
+        let mut x = m.initial_state(&d);
+        let mut t = 0.0;
+        loop {
+            let load = if t < 30.0 { Load::CurrentA(0.0) } else { Load::CurrentA(2.0) };
+            let v = m.voltage_v(&x, &d);
+            if (t as u64) % 10 == 0 {
+                let i = if t < 30.0 { 0.0 } else { 2.0 };
+                text.push_str(&format!("{t},{v:.5},{i},{cycle}\n"));
+                if t >= 30.0 && v <= CUTOFF_V {
+                    break;
+                }
+            }
+            x = m.step(&x, load, 1.0, &d).0;
+            t += 1.0;
+            assert!(t < 10_000.0, "cycle {cycle} never reached the cut-off");
+        }
+    }
+    let path = dir.join("cell.csv");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn policy(dir: &Path, name: &str, task: bcal_common::task::Task) -> PathBuf {
+    let layout = PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: vec![8] };
+    let pf = PolicyFile {
+        params: vec![0.0; layout.n_params()],
+        layout,
+        task,
+        experiment: bcal_common::dataset::Experiment::Multi,
+        update_step: 1,
+    };
+    let path = dir.join(name);
+    pf.save(&path).unwrap();
+    path
+}
+
+fn calibrate(args: &[&str]) -> (bool, String) {
+    let out = Command::new(bcal_tests::bin("bcal")).arg("calibrate").args(args).output().unwrap();
+    (out.status.success(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+#[test]
+fn calibrate_refuses_what_it_cannot_honestly_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = write_cycles(dir.path());
+    let data = data.to_str().unwrap();
+    let out = dir.path().join("out");
+    let out = out.to_str().unwrap();
+    let cut = CUTOFF_V.to_string();
+    let common = ["--data", data, "--cutoff-v", &cut, "--out", out];
+
+    // Judged cycles before the training ones would set the calibrators up on the future.
+    let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "5..8", "--cycles", "1..4"]].concat());
+    assert!(!ok && err.contains("must come after --train-cycles"), "{err}");
+
+    // A NASA folder needs its cell.
+    let (ok, err) = calibrate(&["--data", dir.path().to_str().unwrap(), "--out", out]);
+    assert!(!ok && err.contains("--cell"), "{err}");
+
+    // A policy trained on the paper's full-state observation.
+    let paper = bcal_common::mdp::MdpSpec {
+        observation: bcal_common::mdp::ObservationKind::FullState,
+        actions: bcal_common::mdp::ActionMap::from_config(
+            bcal_common::dataset::Experiment::Multi,
+            &bcal_common::config::EnvConfig::default(),
+        ),
+        scales: bcal_common::mdp::ObsScales {
+            state_mean: [0.0; bcal_common::math::N_STATE],
+            state_std: [1.0; bcal_common::math::N_STATE],
+            load_mean_w: 12.0,
+            load_std_w: 2.0,
+            r_app_mean_ohm: 0.1,
+            r_app_std_ohm: 0.05,
+        },
+        window_steps: 4,
+        dt_s: 1.0,
+        cost_log_e0: 0.0,
+    };
+    let p = policy(dir.path(), "paper.bcalpol", bcal_common::task::Task::Paper(paper));
+    let rl = format!("rl:{}", p.display());
+    let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "1..6", "--calibrator", &rl]].concat());
+    assert!(!ok && err.contains("FullState") && err.contains("paper.bcalpol"), "{err}");
+
+    // A measured-only policy of the base model, run on the doctor's extended model.
+    let diag = dir.path().join("diagnosis.json");
+    std::fs::write(
+        &diag,
+        r#"{"cell":"cell","extended":{"causes":["electrode_balance"],"params":{}},
+            "records":[{"cycle":1,"role":"train"},{"cycle":2,"role":"heldout"}]}"#,
+    )
+    .unwrap();
+    let p = policy(dir.path(), "base.bcalpol", bcal_common::task::Task::Measured(MeasuredSpec::default()));
+    let rl = format!("rl:{}", p.display());
+    let model = ["--model", diag.to_str().unwrap()];
+    let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "1..6", "--calibrator", &rl], &model[..]].concat());
+    let line: Vec<&str> = err.lines().filter(|l| l.starts_with("error")).collect();
+    assert!(!ok && line.len() == 1, "one error line: {err}");
+    assert!(line[0].contains("trained on the base model") && line[0].contains("electrode_balance"), "{err}");
+
+    // A model diagnosed on a cycle this calibration judges.
+    std::fs::write(
+        &diag,
+        r#"{"cell":"cell","extended":{"causes":["electrode_balance"],"params":{}},
+            "records":[{"cycle":6,"role":"train"},{"cycle":7,"role":"heldout"}]}"#,
+    )
+    .unwrap();
+    let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "1..6", "--calibrator", "ukf"], &model[..]].concat());
+    assert!(!ok && err.contains("diagnosed on cycle 7"), "{err}");
+}
