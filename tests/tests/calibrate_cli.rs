@@ -22,7 +22,7 @@ fn write_cycles(dir: &Path) -> PathBuf {
         loop {
             let load = if t < 30.0 { Load::CurrentA(0.0) } else { Load::CurrentA(2.0) };
             let v = m.voltage_v(&x, &d);
-            if (t as u64) % 10 == 0 {
+            if (t as u64).is_multiple_of(10) {
                 let i = if t < 30.0 { 0.0 } else { 2.0 };
                 text.push_str(&format!("{t},{v:.5},{i},{cycle}\n"));
                 if t >= 30.0 && v <= CUTOFF_V {
