@@ -160,6 +160,21 @@ fn figures_measured(r: &crate::measured_eval::MeasuredReport) -> BTreeMap<(Strin
             put(format!("eod.at_{f}pct.mae_s"), Some(e.mae_s));
         }
     }
+    // Every noise level's accuracy (the headline level's is above too).
+    for level in &r.noise_levels {
+        for (key, m) in &level.methods {
+            for p in Param::BOTH {
+                let mv = level.voltage_noise_mv;
+                for (fig, v) in
+                    [("nrmse_pct", m.nrmse_pct.get(p)), ("second_half_nrmse_pct", m.second_half_nrmse_pct.get(p))]
+                {
+                    if let Some(x) = v.filter(|x| x.is_finite()) {
+                        out.insert((key.clone(), format!("at_{mv}mv.{fig}.{}", p.key())), x);
+                    }
+                }
+            }
+        }
+    }
     out
 }
 
