@@ -326,7 +326,7 @@ pub fn write_outputs(eval: &mut MeasuredEvaluation, dir: &Path, plot_episodes: u
     }
     picks.truncate(plot_episodes);
     let series: Vec<(&str, RGBColor, Vec<&Trace>)> =
-        [("rl_lac", "RL-LAC", RGBColor(214, 39, 40)), ("ukf", "joint UKF", RGBColor(31, 119, 180))]
+        [("rl_lac", "RL-LAC", RGBColor(214, 39, 40)), ("ukf", "Joint UKF", RGBColor(31, 119, 180))]
             .into_iter()
             .filter_map(|(key, name, color)| {
                 eval.traces
