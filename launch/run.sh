@@ -9,13 +9,15 @@
 # Defaults: preset measured (calibration from what a battery management system measures: voltage, current and
 # temperature through a sensor, any starting charge, changing loads), budget 900 s, one seed, one actor per
 # core, run folder runs/<preset>-<time>. The paper's full-state setting is one flag away: --preset paper-tuned
-# (hyperparameters tuned on its validation split) or --preset paper (the paper's own), with --experiment.
+# (hyperparameters tuned for minutes of training, docs/tuning.md) or --preset paper (the paper's own), with
+# --experiment.
 # With --seeds N (N >= 2) it trains and evaluates seeds 1..N into runs/<name>-s<k> and prints their summary
 # (mean, spread and every run's value) from runs/<name>-summary/.
 # With --cell ID: a real cell (default data ../shared/data/nasa-pcoe, training cycles 1..40): the doctor
-# diagnoses the training cycles, a measured-only policy is trained for the cell's own setting (bcal
-# cell-config), and bcal calibrate runs it, the joint UKF and the references on the held-out cycles and
-# scores them against the cycler (runs/<name>/calibration/calibration.md).
+# diagnoses the training cycles alone (fits their first three quarters, judges the last), a measured-only
+# policy is trained on the cell's own setting and the diagnosed model (bcal cell-config --model), and bcal
+# calibrate runs it, the joint UKF and the references on the later cycles and scores them against the
+# cycler (runs/<name>/calibration/calibration.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -29,7 +31,7 @@ cell=""
 data="../shared/data/nasa-pcoe"
 train_cycles="1..40"
 cutoff_args=()
-usage() { sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//'; }
 while [ $# -gt 0 ]; do
   case "$1" in
     --experiment) experiment="${2:?--experiment needs a value}"; shift 2 ;;
