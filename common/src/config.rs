@@ -386,7 +386,8 @@ impl TrainConfig {
     /// refused as always.
     pub fn from_toml_over(text: &str, preset: Preset) -> Result<Self, ConfigError> {
         let parse = |message: String| ConfigError::Parse { path: "<text>".into(), message };
-        let overrides: toml::Table = toml::from_str(text).map_err(|e: toml::de::Error| parse(e.to_string()))?;
+        let mut overrides: toml::Table = toml::from_str(text).map_err(|e: toml::de::Error| parse(e.to_string()))?;
+        upgrade_scalar_interval_scale(&mut overrides);
         let mut base = toml::Table::try_from(preset.config()).expect("configs always serialise");
         merge_tables(&mut base, overrides);
         toml::Value::Table(base).try_into().map_err(|e: toml::de::Error| parse(e.to_string()))
@@ -676,6 +677,17 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
     Ok(())
 }
 
+/// Run folders written before qMobile and Ro had separate interval scales hold one number for
+/// `measured.tracker.interval_scale`; it meant the same factor for both, so it reads as that pair.
+fn upgrade_scalar_interval_scale(t: &mut toml::Table) {
+    let tracker = t.get_mut("measured").and_then(|m| m.get_mut("tracker")).and_then(|tr| tr.as_table_mut());
+    if let Some(tr) = tracker {
+        if let Some(k) = tr.get("interval_scale").and_then(|v| v.as_float().or(v.as_integer().map(|i| i as f64))) {
+            tr.insert("interval_scale".into(), toml::Value::Array(vec![k.into(), k.into()]));
+        }
+    }
+}
+
 /// Deep merge: tables merge key by key, any other value replaces.
 fn merge_tables(base: &mut toml::Table, over: toml::Table) {
     for (k, v) in over {
@@ -784,6 +796,9 @@ mod tests {
         let m = Preset::Measured.config();
         assert_eq!(m.env.observation, Observation::Measured);
         assert_eq!(m.validate().unwrap().target_entropy, -8.0);
+        // An older run folder's single interval scale reads as the same factor for both parameters.
+        let old = TrainConfig::from_toml("[measured.tracker]\ninterval_scale = 2.5\n").unwrap();
+        assert_eq!(old.measured.tracker.interval_scale, [2.5, 2.5]);
         // The learning-rate schedule decays linearly to its final fraction.
         let mut l = LacConfig { lr_final_fraction: 0.1, ..LacConfig::default() };
         assert_eq!(l.lr_factor(0.0), 1.0);
