@@ -154,19 +154,7 @@ pub fn render_markdown(r: &MeasuredReport) -> String {
             d.best_validation_loss
         );
     }
-    let _ = writeln!(s, "\n## Reading\n");
-    for line in reading(r) {
-        let _ = writeln!(s, "- {line}");
-    }
-    if !r.plots.is_empty() {
-        let _ = writeln!(s, "\n## Plots\n");
-        for p in r.plots.iter().filter(|p| p.ends_with(".png")) {
-            let _ = writeln!(s, "![{p}]({p})");
-        }
-    }
-    for n in &r.notes {
-        let _ = writeln!(s, "\nNote: {n}");
-    }
+    crate::report::write_reading_plots_notes(&mut s, &reading(r), &r.plots, &r.notes);
     let _ = writeln!(s, "\nEvaluation took {:.0} s.", r.seconds);
     s
 }

@@ -433,23 +433,26 @@ pub fn render_markdown(r: &Report) -> String {
         );
     }
 
-    let _ = writeln!(s, "\n## Reading\n");
-    for line in reading(r) {
-        let _ = writeln!(s, "- {line}");
-    }
-    if !r.plots.is_empty() {
-        let _ = writeln!(s, "\n## Plots\n");
-        for p in &r.plots {
-            if p.ends_with(".png") {
-                let _ = writeln!(s, "![{p}]({p})");
-            }
-        }
-    }
-    for n in &r.notes {
-        let _ = writeln!(s, "\nNote: {n}");
-    }
+    write_reading_plots_notes(&mut s, &reading(r), &r.plots, &r.notes);
     let _ = writeln!(s, "\nEvaluation took {:.1} s.", r.seconds);
     s
+}
+
+/// The tail every Markdown report shares: the reading (plain statements), the PNG plots, the notes.
+pub fn write_reading_plots_notes(s: &mut String, reading: &[String], plots: &[String], notes: &[String]) {
+    let _ = writeln!(s, "\n## Reading\n");
+    for line in reading {
+        let _ = writeln!(s, "- {line}");
+    }
+    if plots.iter().any(|p| p.ends_with(".png")) {
+        let _ = writeln!(s, "\n## Plots\n");
+        for p in plots.iter().filter(|p| p.ends_with(".png")) {
+            let _ = writeln!(s, "![{p}]({p})");
+        }
+    }
+    for n in notes {
+        let _ = writeln!(s, "\nNote: {n}");
+    }
 }
 
 /// Plain statements derived from the numbers (so the reading cannot contradict the tables).

@@ -144,19 +144,7 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
         }
         let _ = writeln!(s, "{row} {} |", m.coverage_90_pct.map_or("-".into(), |c| format!("{c:.1}")));
     }
-    let _ = writeln!(s, "\n## Reading\n");
-    for line in reading(r) {
-        let _ = writeln!(s, "- {line}");
-    }
-    if !r.plots.is_empty() {
-        let _ = writeln!(s, "\n## Plots\n");
-        for p in r.plots.iter().filter(|p| p.ends_with(".png")) {
-            let _ = writeln!(s, "![{p}]({p})");
-        }
-    }
-    for n in &r.notes {
-        let _ = writeln!(s, "\nNote: {n}");
-    }
+    bcal_eval::report::write_reading_plots_notes(&mut s, &reading(r), &r.plots, &r.notes);
     let _ = writeln!(
         s,
         "\n## Setup (every choice, and what it was made on)\n\n```json\n{}\n```",
@@ -253,6 +241,30 @@ fn color(key: &str) -> RGBColor {
 }
 
 type Draw = Result<(), String>;
+type Chart<'a, DB> =
+    ChartContext<'a, DB, Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>>;
+
+/// One calibrator's line, in its colour, labelled with its name in the legend when `label`.
+fn method_line<DB: DrawingBackend>(chart: &mut Chart<'_, DB>, key: &str, line: Vec<(f64, f64)>, label: bool) -> Draw {
+    let c = color(key);
+    let s = chart.draw_series(LineSeries::new(line, c.stroke_width(2))).map_err(e2s)?;
+    if label {
+        let name = METHODS.iter().find(|m| m.0 == key).map_or(key, |m| m.1);
+        s.label(name).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
+    }
+    Ok(())
+}
+
+fn legend<'a, DB: DrawingBackend + 'a>(chart: &mut Chart<'a, DB>) -> Draw {
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 11))
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()
+        .map_err(e2s)
+}
 
 fn e2s<E: std::fmt::Display>(e: E) -> String {
     e.to_string()
@@ -300,22 +312,10 @@ fn draw_capacity<DB: DrawingBackend>(
                 run.steps.get(k)?.capacity.value.map(|c| (f64::from(r.cycle), c))
             })
             .collect();
-        let c = color(key);
-        let s = chart.draw_series(LineSeries::new(line, c.stroke_width(2))).map_err(e2s)?;
-        if text {
-            let name = METHODS.iter().find(|m| m.0 == *key).map_or(*key, |m| m.1);
-            s.label(name).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
-        }
+        method_line(&mut chart, key, line, text)?;
     }
     if text {
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 11))
-            .position(SeriesLabelPosition::UpperRight)
-            .draw()
-            .map_err(e2s)?;
+        legend(&mut chart)?;
     }
     root.present().map_err(e2s)
 }
@@ -375,22 +375,10 @@ fn draw_eod_vs_fraction<DB: DrawingBackend>(
             .map_err(e2s)?;
     }
     for (key, line) in series {
-        let c = color(key);
-        let s = chart.draw_series(LineSeries::new(line, c.stroke_width(2))).map_err(e2s)?;
-        if text {
-            let name = METHODS.iter().find(|m| m.0 == key).map_or(key, |m| m.1);
-            s.label(name).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
-        }
+        method_line(&mut chart, key, line, text)?;
     }
     if text {
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 11))
-            .position(SeriesLabelPosition::UpperRight)
-            .draw()
-            .map_err(e2s)?;
+        legend(&mut chart)?;
     }
     root.present().map_err(e2s)
 }
@@ -438,24 +426,13 @@ fn draw_discharges<DB: DrawingBackend>(
                 .filter(|st| st.t_s >= r.load_on_s)
                 .filter_map(|st| st.eod.value.map(|v| (st.t_s, v.clamp(0.6 * eod, 1.4 * eod))))
                 .collect();
-            let s = chart.draw_series(LineSeries::new(line, c.stroke_width(2))).map_err(e2s)?;
-            if text && k == 0 {
-                let name = METHODS.iter().find(|m| m.0 == *key).map_or(*key, |m| m.1);
-                s.label(name).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], c.stroke_width(2)));
-            }
+            method_line(&mut chart, key, line, text && k == 0)?;
         }
         let s =
             chart.draw_series(LineSeries::new(vec![(0.0, eod), (t_end, eod)], BLACK.stroke_width(1))).map_err(e2s)?;
         if text && k == 0 {
             s.label("measured").legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK));
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.8))
-                .border_style(BLACK)
-                .label_font(("sans-serif", 11))
-                .position(SeriesLabelPosition::UpperRight)
-                .draw()
-                .map_err(e2s)?;
+            legend(&mut chart)?;
         }
     }
     root.present().map_err(e2s)
