@@ -282,9 +282,7 @@ fn interval_around(spec: &TrackerSpec, d: &Degradation, sd_z: [f64; 2], k: [f64;
 /// Runs a calibrator along an episode, predicting the end of discharge at the set fractions on the
 /// calibrators' model `ext` (its Arrhenius factors, if any, at the cell's temperature then).
 fn run_episode(cal: &mut dyn Calibrator, e: &Episode, ext: &ModelExtension, cutoff_v: f64) -> Trace {
-    let base = ext.model().expect("the config checks the model extension");
-    let kn_kp = (base.params.kn, base.params.kp);
-    let ref_k = ext.reference_k.unwrap_or(e.samples.first().map_or(base.params.tb0_k, |s| s.temperature_k));
+    let ref_k = ext.reference_k.or(e.samples.first().map(|s| s.temperature_k)).unwrap_or(ext.params().tb0_k);
     let n = e.samples.len();
     let end = e.eod_s.unwrap_or_else(|| e.samples[n - 1].t_s);
     let start = e.spec.rest_s;
@@ -298,8 +296,9 @@ fn run_episode(cal: &mut dyn Calibrator, e: &Episode, ext: &ModelExtension, cuto
         while next < at.len() && s.t_s >= at[next] {
             out.eod_pred_s[next] = cal.state().and_then(|x| {
                 let q = EodQuery { profile: &e.spec.profile, cutoff_v, dt_s: 1.0, max_s: 4.0 * (end + 100.0) };
-                let (mut model, mut d) = (base.clone(), cal.estimate());
-                d.r_o_ohm *= ext.apply_at(&mut model, kn_kp, x[bcal_common::math::idx::T_B], ref_k);
+                let (model, ro_factor) =
+                    ext.model_at(x[bcal_common::math::idx::T_B], ref_k).expect("the config checks the model extension");
+                let d = Degradation { r_o_ohm: cal.estimate().r_o_ohm * ro_factor, ..cal.estimate() };
                 predict_eod_s(&model, &x, &d, s.t_s, &q)
             });
             next += 1;

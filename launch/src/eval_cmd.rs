@@ -61,8 +61,8 @@ pub struct EvalArgs {
     /// validation split usually ends it sooner.
     #[arg(long, value_parser = crate::cli::positive_f64)]
     pub dm_budget_s: Option<f64>,
-    /// Cap on the direct mapping's Adam updates (default: none).
-    #[arg(long)]
+    /// Cap on the direct mapping's Adam updates, at least 1 (default: none).
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub dm_updates: Option<usize>,
     /// Dataset cache folder (default: $BCAL_CACHE/datasets or ~/.cache/bcal/datasets).
     #[arg(long)]
@@ -253,9 +253,6 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         opts.direct.seed = c.seed;
     }
     if let Some(n) = a.dm_updates {
-        if n == 0 {
-            bail!("--dm-updates must be at least 1");
-        }
         opts.direct.max_updates = n;
     }
 
@@ -326,9 +323,6 @@ fn run_measured(
         _ => {}
     }
     if let Some(n) = a.dm_updates {
-        if n == 0 {
-            bail!("--dm-updates must be at least 1");
-        }
         opts.direct.max_updates = n;
     }
     let policy_input = match &policy {

@@ -66,9 +66,8 @@ impl Predictor {
 
     /// `ext`'s model at `t_k` (its Arrhenius reference the extension's, else `t_k` itself).
     pub fn at(ext: &ModelExtension, t_k: f64) -> Self {
-        let mut model = ext.model().expect("model extensions are checked when loaded");
-        let kn_kp = (model.params.kn, model.params.kp);
-        let ro_factor = ext.apply_at(&mut model, kn_kp, t_k, ext.reference_k.unwrap_or(t_k));
+        let (model, ro_factor) =
+            ext.model_at(t_k, ext.reference_k.unwrap_or(t_k)).expect("model extensions are checked when loaded");
         Self { model, ro_factor }
     }
 

@@ -99,6 +99,15 @@ impl ModelExtension {
         ro
     }
 
+    /// The calibrator's model as a prediction runs it at `t_k`: its rate constants there, and the factor on
+    /// Ro there (against the reference `ref_k`).
+    pub fn model_at(&self, t_k: f64, ref_k: f64) -> Result<(BatteryModel, f64), crate::battery::ModelError> {
+        let mut model = self.model()?;
+        let kn_kp = (model.params.kn, model.params.kp);
+        let ro_factor = self.apply_at(&mut model, kn_kp, t_k, ref_k);
+        Ok((model, ro_factor))
+    }
+
     /// Checks the values: what the model can run, named as the config names them under `key`.
     pub fn check(&self, key: &str) -> Result<(), String> {
         for c in &self.causes {
