@@ -3,11 +3,12 @@
 //! environments are the paper's (windows of training trajectories) or the measured-only setting's
 //! (simulated cells read through a sensor), as the run's task says. No IPC here, so a unit test can step it.
 
+use bcal_calib::env::MeasuredEnv;
 use bcal_common::battery::BatteryModel;
 use bcal_common::dataset::Dataset;
 use bcal_common::hash::fnv1a64;
 use bcal_common::mdp::{CalibrationEnv, MdpSpec};
-use bcal_common::measured::env::{MeasuredEnv, MeasuredSpec};
+use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::{PolicyNet, Scratch};
 use bcal_common::wire::{Transition, MAX_ACT, MAX_OBS};
 use rand::rngs::SmallRng;
@@ -176,7 +177,7 @@ mod tests {
     #[test]
     fn measured_envs_yield_finite_transitions_from_readings_only() {
         let spec = MeasuredSpec::default();
-        let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: 2, hidden: vec![8] };
+        let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: vec![8] };
         let params: Vec<f32> = (0..layout.n_params()).map(|i| ((i % 5) as f32 - 2.0) * 0.05).collect();
         let policy = PolicyNet::from_flat(layout.clone(), params).unwrap();
         let mut envs = ActorEnvs::measured(spec.clone(), 4, (3, 4), Scratch::new(&layout));

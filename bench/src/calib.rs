@@ -8,12 +8,12 @@
 
 use crate::shape;
 use anyhow::Context;
+use bcal_calib::Calibrator;
 use bcal_common::battery::{BatteryModel, Degradation, Load};
 use bcal_common::config::TrainConfig;
 use bcal_common::dataset::{Dataset, Experiment, Trajectory};
 use bcal_common::math::ModelState;
 use bcal_common::mdp::{model_state_at, MdpSpec};
-use bcal_common::measured::calibrator::Calibrator;
 use bcal_common::policy::{PolicyLayout, PolicyNet, Scratch};
 use bcal_eval::direct::{self, DirectMap};
 use bcal_eval::evaluate::{median_of, spread_by_load, step_cycle, time_net, time_per_call_us, TIMING_REPEATS};
@@ -69,12 +69,13 @@ fn actor_pair(obs_dim: usize, act_dim: usize, hidden: &[usize]) -> anyhow::Resul
 /// environment's step (what an actor pays per transition), the RL calibrator's step (tracker + 128x128
 /// policy), the window fit's and the joint UKF's (default settings; the evaluator times the tuned one).
 fn measured_rows(steps: usize, push: &mut dyn FnMut(String, String, f64, usize)) -> anyhow::Result<()> {
+    use bcal_calib::env::MeasuredEnv;
+    use bcal_calib::joint_ukf::{JointUkf, JointUkfSettings};
+    use bcal_calib::{RlCalibrator, WindowFitCalibrator};
     use bcal_common::dataset::Split;
-    use bcal_common::measured::calibrator::{RlCalibrator, WindowFitCalibrator};
-    use bcal_common::measured::env::{MeasuredEnv, MeasuredSpec};
+    use bcal_common::measured::env::MeasuredSpec;
     use bcal_common::measured::scenario::episode_set;
     use bcal_common::measured::tracker::OBS_DIM;
-    use bcal_eval::joint_ukf::{JointUkf, JointUkfSettings};
 
     let spec = MeasuredSpec::default();
     let episodes = episode_set(&spec.scenario, Split::Test, 4).context("simulating the measured test cells")?;

@@ -254,7 +254,7 @@ pub struct ReplayConfig {
     pub ratio_error_buffer: f64,
     /// Seconds between buffer snapshots to `DIR/replay/snapshot.bin` (and one at a clean stop); a replay
     /// restarted after a crash resumes from the newest. 0 disables snapshots (a restarted replay then
-    /// refills from the actors). A full paper buffer is 272 MB on disk.
+    /// refills from the actors). A full paper buffer is 280 MB on disk.
     pub snapshot_every_s: f64,
 }
 
@@ -795,7 +795,8 @@ mod tests {
         assert_eq!(TrainConfig::from_toml_over(&p.to_toml(), Preset::PaperTuned).unwrap(), p);
         let m = Preset::Measured.config();
         assert_eq!(m.env.observation, Observation::Measured);
-        assert_eq!(m.validate().unwrap().target_entropy, -8.0);
+        // The correction policy's four action dimensions.
+        assert_eq!(m.validate().unwrap().target_entropy, -16.0);
         // An older run folder's single interval scale reads as the same factor for both parameters.
         let old = TrainConfig::from_toml("[measured.tracker]\ninterval_scale = 2.5\n").unwrap();
         assert_eq!(old.measured.tracker.interval_scale, [2.5, 2.5]);

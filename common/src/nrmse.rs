@@ -103,6 +103,13 @@ impl NrmseAccumulator {
         self.sq_r_o += er * er;
     }
 
+    /// Adds another accumulator's sums (accumulators filled in parallel).
+    pub fn merge(&mut self, o: &NrmseAccumulator) {
+        self.n += o.n;
+        self.sq_q_mobile += o.sq_q_mobile;
+        self.sq_r_o += o.sq_r_o;
+    }
+
     /// (qMobile, Ro) normalised RMSE in %.
     pub fn pct(&self) -> (f64, f64) {
         let n = self.n.max(1) as f64;

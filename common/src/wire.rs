@@ -14,11 +14,11 @@
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Layout version of every payload below; part of each service name.
-pub const WIRE_VERSION: u32 = 2;
+pub const WIRE_VERSION: u32 = 3;
 /// Largest observation any observation builder may produce.
 pub const MAX_OBS: usize = 32;
-/// Largest action dimension (qMobile and Ro).
-pub const MAX_ACT: usize = 2;
+/// Largest action dimension (the correction policy's: two shifts and two noise log-scales).
+pub const MAX_ACT: usize = 4;
 /// Largest learner minibatch the replay serves in one message.
 pub const MAX_BATCH: usize = 1024;
 /// Largest number of transitions in one actor message.
@@ -190,8 +190,8 @@ mod tests {
 
     #[test]
     fn payload_sizes_are_fixed_and_padding_free() {
-        // 32 + 32 + 2 + 2 f32: no padding, 272 bytes per transition.
-        assert_eq!(std::mem::size_of::<Transition>(), 272);
+        // 32 + 32 + 4 + 2 f32: no padding, 280 bytes per transition.
+        assert_eq!(std::mem::size_of::<Transition>(), 280);
         assert_eq!(std::mem::size_of::<TransitionBatchHeader>(), 48);
         assert_eq!(std::mem::size_of::<WeightsHeader>(), 24);
         assert_eq!(std::mem::size_of::<BatchRequest>(), 16);

@@ -10,7 +10,6 @@
 
 pub mod direct;
 pub mod evaluate;
-pub mod joint_ukf;
 pub mod measured_eval;
 pub mod measured_report;
 pub mod metrics;

@@ -12,21 +12,30 @@
 
 use crate::direct::{DirectMap, DirectMapConfig, DirectMapError, Pairs, TrainLog};
 use crate::evaluate::{median_of, PolicyInput, TIMING_REPEATS};
-use crate::joint_ukf::{JointUkf, JointUkfCounters, JointUkfSettings};
 use crate::metrics::ParamValues;
 use crate::plots::TrainingCurve;
+use bcal_calib::direct::{DirectCalibrator, DirectInputs};
+use bcal_calib::joint_ukf::{JointUkf, JointUkfCounters};
+pub use bcal_calib::tune::{
+    interval_scale_on, tune_adaptive, tune_joint_ukf, AdaptiveGrid, AdaptiveTuning, JointUkfGrid, Make, UkfTuning,
+};
+use bcal_calib::{
+    predict_eod_s, tracker_state, Calibrator, EodQuery, Interval, RlCalibrator, Tracker, Uncalibrated,
+    WindowFitCalibrator,
+};
+use bcal_calib::{AdaptiveUkf, CorrectionCalibrator};
 use bcal_common::battery::Degradation;
+use bcal_common::battery::{Load, LoadProfile};
 use bcal_common::dataset::Split;
 use bcal_common::math::ModelState;
-use bcal_common::measured::calibrator::{
-    predict_eod_s, tracker_state, Calibrator, EodQuery, RlCalibrator, Uncalibrated, WindowFitCalibrator,
-};
+use bcal_common::measured::cellmodel::REST_CURRENT_A;
+use bcal_common::measured::env::Design;
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{episode_set, Episode, ScenarioConfig};
-use bcal_common::measured::tracker::{Interval, Tracker, TrackerSpec, OBS_DIM};
+use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::nrmse::Param;
-use bcal_common::policy::{PolicyNet, Scratch};
+use bcal_common::policy::PolicyNet;
 use bcal_common::stats::median;
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};
@@ -36,9 +45,10 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 /// Method keys in report order, with display names.
-pub const METHODS: [(&str, &str); 5] = [
+pub const METHODS: [(&str, &str); 6] = [
     ("rl_lac", "RL-LAC"),
     ("ukf", "Joint UKF"),
+    ("adaptive_ukf", "Adaptive UKF (covariance matching)"),
     ("direct_mapping", "Direct mapping"),
     ("window_fit", "Window fit (no learning)"),
     ("uncalibrated", "Uncalibrated"),
@@ -48,87 +58,6 @@ pub const METHODS: [(&str, &str); 5] = [
 pub const EOD_FRACTIONS: [f64; 3] = [0.1, 0.5, 0.9];
 /// Threshold of the convergence time, % of each parameter's Table-1 range.
 pub const WITHIN_PCT: f64 = 2.0;
-
-/// The joint UKF's search space (every combination is tried on validation).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct JointUkfGrid {
-    pub meas_std_v: Vec<f64>,
-    pub param_walk_per_sqrt_s: Vec<f64>,
-    pub charge_walk_c_per_sqrt_s: Vec<f64>,
-    pub voltage_walk_v_per_sqrt_s: Vec<f64>,
-    pub prior_std_z: Vec<[f64; 2]>,
-}
-
-impl Default for JointUkfGrid {
-    fn default() -> Self {
-        Self {
-            meas_std_v: vec![0.002, 0.003, 0.005, 0.01],
-            param_walk_per_sqrt_s: vec![0.0, 1e-5, 1e-4],
-            charge_walk_c_per_sqrt_s: vec![0.01, 0.1, 1.0],
-            voltage_walk_v_per_sqrt_s: vec![JointUkfSettings::default().voltage_walk_v_per_sqrt_s],
-            // The prototype prior (1000 C, 0.03 ohm over the 4000 C and 0.2 ohm ranges) and a wider one.
-            prior_std_z: vec![[0.25, 0.15], [0.35, 0.3]],
-        }
-    }
-}
-
-impl JointUkfGrid {
-    pub fn quick() -> Self {
-        Self {
-            meas_std_v: vec![0.003, 0.005],
-            param_walk_per_sqrt_s: vec![1e-5],
-            charge_walk_c_per_sqrt_s: vec![0.1],
-            voltage_walk_v_per_sqrt_s: vec![JointUkfSettings::default().voltage_walk_v_per_sqrt_s],
-            prior_std_z: vec![[0.25, 0.15], [0.35, 0.3]],
-        }
-    }
-
-    /// For real cells: the measurement noise a filter must assume there is mostly the model's own error
-    /// (15-40 mV RMS on the NASA cells, bcal diagnose), so the grid reaches further, and the overpotential
-    /// states may walk to absorb a slowly varying part of that error instead of moving the charges.
-    pub fn real_cells() -> Self {
-        Self {
-            meas_std_v: vec![0.003, 0.01, 0.02, 0.04],
-            voltage_walk_v_per_sqrt_s: vec![1e-4, 1e-3, 5e-3],
-            // Tighter priors too: on a real cell the prior is the previous discharge's fit, and a cell
-            // changes by a fraction of a percent from one discharge to the next.
-            prior_std_z: vec![[0.01, 0.01], [0.02, 0.02], [0.05, 0.05], [0.1, 0.1]],
-            ..Self::default()
-        }
-    }
-
-    pub fn real_cells_quick() -> Self {
-        Self {
-            meas_std_v: vec![0.01, 0.03],
-            voltage_walk_v_per_sqrt_s: vec![1e-4, 5e-3],
-            prior_std_z: vec![[0.05, 0.05], [0.25, 0.15]],
-            ..Self::quick()
-        }
-    }
-
-    pub fn candidates(&self) -> Vec<JointUkfSettings> {
-        let mut v = Vec::new();
-        for &meas_std_v in &self.meas_std_v {
-            for &param_walk_per_sqrt_s in &self.param_walk_per_sqrt_s {
-                for &charge_walk_c_per_sqrt_s in &self.charge_walk_c_per_sqrt_s {
-                    for &voltage_walk_v_per_sqrt_s in &self.voltage_walk_v_per_sqrt_s {
-                        for &prior_std_z in &self.prior_std_z {
-                            v.push(JointUkfSettings {
-                                meas_std_v,
-                                param_walk_per_sqrt_s,
-                                charge_walk_c_per_sqrt_s,
-                                voltage_walk_v_per_sqrt_s,
-                                prior_std_z,
-                                ..JointUkfSettings::default()
-                            });
-                        }
-                    }
-                }
-            }
-        }
-        v
-    }
-}
 
 /// What the measured evaluation runs and how much effort each method gets.
 #[derive(Clone, Debug, PartialEq)]
@@ -144,6 +73,8 @@ pub struct MeasuredEvalOptions {
     /// Validation cells for every choice (None = the configured number).
     pub validation_episodes: Option<usize>,
     pub ukf_grid: JointUkfGrid,
+    /// The adaptive UKF's rules (tried on top of the tuned filter, on validation).
+    pub adaptive_grid: AdaptiveGrid,
     pub direct: DirectMapConfig,
     /// Training cells the direct mapping's pairs come from.
     pub direct_train_episodes: usize,
@@ -164,6 +95,7 @@ impl MeasuredEvalOptions {
             test_episodes: None,
             validation_episodes: None,
             ukf_grid: JointUkfGrid::default(),
+            adaptive_grid: AdaptiveGrid::default(),
             direct: DirectMapConfig { hidden: vec![128, 128], ..DirectMapConfig::default() },
             direct_train_episodes: 400,
             timing_readings: 20_000,
@@ -177,6 +109,7 @@ impl MeasuredEvalOptions {
             test_episodes: Some(16),
             validation_episodes: Some(12),
             ukf_grid: JointUkfGrid::quick(),
+            adaptive_grid: AdaptiveGrid::quick(),
             direct: DirectMapConfig { hidden: vec![64, 64], ..DirectMapConfig::quick() },
             direct_train_episodes: 40,
             timing_readings: 2_000,
@@ -214,73 +147,17 @@ pub enum MeasuredEvalError {
 pub struct Trace {
     pub estimates: Vec<Degradation>,
     pub intervals: Vec<Option<Interval>>,
-    /// Predicted end of discharge at each of [`EOD_FRACTIONS`] (None: the prediction failed).
+    /// Predicted end of discharge at each of [`EOD_FRACTIONS`] at the mean measured current so far, as a
+    /// BMS (and `bcal calibrate` on real cells) predicts it (None: the prediction failed).
     pub eod_pred_s: [Option<f64>; 3],
-}
-
-/// A calibrator that needs building per episode.
-pub type Make<'a> = Box<dyn Fn() -> Box<dyn Calibrator + 'a> + Sync + 'a>;
-
-/// The direct mapping as a calibrator: the window fit runs for its inputs, the network answers.
-struct DirectCalibrator<'a> {
-    fit: WindowFitCalibrator,
-    net: &'a PolicyNet,
-    scratch: Scratch,
-    spec: TrackerSpec,
-    interval_scale: [f64; 2],
-    estimate: Degradation,
-}
-
-impl Calibrator for DirectCalibrator<'_> {
-    fn step(&mut self, s: &bcal_common::measured::Sample) {
-        self.fit.step(s);
-        let mut obs = [0f32; OBS_DIM];
-        self.fit.tracker().observe(&mut obs);
-        let (mut mean, mut log_std) = ([0f32; 2], [0f32; 2]);
-        self.net.forward(&obs, &mut self.scratch, &mut mean, &mut log_std);
-        self.estimate = self.spec.from_z([f64::from(mean[0] + 1.0) * 0.5, f64::from(mean[1] + 1.0) * 0.5]);
-    }
-    fn estimate(&self) -> Degradation {
-        self.estimate
-    }
-    fn interval(&self) -> Option<Interval> {
-        // The fit's spread around the network's answer, scaled on validation.
-        let sd = self.fit.tracker().stats().std_z(self.spec.noise_floor_v)?;
-        Some(interval_around(&self.spec, &self.estimate, sd, self.interval_scale))
-    }
-    fn state(&self) -> Option<ModelState> {
-        let t = self.fit.tracker();
-        t.cell().map(|c| c.state(&c.track, &self.estimate))
-    }
-}
-
-impl Calibrator for JointUkf {
-    fn step(&mut self, s: &bcal_common::measured::Sample) {
-        JointUkf::step(self, s)
-    }
-    fn estimate(&self) -> Degradation {
-        JointUkf::estimate(self)
-    }
-    fn interval(&self) -> Option<Interval> {
-        JointUkf::interval(self)
-    }
-    fn state(&self) -> Option<ModelState> {
-        Some(JointUkf::state(self))
-    }
-    fn state_under(&self, d: &Degradation) -> Option<ModelState> {
-        Some(JointUkf::state_given(self, d))
-    }
-}
-
-fn interval_around(spec: &TrackerSpec, d: &Degradation, sd_z: [f64; 2], k: [f64; 2]) -> Interval {
-    let z = spec.to_z(d);
-    let lo = spec.from_z([z[0] - k[0] * sd_z[0], z[1] - k[1] * sd_z[1]]);
-    let hi = spec.from_z([z[0] + k[0] * sd_z[0], z[1] + k[1] * sd_z[1]]);
-    Interval { q_mobile_c: [lo.q_mobile_c, hi.q_mobile_c], r_o_ohm: [lo.r_o_ohm, hi.r_o_ohm] }
+    /// The same under the cell's true future load (an oracle of the load, not of the cell: it isolates the
+    /// calibration's share of the error).
+    pub eod_oracle_load_s: [Option<f64>; 3],
 }
 
 /// Runs a calibrator along an episode, predicting the end of discharge at the set fractions on the
-/// calibrators' model `ext` (its Arrhenius factors, if any, at the cell's temperature then).
+/// calibrators' model `ext` (its Arrhenius factors, if any, at the cell's temperature then), at the mean
+/// current so far and under the true future load.
 fn run_episode(cal: &mut dyn Calibrator, e: &Episode, ext: &ModelExtension, cutoff_v: f64) -> Trace {
     let ref_k = ext.reference_k.or(e.samples.first().map(|s| s.temperature_k)).unwrap_or(ext.params().tb0_k);
     let n = e.samples.len();
@@ -288,23 +165,61 @@ fn run_episode(cal: &mut dyn Calibrator, e: &Episode, ext: &ModelExtension, cuto
     let start = e.spec.rest_s;
     let at: Vec<f64> = EOD_FRACTIONS.iter().map(|f| start + f * (end - start)).collect();
     let mut next = 0;
-    let mut out = Trace { estimates: Vec::with_capacity(n), intervals: Vec::with_capacity(n), eod_pred_s: [None; 3] };
+    let mut out = Trace {
+        estimates: Vec::with_capacity(n),
+        intervals: Vec::with_capacity(n),
+        eod_pred_s: [None; 3],
+        eod_oracle_load_s: [None; 3],
+    };
+    let (mut loaded_sum_a, mut loaded_n) = (0.0, 0u32);
     for s in &e.samples {
         cal.step(s);
         out.estimates.push(cal.estimate());
         out.intervals.push(cal.interval());
+        if s.current_a >= REST_CURRENT_A {
+            loaded_sum_a += s.current_a;
+            loaded_n += 1;
+        }
         while next < at.len() && s.t_s >= at[next] {
-            out.eod_pred_s[next] = cal.state().and_then(|x| {
-                let q = EodQuery { profile: &e.spec.profile, cutoff_v, dt_s: 1.0, max_s: 4.0 * (end + 100.0) };
+            if let Some(x) = cal.state() {
                 let (model, ro_factor) =
                     ext.model_at(x[bcal_common::math::idx::T_B], ref_k).expect("the config checks the model extension");
                 let d = Degradation { r_o_ohm: cal.estimate().r_o_ohm * ro_factor, ..cal.estimate() };
-                predict_eod_s(&model, &x, &d, s.t_s, &q)
-            });
+                let max_s = 4.0 * (end + 100.0);
+                let oracle = EodQuery { profile: &e.spec.profile, cutoff_v, dt_s: 1.0, max_s };
+                out.eod_oracle_load_s[next] = predict_eod_s(&model, &x, &d, s.t_s, &oracle);
+                if loaded_n > 0 {
+                    let mean = LoadProfile::Constant(Load::CurrentA(loaded_sum_a / f64::from(loaded_n)));
+                    let q = EodQuery { profile: &mean, cutoff_v, dt_s: 1.0, max_s };
+                    out.eod_pred_s[next] = predict_eod_s(&model, &x, &d, s.t_s, &q);
+                }
+            }
             next += 1;
         }
     }
     out
+}
+
+/// NRMSE and coverage of one set of cells.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Breakdown {
+    pub cells: usize,
+    pub readings: usize,
+    /// Over every reading of these cells, pooled, %.
+    #[serde(serialize_with = "crate::metrics::both_keys")]
+    pub nrmse_pct: ParamValues,
+    #[serde(serialize_with = "crate::metrics::both_keys")]
+    pub second_half_nrmse_pct: ParamValues,
+    #[serde(serialize_with = "crate::metrics::both_keys")]
+    pub coverage_90_pct: ParamValues,
+    /// Each cell's figure first, then their mean: every cell weighs the same, however many readings it
+    /// has (a cell without a second half, or without an interval, is left out of that mean).
+    #[serde(serialize_with = "crate::metrics::both_keys")]
+    pub per_cell_nrmse_pct: ParamValues,
+    #[serde(serialize_with = "crate::metrics::both_keys")]
+    pub per_cell_second_half_nrmse_pct: ParamValues,
+    #[serde(serialize_with = "crate::metrics::both_keys")]
+    pub per_cell_coverage_90_pct: ParamValues,
 }
 
 /// Accuracy of one method at one noise level.
@@ -329,8 +244,15 @@ pub struct MethodScores {
     pub coverage_90_pct: ParamValues,
     /// Readings that have an interval, %.
     pub interval_available_pct: f64,
-    /// End-of-discharge prediction made at 10 / 50 / 90 % of each discharge: absolute error, s.
+    /// The same figures per cell (mean over cells) beside the pooled ones, over all cells.
+    pub all_cells: Breakdown,
+    /// By sampling regime ("1s", "10-20s"): 1 s cells hold most readings, so the pooled figure is theirs.
+    pub by_sampling: BTreeMap<String, Breakdown>,
+    /// End-of-discharge prediction made at 10 / 50 / 90 % of each discharge at the mean measured current
+    /// so far (as on real cells): absolute error, s, and the predictions that failed.
     pub eod: BTreeMap<String, EodSummary>,
+    /// The same under the cell's true future load (labelled oracle: the load is known, the cell is not).
+    pub eod_oracle_load: BTreeMap<String, EodSummary>,
     /// Per-reading calibration cost, us (one thread); in the headline noise level only.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub step_us: Option<f64>,
@@ -345,38 +267,138 @@ pub struct EodSummary {
     pub mae_pct_of_discharge: f64,
     pub bias_s: f64,
     pub n: usize,
+    /// Predictions that failed (the model never reached the cut-off, or no state): not in the errors.
     pub failures: usize,
+}
+
+/// The sampling regime of a cell, as the report names it.
+pub fn sampling_regime(e: &Episode) -> String {
+    let [lo, hi] = e.spec.interval_s;
+    if (hi - lo).abs() < 1e-9 {
+        format!("{lo:.0}s")
+    } else {
+        format!("{lo:.0}-{hi:.0}s")
+    }
+}
+
+/// One cell's sums.
+#[derive(Clone, Copy, Debug, Default)]
+struct CellSums {
+    sq: [f64; 2],
+    n: usize,
+    sq2: [f64; 2],
+    n2: usize,
+    cover: [usize; 2],
+    with_iv: usize,
+}
+
+fn breakdown(cells: &[&CellSums]) -> Breakdown {
+    let pv = |v: [f64; 2]| ParamValues { q_mobile: Some(v[0]), r_o: Some(v[1]) };
+    let (mut sq, mut sq2, mut n, mut n2, mut cover, mut with_iv) = ([0.0; 2], [0.0; 2], 0, 0, [0usize; 2], 0);
+    let (mut pc, mut pc2, mut pcc) = (Vec::new(), Vec::new(), Vec::new());
+    for c in cells {
+        for k in 0..2 {
+            sq[k] += c.sq[k];
+            sq2[k] += c.sq2[k];
+            cover[k] += c.cover[k];
+        }
+        n += c.n;
+        n2 += c.n2;
+        with_iv += c.with_iv;
+        if c.n > 0 {
+            pc.push(c.sq.map(|x| (x / c.n as f64).sqrt()));
+        }
+        if c.n2 > 0 {
+            pc2.push(c.sq2.map(|x| (x / c.n2 as f64).sqrt()));
+        }
+        if c.with_iv > 0 {
+            pcc.push(c.cover.map(|x| 100.0 * x as f64 / c.with_iv as f64));
+        }
+    }
+    let mean = |v: &[[f64; 2]]| {
+        if v.is_empty() {
+            ParamValues::default()
+        } else {
+            pv([0, 1].map(|k| v.iter().map(|x| x[k]).sum::<f64>() / v.len() as f64))
+        }
+    };
+    Breakdown {
+        cells: cells.len(),
+        readings: n,
+        nrmse_pct: pv(sq.map(|x| (x / n.max(1) as f64).sqrt())),
+        second_half_nrmse_pct: pv(sq2.map(|x| (x / n2.max(1) as f64).sqrt())),
+        coverage_90_pct: if with_iv > 0 {
+            pv(cover.map(|c| 100.0 * c as f64 / with_iv as f64))
+        } else {
+            ParamValues::default()
+        },
+        per_cell_nrmse_pct: mean(&pc),
+        per_cell_second_half_nrmse_pct: mean(&pc2),
+        per_cell_coverage_90_pct: mean(&pcc),
+    }
+}
+
+fn eod_summaries(episodes: &[Episode], preds: &[[Option<f64>; 3]]) -> BTreeMap<String, EodSummary> {
+    let mut out = BTreeMap::new();
+    for (k, f) in EOD_FRACTIONS.iter().enumerate() {
+        let (mut errs, mut pct, mut failures) = (Vec::new(), Vec::new(), 0);
+        for (e, p) in episodes.iter().zip(preds) {
+            let Some(eod) = e.eod_s else { continue };
+            match p[k] {
+                Some(p) => {
+                    errs.push(p - eod);
+                    pct.push(100.0 * (p - eod).abs() / (eod - e.spec.rest_s).max(1.0));
+                }
+                None => failures += 1,
+            }
+        }
+        let n = errs.len().max(1) as f64;
+        let mut abs: Vec<f64> = errs.iter().map(|e| e.abs()).collect();
+        out.insert(
+            format!("{:.0}", f * 100.0),
+            EodSummary {
+                mae_s: abs.iter().sum::<f64>() / n,
+                median_abs_s: median(&mut abs).unwrap_or(f64::NAN),
+                mae_pct_of_discharge: pct.iter().sum::<f64>() / n,
+                bias_s: errs.iter().sum::<f64>() / n,
+                n: errs.len(),
+                failures,
+            },
+        );
+    }
+    out
 }
 
 /// Scores traces of test episodes.
 pub fn score(episodes: &[Episode], traces: &[Trace]) -> MethodScores {
     let mut m = MethodScores::default();
     let mut settle: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
-    let (mut sq, mut sq2, mut n, mut n2) = ([0.0; 2], [0.0; 2], 0usize, 0usize);
-    let (mut cover, mut with_iv) = ([0usize; 2], 0usize);
+    let mut cells = Vec::with_capacity(episodes.len());
     for (e, t) in episodes.iter().zip(traces) {
         let truth = e.spec.truth;
         let half = 0.5 * e.samples.last().map_or(0.0, |s| s.t_s);
         let mut last_outside = [None::<f64>; 2];
+        let mut c = CellSums::default();
         for ((s, est), iv) in e.samples.iter().zip(&t.estimates).zip(&t.intervals) {
             for (k, p) in Param::BOTH.into_iter().enumerate() {
                 let err = p.err_pct(est, &truth);
-                sq[k] += err * err;
+                c.sq[k] += err * err;
                 if s.t_s >= half {
-                    sq2[k] += err * err;
+                    c.sq2[k] += err * err;
                 }
                 if err.abs() > WITHIN_PCT {
                     last_outside[k] = Some(s.t_s);
                 }
             }
-            n += 1;
-            n2 += usize::from(s.t_s >= half);
+            c.n += 1;
+            c.n2 += usize::from(s.t_s >= half);
             if let Some(iv) = iv {
-                with_iv += 1;
-                cover[0] += usize::from(iv.q_mobile_c[0] <= truth.q_mobile_c && truth.q_mobile_c <= iv.q_mobile_c[1]);
-                cover[1] += usize::from(iv.r_o_ohm[0] <= truth.r_o_ohm && truth.r_o_ohm <= iv.r_o_ohm[1]);
+                c.with_iv += 1;
+                c.cover[0] += usize::from(iv.q_mobile_c[0] <= truth.q_mobile_c && truth.q_mobile_c <= iv.q_mobile_c[1]);
+                c.cover[1] += usize::from(iv.r_o_ohm[0] <= truth.r_o_ohm && truth.r_o_ohm <= iv.r_o_ohm[1]);
             }
         }
+        cells.push((sampling_regime(e), c));
         let t0 = e.samples.first().map_or(0.0, |s| s.t_s);
         let t_end = e.samples.last().map_or(0.0, |s| s.t_s);
         for k in 0..2 {
@@ -392,10 +414,19 @@ pub fn score(episodes: &[Episode], traces: &[Trace]) -> MethodScores {
             settle[k].push(settled.unwrap_or(f64::INFINITY));
         }
     }
+    let all = breakdown(&cells.iter().map(|(_, c)| c).collect::<Vec<_>>());
+    m.nrmse_pct = all.nrmse_pct;
+    m.second_half_nrmse_pct = all.second_half_nrmse_pct;
+    m.coverage_90_pct = all.coverage_90_pct;
+    let with_iv: usize = cells.iter().map(|(_, c)| c.with_iv).sum();
+    m.interval_available_pct = 100.0 * with_iv as f64 / all.readings.max(1) as f64;
+    let regimes: std::collections::BTreeSet<&String> = cells.iter().map(|(r, _)| r).collect();
+    for r in regimes {
+        let of: Vec<&CellSums> = cells.iter().filter(|(x, _)| x == r).map(|(_, c)| c).collect();
+        m.by_sampling.insert(r.clone(), breakdown(&of));
+    }
+    m.all_cells = all;
     let pv = |v: [f64; 2]| ParamValues { q_mobile: Some(v[0]), r_o: Some(v[1]) };
-    let rmse = |s: [f64; 2], n: usize| s.map(|x| (x / n.max(1) as f64).sqrt());
-    m.nrmse_pct = pv(rmse(sq, n));
-    m.second_half_nrmse_pct = pv(rmse(sq2, n2));
     let mut med = [None, None];
     let mut frac = [0.0; 2];
     for k in 0..2 {
@@ -404,49 +435,9 @@ pub fn score(episodes: &[Episode], traces: &[Trace]) -> MethodScores {
     }
     m.time_to_2pct_s = ParamValues { q_mobile: med[0], r_o: med[1] };
     m.settled_fraction = pv(frac);
-    m.coverage_90_pct =
-        if with_iv > 0 { pv(cover.map(|c| 100.0 * c as f64 / with_iv as f64)) } else { ParamValues::default() };
-    m.interval_available_pct = 100.0 * with_iv as f64 / n.max(1) as f64;
-    for (k, f) in EOD_FRACTIONS.iter().enumerate() {
-        let mut errs = Vec::new();
-        let mut pct = Vec::new();
-        let mut failures = 0;
-        for (e, t) in episodes.iter().zip(traces) {
-            let Some(eod) = e.eod_s else { continue };
-            match t.eod_pred_s[k] {
-                Some(p) => {
-                    errs.push(p - eod);
-                    pct.push(100.0 * (p - eod).abs() / (eod - e.spec.rest_s).max(1.0));
-                }
-                None => failures += 1,
-            }
-        }
-        let n = errs.len().max(1) as f64;
-        let mut abs: Vec<f64> = errs.iter().map(|e| e.abs()).collect();
-        m.eod.insert(
-            format!("{:.0}", f * 100.0),
-            EodSummary {
-                mae_s: abs.iter().sum::<f64>() / n,
-                median_abs_s: median(&mut abs).unwrap_or(f64::NAN),
-                mae_pct_of_discharge: pct.iter().sum::<f64>() / n,
-                bias_s: errs.iter().sum::<f64>() / n,
-                n: errs.len(),
-                failures,
-            },
-        );
-    }
+    m.eod = eod_summaries(episodes, &traces.iter().map(|t| t.eod_pred_s).collect::<Vec<_>>());
+    m.eod_oracle_load = eod_summaries(episodes, &traces.iter().map(|t| t.eod_oracle_load_s).collect::<Vec<_>>());
     m
-}
-
-/// The joint UKF's tuning on validation.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct UkfTuning {
-    pub best: JointUkfSettings,
-    /// Mean of the two NRMSEs on validation, %, of the best and of each candidate tried (best first).
-    pub top: Vec<(JointUkfSettings, f64)>,
-    pub candidates: usize,
-    pub validation_episodes: usize,
-    pub counters_on_test: JointUkfCounters,
 }
 
 /// One noise level's results.
@@ -475,6 +466,11 @@ pub struct MeasuredReport {
     pub rl: Option<serde_json::Value>,
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub ukf: Option<UkfTuning>,
+    /// The joint UKF every filter-based method runs (the task's, or the one tuned here).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub ukf_settings: Option<bcal_common::measured::tracker::JointUkfSettings>,
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub adaptive_ukf: Option<AdaptiveTuning>,
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub direct_mapping: Option<TrainLog>,
     /// The 90 % interval scale chosen on validation for each tracker-based method.
@@ -498,74 +494,6 @@ fn with_voltage_noise(cfg: &ScenarioConfig, v: f64) -> ScenarioConfig {
     let mut c = cfg.clone();
     c.sensor.voltage_noise_v = v;
     c
-}
-
-/// Every grid setting of the joint UKF on `validation` cells, the best by the mean of the two NRMSEs over
-/// every reading (validation only: the test cells never choose anything).
-pub fn tune_joint_ukf(spec: &TrackerSpec, validation: &[Episode], grid: &JointUkfGrid) -> UkfTuning {
-    let cands = grid.candidates();
-    let mut rows: Vec<(JointUkfSettings, f64)> = cands
-        .par_iter()
-        .map(|s| {
-            let mut acc = bcal_common::nrmse::NrmseAccumulator::default();
-            for e in validation {
-                let mut f = JointUkf::new(*s, spec);
-                for r in &e.samples {
-                    f.step(r);
-                    acc.add(&f.estimate(), &e.spec.truth);
-                }
-            }
-            let (q, r) = acc.pct();
-            let m = 0.5 * (q + r);
-            (*s, if m.is_finite() { m } else { f64::INFINITY })
-        })
-        .collect();
-    rows.sort_by(|a, b| a.1.total_cmp(&b.1));
-    UkfTuning {
-        best: rows[0].0,
-        candidates: rows.len(),
-        top: rows.into_iter().take(5).collect(),
-        validation_episodes: validation.len(),
-        counters_on_test: JointUkfCounters::default(),
-    }
-}
-
-/// Per parameter, the 90th percentile of |error| / sd over the readings with a spread: the interval scales
-/// that cover 90 % of validation readings. `make` builds the calibrator with scale 1.
-pub fn interval_scale_on(spec: &TrackerSpec, episodes: &[Episode], make: &Make) -> [f64; 2] {
-    let ratios: Vec<(usize, f64)> = episodes
-        .par_iter()
-        .flat_map_iter(|e| {
-            let mut cal = make();
-            let mut out = Vec::new();
-            for s in &e.samples {
-                cal.step(s);
-                let Some(iv) = cal.interval() else { continue };
-                // The interval of scale 1 is recovered from the one of the calibrator's current scale.
-                let est = spec.to_z(&cal.estimate());
-                let truth = spec.to_z(&e.spec.truth);
-                let (lo, hi) = (
-                    spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[0], r_o_ohm: iv.r_o_ohm[0] }),
-                    spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[1], r_o_ohm: iv.r_o_ohm[1] }),
-                );
-                for k in 0..2 {
-                    let half = 0.5 * (hi[k] - lo[k]);
-                    if half > 1e-12 {
-                        out.push((k, (truth[k] - est[k]).abs() / half));
-                    }
-                }
-            }
-            out
-        })
-        .collect();
-    [0, 1].map(|k| {
-        let mut r: Vec<f64> = ratios.iter().filter(|(j, _)| *j == k).map(|(_, v)| *v).collect();
-        if r.is_empty() {
-            return 1.0;
-        }
-        r.sort_by(f64::total_cmp);
-        r[((r.len() - 1) as f64 * 0.9).round() as usize]
-    })
 }
 
 /// Readings timed per method on one thread: per reading, us (median of repeats).
@@ -596,19 +524,19 @@ fn time_method(episodes: &[Episode], readings: usize, make: &Make) -> f64 {
 
 /// Supervised pairs for the direct mapping: the window fit's observation at sampled readings of `episodes`,
 /// target the truth in action units ([-1, 1] over the calibrator's ranges).
-fn direct_pairs(spec: &TrackerSpec, episodes: &[Episode], max_pairs: usize, seed: u64) -> Pairs {
+fn direct_pairs(task: &MeasuredSpec, episodes: &[Episode], max_pairs: usize, seed: u64) -> Pairs {
     let total: usize = episodes.iter().map(|e| e.samples.len()).sum();
     let keep = (max_pairs as f64 / total.max(1) as f64).min(1.0);
     let mut rng = SmallRng::seed_from_u64(seed);
-    let mut p = Pairs { obs_dim: OBS_DIM, act_dim: 2, ..Default::default() };
-    let mut obs = [0f32; OBS_DIM];
+    let mut p = Pairs { obs_dim: task.obs_dim(), act_dim: 2, ..Default::default() };
+    let mut obs = vec![0f32; task.obs_dim()];
     for e in episodes {
-        let z = spec.to_z(&e.spec.truth);
-        let mut fit = WindowFitCalibrator::new(spec);
+        let z = task.tracker.to_z(&e.spec.truth);
+        let mut inputs = DirectInputs::of_task(task);
         for s in &e.samples {
-            fit.step(s);
+            inputs.step(s);
             if rng.random::<f64>() < keep {
-                fit.tracker().observe(&mut obs);
+                inputs.observe(&mut obs);
                 p.obs.extend_from_slice(&obs);
                 p.target.extend_from_slice(&[(2.0 * z[0] - 1.0) as f32, (2.0 * z[1] - 1.0) as f32]);
             }
@@ -658,15 +586,16 @@ pub fn evaluate_measured(
                     data: "Measured".into(),
                 });
             };
-            if file.layout.obs_dim != OBS_DIM || file.layout.act_dim != 2 {
+            if file.layout.obs_dim != spec.obs_dim() || file.layout.act_dim != spec.act_dim() {
                 return Err(MeasuredEvalError::PolicyShape {
                     got: format!("{} -> {}", file.layout.obs_dim, file.layout.act_dim),
-                    want: format!("{OBS_DIM} -> 2"),
+                    want: format!("{} -> {} ({})", spec.obs_dim(), spec.act_dim(), spec.design.name()),
                 });
             }
             rl_info = Some(serde_json::json!({
                 "policy_file": path, "choice": choice, "update_step": file.update_step, "hidden": file.layout.hidden,
                 "action": "deterministic tanh(mean), pure-Rust PolicyNet",
+                "design": spec.design.name(),
             }));
             Some(file.net()?)
         }
@@ -680,42 +609,94 @@ pub fn evaluate_measured(
         }
     };
 
-    // Interval scales of the tracker-based calibrators, chosen on validation.
-    let mut rl_spec = spec.tracker.clone();
+    // The joint UKF: the task's (tuned on these validation cells when training started, with the same grid),
+    // else every grid setting on validation, the best by the mean of the two NRMSEs.
+    let mut ukf_tuning = None;
+    let base_ukf = match spec.ukf {
+        Some(b) => {
+            progress(&format!(
+                "joint UKF: the task's (tuned on validation when training started): meas_std {:.1} mV, parameter walk {:e}/sqrt(s), charge walk {} C/sqrt(s), prior std {:?}",
+                b.meas_std_v * 1e3, b.param_walk_per_sqrt_s, b.charge_walk_c_per_sqrt_s, b.prior_std_z
+            ));
+            b
+        }
+        None => {
+            progress(&format!(
+                "joint UKF: tuning {} settings on {} validation cells",
+                opts.ukf_grid.candidates().len(),
+                validation.len()
+            ));
+            let t = tune_joint_ukf(&spec.tracker, &validation, &opts.ukf_grid);
+            let best = t.best;
+            progress(&format!(
+                "joint UKF: chose meas_std {:.1} mV, parameter walk {:e}/sqrt(s), charge walk {} C/sqrt(s), prior std {:?} (validation mean NRMSE {:.2} %)",
+                best.meas_std_v * 1e3, best.param_walk_per_sqrt_s, best.charge_walk_c_per_sqrt_s, best.prior_std_z, t.top[0].1
+            ));
+            ukf_tuning = Some(t);
+            best
+        }
+    };
+    let mut task = spec.clone();
+    task.ukf = Some(base_ukf);
+    if !opts.ukf {
+        not_evaluated.insert("ukf".into(), "disabled by the command line".into());
+        not_evaluated.insert("adaptive_ukf".into(), "disabled by the command line".into());
+    }
+
+    // Every method's 90 % interval is scaled on validation (the factor on its own spread that covers 90 %
+    // of validation readings), the filters' too.
+    let scale_of = |key: &str, make: &Make, interval_scales: &mut BTreeMap<String, [f64; 2]>| {
+        let k = interval_scale_on(&spec.tracker, &validation, make);
+        interval_scales.insert(key.to_string(), k);
+        k
+    };
+    let mut rl_task = task.clone();
     if let Some(net) = &net {
-        let unit = TrackerSpec { interval_scale: [1.0; 2], ..spec.tracker.clone() };
-        let make: Make = Box::new(|| Box::new(RlCalibrator::new(&unit, net)));
-        rl_spec.interval_scale = interval_scale_on(&unit, &validation, &make);
-        interval_scales.insert("rl_lac".to_string(), rl_spec.interval_scale);
+        match spec.design {
+            Design::WindowFit => {
+                let unit = MeasuredSpec {
+                    tracker: TrackerSpec { interval_scale: [1.0; 2], ..task.tracker.clone() },
+                    ..task.clone()
+                };
+                let make: Make = Box::new(|| Box::new(RlCalibrator::new(&unit.tracker, net)));
+                rl_task.tracker.interval_scale = scale_of("rl_lac", &make, &mut interval_scales);
+            }
+            Design::UkfCorrection => {
+                let mut unit = task.clone();
+                unit.correction.interval_scale = [1.0; 2];
+                let make: Make = Box::new(|| Box::new(CorrectionCalibrator::new(&unit, net)));
+                rl_task.correction.interval_scale = scale_of("rl_lac", &make, &mut interval_scales);
+            }
+        }
         progress(&format!(
             "RL-LAC: 90 % interval scales qMobile {:.2}, Ro {:.2} (validation)",
-            rl_spec.interval_scale[0], rl_spec.interval_scale[1]
+            interval_scales["rl_lac"][0], interval_scales["rl_lac"][1]
         ));
     }
     let unit = TrackerSpec { interval_scale: [1.0; 2], ..spec.tracker.clone() };
     let fit_spec = {
         let make: Make = Box::new(|| Box::new(WindowFitCalibrator::new(&unit)));
-        TrackerSpec { interval_scale: interval_scale_on(&unit, &validation, &make), ..spec.tracker.clone() }
+        TrackerSpec { interval_scale: scale_of("window_fit", &make, &mut interval_scales), ..spec.tracker.clone() }
     };
-    interval_scales.insert("window_fit".to_string(), fit_spec.interval_scale);
-
-    // The joint UKF: every grid setting on validation, the best by the mean of the two NRMSEs.
-    let mut ukf_tuning = None;
+    let mut ukf_scale = [1.645; 2];
+    let mut adaptive = None;
     if opts.ukf {
+        let make: Make = Box::new(|| Box::new(JointUkf::new(base_ukf, &spec.tracker).with_interval_scale([1.0; 2])));
+        ukf_scale = scale_of("ukf", &make, &mut interval_scales);
         progress(&format!(
-            "joint UKF: tuning {} settings on {} validation cells",
-            opts.ukf_grid.candidates().len(),
-            validation.len()
+            "adaptive UKF: tuning {} covariance-matching rules on top of the joint UKF on validation",
+            opts.adaptive_grid.candidates().len()
         ));
-        let t = tune_joint_ukf(&spec.tracker, &validation, &opts.ukf_grid);
-        let best = t.best;
+        let t = tune_adaptive(&spec.tracker, base_ukf, &validation, &opts.adaptive_grid);
         progress(&format!(
-            "joint UKF: chose meas_std {:.1} mV, parameter walk {:e}/sqrt(s), charge walk {} C/sqrt(s), prior std {:?} (validation mean NRMSE {:.2} %)",
-            best.meas_std_v * 1e3, best.param_walk_per_sqrt_s, best.charge_walk_c_per_sqrt_s, best.prior_std_z, t.top[0].1
+            "adaptive UKF: chose {:?} (validation mean NRMSE {:.2} %, the filter without the rule {:.2} %)",
+            t.best, t.top[0].1, t.without_rule_pct
         ));
-        ukf_tuning = Some(t);
-    } else {
-        not_evaluated.insert("ukf".into(), "disabled by the command line".into());
+        let rule = t.best;
+        let make: Make =
+            Box::new(move || Box::new(AdaptiveUkf::new(base_ukf, rule, &spec.tracker).with_interval_scale([1.0; 2])));
+        let scale = scale_of("adaptive_ukf", &make, &mut interval_scales);
+        adaptive = Some((t, scale));
     }
 
     // The direct mapping: pairs from training cells, early stopping on validation cells.
@@ -728,8 +709,8 @@ pub fn evaluate_measured(
                 bcal_common::measured::scenario::simulate(sc, &s).ok()
             })
             .collect();
-        let pairs = direct_pairs(&spec.tracker, &train, opts.direct.max_pairs, input.seed);
-        let val_pairs = direct_pairs(&spec.tracker, &validation, opts.direct.max_validation_pairs, input.seed + 1);
+        let pairs = direct_pairs(&task, &train, opts.direct.max_pairs, input.seed);
+        let val_pairs = direct_pairs(&task, &validation, opts.direct.max_validation_pairs, input.seed + 1);
         progress(&format!(
             "direct mapping: {} pairs from {} training cells, early stopping on {} validation pairs (budget {:.0} s)",
             pairs.len(),
@@ -748,16 +729,7 @@ pub fn evaluate_measured(
         ));
         let pure = map.to_policy_net()?;
         let scale = {
-            let make: Make = Box::new(|| {
-                Box::new(DirectCalibrator {
-                    fit: WindowFitCalibrator::new(&spec.tracker),
-                    net: &pure,
-                    scratch: Scratch::new(pure.layout()),
-                    spec: spec.tracker.clone(),
-                    interval_scale: [1.0; 2],
-                    estimate: spec.tracker.prior,
-                })
-            });
+            let make: Make = Box::new(|| Box::new(DirectCalibrator::new(&task, &pure, [1.0; 2])));
             interval_scale_on(&spec.tracker, &validation, &make)
         };
         interval_scales.insert("direct_mapping".to_string(), scale);
@@ -777,28 +749,31 @@ pub fn evaluate_measured(
         let test = episodes_of(&with_voltage_noise(sc, v), Split::Test, n_test, "test")?;
         let mut methods: Vec<(&'static str, Make)> = Vec::new();
         if let Some(net) = &net {
-            let s = rl_spec.clone();
-            methods.push(("rl_lac", Box::new(move || Box::new(RlCalibrator::new(&s, net)))));
+            let t = rl_task.clone();
+            match t.design {
+                Design::WindowFit => {
+                    methods.push(("rl_lac", Box::new(move || Box::new(RlCalibrator::new(&t.tracker, net)))))
+                }
+                Design::UkfCorrection => {
+                    methods.push(("rl_lac", Box::new(move || Box::new(CorrectionCalibrator::new(&t, net)))))
+                }
+            }
         }
-        if let Some(t) = &ukf_tuning {
-            let (b, s) = (t.best, spec.tracker.clone());
-            methods.push(("ukf", Box::new(move || Box::new(JointUkf::new(b, &s)))));
+        if opts.ukf {
+            let s = spec.tracker.clone();
+            methods
+                .push(("ukf", Box::new(move || Box::new(JointUkf::new(base_ukf, &s).with_interval_scale(ukf_scale)))));
+        }
+        if let Some((t, scale)) = &adaptive {
+            let (s, rule, k) = (spec.tracker.clone(), t.best, *scale);
+            methods.push((
+                "adaptive_ukf",
+                Box::new(move || Box::new(AdaptiveUkf::new(base_ukf, rule, &s).with_interval_scale(k))),
+            ));
         }
         if let Some((pure, _, scale)) = &dm {
-            let (s, k) = (spec.tracker.clone(), *scale);
-            methods.push((
-                "direct_mapping",
-                Box::new(move || {
-                    Box::new(DirectCalibrator {
-                        fit: WindowFitCalibrator::new(&s),
-                        net: pure,
-                        scratch: Scratch::new(pure.layout()),
-                        spec: s.clone(),
-                        interval_scale: k,
-                        estimate: s.prior,
-                    })
-                }),
-            ));
+            let (t, k) = (task.clone(), *scale);
+            methods.push(("direct_mapping", Box::new(move || Box::new(DirectCalibrator::new(&t, pure, k)))));
         }
         {
             let s = fit_spec.clone();
@@ -817,7 +792,7 @@ pub fn evaluate_measured(
                 if *key == "ukf" {
                     // Rescues of the headline run, counted on a fresh pass (the traces do not keep them).
                     for e in &test {
-                        let mut f = JointUkf::new(ukf_tuning.as_ref().expect("ukf runs").best, &spec.tracker);
+                        let mut f = JointUkf::new(base_ukf, &spec.tracker);
                         for s in &e.samples {
                             f.step(s);
                         }
@@ -869,6 +844,8 @@ pub fn evaluate_measured(
         sampling_intervals_s: sc.sample_interval_s.clone(),
         rl: rl_info,
         ukf: ukf_tuning,
+        ukf_settings: Some(base_ukf),
+        adaptive_ukf: adaptive.map(|a| a.0),
         direct_mapping: dm.map(|d| d.1),
         interval_scales,
         not_evaluated,
@@ -899,6 +876,7 @@ mod tests {
         let cfg = ScenarioConfig::default();
         let mut e = episode_set(&cfg, Split::Test, 1).unwrap().remove(0);
         e.samples.truncate(4);
+        e.spec.interval_s = [1.0, 1.0];
         for (k, s) in e.samples.iter_mut().enumerate() {
             s.t_s = k as f64 * 10.0;
         }
@@ -911,7 +889,27 @@ mod tests {
             estimates: vec![off(300.0), off(90.0), off(0.0), off(0.0)],
             intervals: vec![None, Some(miss), Some(iv), Some(iv)],
             eod_pred_s: [e.eod_s, None, e.eod_s.map(|x| x + 10.0)],
+            eod_oracle_load_s: [None, None, e.eod_s],
         };
+        // A second cell of another sampling regime, every estimate 10 % off in qMobile, no interval.
+        let mut e2 = e.clone();
+        e2.spec.interval_s = [10.0, 20.0];
+        let trace2 = Trace {
+            estimates: vec![off(300.0); 4],
+            intervals: vec![None; 4],
+            eod_pred_s: [None; 3],
+            eod_oracle_load_s: [None; 3],
+        };
+        let both = score(&[e.clone(), e2.clone()], &[trace.clone(), trace2]);
+        let pooled = ((100.0f64 + 9.0 + 4.0 * 100.0) / 8.0).sqrt();
+        let per_cell = 0.5 * (((100.0f64 + 9.0) / 4.0).sqrt() + 10.0);
+        assert!((both.nrmse_pct.q_mobile.unwrap() - pooled).abs() < 1e-9);
+        assert!((both.all_cells.per_cell_nrmse_pct.q_mobile.unwrap() - per_cell).abs() < 1e-9);
+        assert_eq!(both.by_sampling.keys().collect::<Vec<_>>(), ["10-20s", "1s"]);
+        assert!((both.by_sampling["10-20s"].nrmse_pct.q_mobile.unwrap() - 10.0).abs() < 1e-9);
+        // The second cell has no interval: per-cell coverage is the first cell's alone.
+        assert!((both.all_cells.per_cell_coverage_90_pct.q_mobile.unwrap() - 200.0 / 3.0).abs() < 1e-9);
+        assert_eq!(both.eod["10"].failures, 1);
         let m = score(std::slice::from_ref(&e), &[trace]);
         assert!((m.nrmse_pct.q_mobile.unwrap() - ((100.0f64 + 9.0) / 4.0).sqrt()).abs() < 1e-9);
         assert_eq!(m.nrmse_pct.r_o, Some(0.0));
@@ -927,5 +925,6 @@ mod tests {
         assert_eq!(m.eod["10"].mae_s, 0.0);
         assert_eq!(m.eod["50"].failures, 1);
         assert_eq!(m.eod["90"].mae_s, 10.0);
+        assert_eq!((m.eod_oracle_load["10"].failures, m.eod_oracle_load["90"].mae_s), (1, 0.0));
     }
 }

@@ -7,11 +7,11 @@
 //! with the cell's load, sampling, temperature, cut-off and parameter ranges from its training cycles).
 
 use anyhow::{bail, Context};
+use bcal_calib::tune::JointUkfGrid;
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::policy::{PolicyFile, POLICY_BEST};
 use bcal_doctor::read::{parse_cycle_range, read_csv, read_nasa_with, CurrentSign, ReadOptions};
 use bcal_doctor::Discharge;
-use bcal_eval::measured_eval::JointUkfGrid;
 use bcal_realcell::calibrate::{calibrate, CalibrateInput};
 use bcal_realcell::cellspec::cell_spec;
 use bcal_realcell::record::{prepare, RecordSummary};

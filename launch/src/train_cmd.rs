@@ -8,10 +8,14 @@
 
 use crate::supervisor::{self, decide, Decision, Exit, RestartPolicy, Role, Supervised};
 use anyhow::{bail, Context};
+use bcal_calib::tune::{tune_joint_ukf, JointUkfGrid};
 use bcal_common::battery::BatteryModel;
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::dataset::{self, CacheStatus, Experiment, Split};
 use bcal_common::mdp::MdpSpec;
+use bcal_common::measured::env::{Design, MeasuredSpec};
+use bcal_common::measured::scenario;
+use bcal_common::measured::tracker::JointUkfSettings;
 use bcal_common::task::Task;
 use clap::Args;
 use std::io::{BufRead, IsTerminal, Seek, Write};
@@ -139,7 +143,11 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
         }
         None => {
             if !(a.resume && mdp_path.exists()) {
-                let task = Task::Measured(cfg.measured.clone());
+                let mut spec = cfg.measured.clone();
+                if spec.design == Design::UkfCorrection && spec.ukf.is_none() {
+                    spec.ukf = Some(tune_base_filter(&spec)?);
+                }
+                let task = Task::Measured(spec);
                 write_atomic(&mdp_path, serde_json::to_string_pretty(&task)?.as_bytes())?;
             }
         }
@@ -168,6 +176,34 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
         cfg.learner.time_budget_s,
     ))?;
     Ok(TrainOutcome { run_dir })
+}
+
+/// The joint UKF the correction policy learns on: every setting of the evaluator's grid on the validation
+/// cells, the best by their mean NRMSE (the same choice the evaluator's `ukf` baseline makes, so the
+/// learned calibrator starts exactly where that baseline stands).
+fn tune_base_filter(spec: &MeasuredSpec) -> anyhow::Result<JointUkfSettings> {
+    let started = Instant::now();
+    let sc = &spec.scenario;
+    let validation = scenario::episode_set(sc, Split::Validation, sc.validation_episodes)
+        .map_err(|e| anyhow::anyhow!("cannot simulate the validation cells: {e}"))?;
+    let grid = JointUkfGrid::default();
+    println!(
+        "tuning the joint UKF the correction starts from: {} settings on {} validation cells ...",
+        grid.candidates().len(),
+        validation.len()
+    );
+    let t = tune_joint_ukf(&spec.tracker, &validation, &grid);
+    println!(
+        "joint UKF: meas_std {:.1} mV, parameter walk {:e}/sqrt(s), charge walk {} C/sqrt(s), prior std {:?}: \
+         validation mean NRMSE {:.2} % ({:.0} s)",
+        t.best.meas_std_v * 1e3,
+        t.best.param_walk_per_sqrt_s,
+        t.best.charge_walk_c_per_sqrt_s,
+        t.best.prior_std_z,
+        t.top[0].1,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(t.best)
 }
 
 fn resolve_run_dir(a: &TrainArgs) -> anyhow::Result<PathBuf> {

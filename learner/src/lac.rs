@@ -427,6 +427,21 @@ impl Lac {
         })
     }
 
+    /// Sets the actor's mean head (and its target's) to zero, so the deterministic action starts at 0: for
+    /// the correction design, the tuned filter itself, where training starts (issue 18). The log-std head
+    /// keeps its initialisation, so the policy still explores around it.
+    pub fn zero_mean_head(&mut self) -> Result<(), LacError> {
+        tch::no_grad(|| -> Result<(), LacError> {
+            for actor in [&mut self.actor, &mut self.actor_target] {
+                let _ = actor.mean.ws.f_zero_()?;
+                if let Some(b) = &mut actor.mean.bs {
+                    let _ = b.f_zero_()?;
+                }
+            }
+            Ok(())
+        })
+    }
+
     /// The actor's side of one update: the Lyapunov decrease term l_delta of Eq. (3)/(6)/(8) and
     /// log pi(a~ | s) [n] with a~ ~ pi(s). One actor pass over [s; s'] samples both a~ and the next action
     /// a' ~ pi(s'): a fresh sample from the CURRENT actor whose gradient path into the actor is kept (a

@@ -23,6 +23,7 @@
 
 use crate::{Lac, UpdateMetrics};
 use anyhow::Context;
+use bcal_calib::env as measured_env;
 use bcal_common::battery::BatteryModel;
 use bcal_common::config::{SelectBy, TrainConfig, Validated};
 use bcal_common::dataset::{default_cache_dir, load_or_generate, Dataset, Split};
@@ -31,7 +32,6 @@ use bcal_common::ipc::{
     OPEN_TIMEOUT,
 };
 use bcal_common::mdp::{validate_policy, PolicyScore};
-use bcal_common::measured::env as measured_env;
 use bcal_common::measured::{scenario, Episode};
 use bcal_common::policy::{best_policy_file, PolicyLayout, PolicyNet, POLICY_BEST, POLICY_LAST};
 use bcal_common::task::Task;
@@ -168,7 +168,7 @@ impl ValidationSet {
                 validate_policy(spec, model, val, trajectories, net)
             }
             (ValidationSet::Measured { episodes }, Task::Measured(spec)) => {
-                measured_env::validate_policy(&spec.tracker, episodes, net)
+                measured_env::validate_policy(spec, episodes, net)
             }
             _ => unreachable!("the validation set is built for the run's task"),
         }
@@ -374,7 +374,14 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
                 Lac::new(&cfg, layout.clone(), seed)?
             }
         },
-        false => Lac::new(&cfg, layout.clone(), seed)?,
+        false => {
+            let mut lac = Lac::new(&cfg, layout.clone(), seed)?;
+            // The correction design starts at zero action: the tuned filter.
+            if task.measured().is_some_and(|m| m.design == bcal_common::measured::env::Design::UkfCorrection) {
+                lac.zero_mean_head()?;
+            }
+            lac
+        }
     };
     let l = cfg.config.learner.clone();
     let batch_size = cfg.config.lac.batch_size;

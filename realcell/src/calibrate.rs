@@ -17,6 +17,7 @@ use crate::report::{CalibrationReport, MethodEntry};
 use crate::run::{knee_s, knees_before, run_all, run_sequence, Before, CycleRun, Streaming, Trend};
 use crate::score::score;
 use crate::tune;
+use bcal_calib::tune::JointUkfGrid;
 use bcal_common::battery::Degradation;
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::measured::extension::ModelExtension;
@@ -25,7 +26,6 @@ use bcal_common::policy::PolicyFile;
 use bcal_doctor::fit::{refit_cycles, FitConfig, FitRecord};
 use bcal_doctor::model_file::DiagnosedModel;
 use bcal_doctor::{Cause, Discharge, ExtParams};
-use bcal_eval::measured_eval::JointUkfGrid;
 use std::collections::BTreeMap;
 use std::time::Instant;
 

@@ -94,7 +94,7 @@ pub fn cell_spec(
     };
     let facts =
         CellFacts { current_a, interval_s, rest_s, ambient_c, fit_q_mobile_c: [q_lo, q_hi], fit_r_o_ohm: [r_lo, r_hi] };
-    (MeasuredSpec { scenario, tracker }, facts)
+    (MeasuredSpec { scenario, tracker, ..MeasuredSpec::default() }, facts)
 }
 
 #[cfg(test)]

@@ -4,12 +4,12 @@
 //! earliest end under (least qMobile, most Ro), the latest under (most qMobile, least Ro), since the end
 //! comes sooner with less capacity and more resistance.
 
+use bcal_calib::Interval;
+use bcal_calib::{predict_eod_s, EodQuery};
 use bcal_common::battery::{BatteryModel, Degradation, Load, LoadProfile};
 use bcal_common::math::{idx, ModelState};
-use bcal_common::measured::calibrator::{predict_eod_s, EodQuery};
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::rest_state;
-use bcal_common::measured::tracker::Interval;
 use serde::Serialize;
 
 /// Euler step of predictions, s (the reference model's).

@@ -9,12 +9,13 @@
 
 use crate::predict::{self, Predicted, Predictor};
 use crate::record::CellRecord;
+use bcal_calib::joint_ukf::{JointUkf, JointUkfSettings};
+use bcal_calib::Interval;
+use bcal_calib::{Calibrator, RlCalibrator, Uncalibrated};
 use bcal_common::battery::Degradation;
-use bcal_common::measured::calibrator::{Calibrator, RlCalibrator, Uncalibrated};
 use bcal_common::measured::extension::ModelExtension;
-use bcal_common::measured::tracker::{Interval, TrackerSpec};
+use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::policy::PolicyNet;
-use bcal_eval::joint_ukf::{JointUkf, JointUkfSettings};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -285,13 +286,13 @@ pub fn knee_s(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64
     let dyn_d = Degradation { r_o_ohm: d.r_o_ohm * p.ro_factor, ..*d };
     let x0 = bcal_common::measured::scenario::rest_state(m, d, m.params.xn_max, t_k);
     let profile = bcal_common::battery::LoadProfile::Constant(bcal_common::battery::Load::CurrentA(r.current_a));
-    let q = bcal_common::measured::calibrator::EodQuery {
+    let q = bcal_calib::EodQuery {
         profile: &profile,
         cutoff_v,
         dt_s: predict::PREDICT_DT_S,
         max_s: predict::PREDICT_MAX_S,
     };
-    let model_eod = bcal_common::measured::calibrator::predict_eod_s(m, &x0, &dyn_d, r.load_on_s, &q)?;
+    let model_eod = bcal_calib::predict_eod_s(m, &x0, &dyn_d, r.load_on_s, &q)?;
     Some(eod - model_eod)
 }
 

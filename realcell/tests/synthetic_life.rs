@@ -9,8 +9,8 @@
 #[allow(dead_code)]
 mod cell;
 
+use bcal_calib::tune::JointUkfGrid;
 use bcal_doctor::Discharge;
-use bcal_eval::measured_eval::JointUkfGrid;
 use bcal_realcell::calibrate::{calibrate, CalibrateInput};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};

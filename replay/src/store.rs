@@ -11,7 +11,7 @@ use std::collections::HashMap;
 /// Fixed-capacity FIFO of transitions: once full, each insert overwrites the oldest.
 ///
 /// Memory is reserved up front but touched only as the buffer fills (the paper's 1e6 transitions are
-/// 272 MB), so a short run never pays for the full capacity.
+/// 280 MB), so a short run never pays for the full capacity.
 #[derive(Debug)]
 pub struct RingBuffer {
     items: Vec<Transition>,

@@ -1,192 +1,153 @@
-//! The RL environment of the measured-only setting and the rollout the learner's validation and the
-//! evaluator share.
-//!
-//! An episode is one simulated discharge (a fresh random training cell each time), read one sample at a
-//! time by a [`Tracker`]. Observation s_t = the tracker's features after reading t; action a_t moves the
-//! estimate; cost c_t = the tracker's window RMS residual under the new estimate once reading t + 1 is in.
-//! The episode ends at the cut-off reading: a time limit, not a terminal state (the learner bootstraps).
+//! The measured-only MDP's definition: the cells it trains and is judged on ([`ScenarioConfig`]), which
+//! learned calibrator it trains ([`Design`]) and that calibrator's settings. It is part of the run config
+//! and travels with every policy file; the environment that steps it lives in bcal-calib
+//! (`bcal_calib::env`).
 
-use super::scenario::{draw_spec, simulate, Episode, ScenarioConfig};
-use super::tracker::{Interval, Tracker, TrackerSpec, OBS_DIM};
-use crate::battery::Degradation;
-use crate::dataset::Split;
-use crate::mdp::EnvStep;
-use crate::nrmse::NrmseAccumulator;
-use crate::policy::{PolicyNet, Scratch};
-use rand::rngs::SmallRng;
-use rand::{Rng, SeedableRng};
+use super::scenario::ScenarioConfig;
+use super::tracker::{JointUkfSettings, TrackerSpec, OBS_DIM};
 use serde::{Deserialize, Serialize};
 
+/// Features the correction policy observes (`bcal_calib::correction`).
+pub const CORRECTION_OBS_DIM: usize = 22;
+/// Its action: a shift of each estimate and the log-scales of the parameter walk and the measurement noise.
+pub const CORRECTION_ACT_DIM: usize = 4;
+
 /// Everything that defines the measured-only MDP: the cells it trains and is judged on, and the calibrator.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MeasuredSpec {
     pub scenario: ScenarioConfig,
+    /// The calibrator's model, ranges and prior (both designs), and the window fit's settings.
     pub tracker: TrackerSpec,
+    /// Which learned calibrator trains: "ukf-correction" (default) or "window-fit" (issue 12's; run
+    /// folders and policy files written before designs existed read as it).
+    #[serde(default = "Design::legacy")]
+    pub design: Design,
+    /// The joint UKF the correction starts from. None in a config: `bcal train` tunes it on the validation
+    /// cells (the same grid as the evaluator's baseline) and writes the chosen settings into the run's task,
+    /// so the actors, the learner and the evaluator all run that one filter.
+    pub ukf: Option<JointUkfSettings>,
+    pub correction: CorrectionSpec,
+    pub cost: PredictiveCost,
+}
+
+impl Default for MeasuredSpec {
+    fn default() -> Self {
+        Self {
+            scenario: ScenarioConfig::default(),
+            tracker: TrackerSpec::default(),
+            design: Design::UkfCorrection,
+            ukf: None,
+            correction: CorrectionSpec::default(),
+            cost: PredictiveCost::default(),
+        }
+    }
 }
 
 impl MeasuredSpec {
     pub fn obs_dim(&self) -> usize {
-        OBS_DIM
+        match self.design {
+            Design::WindowFit => OBS_DIM,
+            Design::UkfCorrection => CORRECTION_OBS_DIM,
+        }
     }
 
     pub fn act_dim(&self) -> usize {
-        2
-    }
-}
-
-/// Draws and simulates a training episode; a draw the model cannot simulate (none in the default ranges)
-/// is replaced by the next.
-fn training_episode(spec: &MeasuredSpec, rng: &mut SmallRng) -> Episode {
-    for _ in 0..100 {
-        let s = draw_spec(&spec.scenario, Split::Train, rng);
-        if let Ok(e) = simulate(&spec.scenario, &s) {
-            if e.samples.len() >= 2 {
-                return e;
-            }
+        match self.design {
+            Design::WindowFit => 2,
+            Design::UkfCorrection => CORRECTION_ACT_DIM,
         }
     }
-    panic!("100 training episodes in a row could not be simulated: the scenario ranges are outside the model");
-}
 
-/// One training environment.
-#[derive(Clone, Debug)]
-pub struct MeasuredEnv {
-    episode: Episode,
-    /// Index of the latest reading the tracker has taken.
-    k: usize,
-    tracker: Tracker,
-    rng: SmallRng,
-}
-
-impl MeasuredEnv {
-    pub fn new(spec: &MeasuredSpec, seed: u64) -> Self {
-        let mut rng = SmallRng::seed_from_u64(seed);
-        let episode = training_episode(spec, &mut rng);
-        let mut env = Self { tracker: Tracker::new(&spec.tracker), episode, k: 0, rng };
-        env.tracker.ingest(&env.episode.samples[0]);
-        env
-    }
-
-    fn reset(&mut self, spec: &MeasuredSpec) {
-        self.episode = training_episode(spec, &mut self.rng);
-        self.k = 0;
-        self.tracker = Tracker::new(&spec.tracker);
-        self.tracker.ingest(&self.episode.samples[0]);
-    }
-
-    pub fn observe(&self, out: &mut [f32]) {
-        self.tracker.observe(out);
-    }
-
-    /// Applies `action`, reads the next sample, writes the next observation; resets after the last reading.
-    pub fn step(&mut self, spec: &MeasuredSpec, action: &[f32], next_obs: &mut [f32]) -> EnvStep {
-        self.tracker.apply_action(action);
-        self.k += 1;
-        self.tracker.ingest(&self.episode.samples[self.k]);
-        let cost = self.tracker.cost();
-        self.tracker.observe(next_obs);
-        let done = self.k + 1 >= self.episode.samples.len();
-        if done {
-            self.reset(spec);
-        }
-        EnvStep { cost, tracking_error: cost, window_done: done }
-    }
-
-    /// A fresh random seed for the next environment of an actor.
-    pub fn next_seed(&mut self) -> u64 {
-        self.rng.random()
+    /// The joint UKF the correction runs on: the tuned one, or the defaults before tuning.
+    pub fn ukf_settings(&self) -> JointUkfSettings {
+        self.ukf.unwrap_or_default()
     }
 }
 
-/// A calibrator's estimate after each reading of an episode.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Trace {
-    /// Estimate after reading k (index = reading).
-    pub estimates: Vec<Degradation>,
-    /// Its 90 % interval, when the calibrator has one.
-    pub intervals: Vec<Option<Interval>>,
-    /// The tracker's cost after each reading (window RMS residual / cost scale).
-    pub costs: Vec<f64>,
+/// Which learned calibrator the measured-only MDP trains.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Design {
+    /// Issue 12's: the policy moves its tracker's estimate (or corrects its window fit's step) and pays its
+    /// window's misfit, whose optimum is that fit: the policy learns to copy it.
+    WindowFit,
+    /// Issue 18's: the policy corrects the tuned joint UKF (a shift of its estimate in units of its standard
+    /// deviation, and log-scales of its parameter walk and measurement noise); zero action is the filter.
+    /// It pays the calibrated model's error at predicting what comes next ([`PredictiveCost`]).
+    UkfCorrection,
 }
 
-/// Runs `policy`'s deterministic action along `episode` (the deployed calibrator: read, act, repeat).
-pub fn rollout_policy(spec: &TrackerSpec, episode: &Episode, net: &PolicyNet, scratch: &mut Scratch) -> Trace {
-    let mut tr = Tracker::new(spec);
-    let mut obs = [0f32; OBS_DIM];
-    let mut action = [0f32; 2];
-    let n = episode.samples.len();
-    let mut out =
-        Trace { estimates: Vec::with_capacity(n), intervals: Vec::with_capacity(n), costs: Vec::with_capacity(n) };
-    for s in &episode.samples {
-        tr.ingest(s);
-        tr.observe(&mut obs);
-        net.act_deterministic(&obs, scratch, &mut action);
-        tr.apply_action(&action);
-        out.estimates.push(tr.estimate());
-        out.intervals.push(tr.interval());
-        out.costs.push(tr.cost());
+impl Design {
+    /// What a spec without the key was trained as.
+    pub fn legacy() -> Self {
+        Design::WindowFit
     }
-    out
-}
 
-/// The learner's validation score of a policy on measured-only episodes: mean cost (label-free) and the
-/// Table-1 NRMSE over every reading (reads the truth).
-pub fn validate_policy(spec: &TrackerSpec, episodes: &[Episode], net: &PolicyNet) -> crate::mdp::PolicyScore {
-    let mut scratch = Scratch::new(net.layout());
-    let mut acc = NrmseAccumulator::default();
-    let (mut cost_sum, mut n) = (0.0, 0usize);
-    for e in episodes {
-        let t = rollout_policy(spec, e, net, &mut scratch);
-        for (est, c) in t.estimates.iter().zip(&t.costs) {
-            acc.add(est, &e.spec.truth);
-            cost_sum += c;
-            n += 1;
+    pub fn name(self) -> &'static str {
+        match self {
+            Design::WindowFit => "window-fit",
+            Design::UkfCorrection => "ukf-correction",
         }
     }
-    let (q, r) = acc.pct();
-    crate::mdp::PolicyScore { tracking_error: cost_sum / n.max(1) as f64, nrmse_q_pct: q, nrmse_r_pct: r }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::policy::PolicyLayout;
+/// How the correction policy's action acts on the joint UKF. Action a in [-1, 1]^4: the reported estimate
+/// is the filter's mean plus a[0..2] * `shift_max_sd` of its standard deviations (the filter itself keeps its
+/// own mean); the parameter walk's variance of the next steps is max(tuned, floor) * 10^(a[2] *
+/// `walk_decades`) and the measurement variance the tuned one * 10^(a[3] * `meas_decades`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CorrectionSpec {
+    /// Largest shift of each estimate, in the filter's standard deviations (default 2).
+    pub shift_max_sd: f64,
+    /// Largest change of the parameter walk's variance, decades either way (default 2).
+    pub walk_decades: f64,
+    /// Largest change of the measurement variance, decades either way (default 1).
+    pub meas_decades: f64,
+    /// The parameter walk the scaling starts from when the tuned one is zero, z units per sqrt(s)
+    /// (default 1e-6: over a 3000 s discharge a walk of 5e-5 of the range, nothing).
+    pub walk_floor_per_sqrt_s: f64,
+    /// Factors on the filter's standard deviations of qMobile and Ro for the 90 % interval around the
+    /// corrected estimate, chosen on validation (1.645 for a Gaussian).
+    pub interval_scale: [f64; 2],
+}
 
-    #[test]
-    fn environments_step_through_episodes_and_reset_with_finite_transitions() {
-        let spec = MeasuredSpec::default();
-        let mut env = MeasuredEnv::new(&spec, 11);
-        let (mut obs, mut next) = ([0f32; OBS_DIM], [0f32; OBS_DIM]);
-        let mut resets = 0;
-        for k in 0..6000 {
-            env.observe(&mut obs);
-            let a = [((k % 7) as f32 - 3.0) / 3.0, ((k % 5) as f32 - 2.0) / 2.0];
-            let s = env.step(&spec, &a, &mut next);
-            assert!(s.cost.is_finite() && s.cost >= 0.0, "{s:?}");
-            assert!(next.iter().all(|v| v.is_finite()));
-            resets += usize::from(s.window_done);
+impl Default for CorrectionSpec {
+    fn default() -> Self {
+        Self {
+            shift_max_sd: 2.0,
+            walk_decades: 2.0,
+            meas_decades: 1.0,
+            walk_floor_per_sqrt_s: 1e-6,
+            interval_scale: [1.645, 1.645],
         }
-        assert!(resets >= 2, "6000 steps cover several discharges: {resets}");
     }
+}
 
-    #[test]
-    fn a_policy_that_holds_the_prior_scores_the_prior() {
-        let mut spec = MeasuredSpec::default();
-        spec.tracker.action = crate::measured::tracker::ActionMode::Absolute;
-        let eps = crate::measured::scenario::episode_set(&spec.scenario, Split::Validation, 3).unwrap();
-        // Zero weights: mean 0, so the action is 0 and, as absolute moves, the estimate stays at the prior.
-        let layout = PolicyLayout { obs_dim: OBS_DIM, act_dim: 2, hidden: vec![8] };
-        let net = PolicyNet::from_flat(layout.clone(), vec![0.0; layout.n_params()]).unwrap();
-        let score = validate_policy(&spec.tracker, &eps, &net);
-        let mut acc = NrmseAccumulator::default();
-        for e in &eps {
-            for _ in &e.samples {
-                acc.add(&spec.tracker.prior, &e.spec.truth);
-            }
-        }
-        let (q, r) = acc.pct();
-        assert!((score.nrmse_q_pct - q).abs() < 1e-9 && (score.nrmse_r_pct - r).abs() < 1e-9);
-        assert!(score.tracking_error > 0.0);
+/// The correction policy's cost (training only): the calibrated model's error at predicting what comes
+/// next. At each reading the model runs forward from the estimate chosen then (the filter's state given
+/// that estimate) under the measured current of the readings ahead, over `horizon_s`, against the
+/// simulated cell's own voltage there; where the episode reaches the cut-off, the end of discharge it
+/// predicts under the cell's own future load joins it. c = ln(1 + rms / `voltage_scale_v`) +
+/// `eod_weight` ln(1 + |EOD error| / `eod_scale_s`). The true parameters never enter it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PredictiveCost {
+    /// How far ahead the voltage is predicted, s (default 600).
+    pub horizon_s: f64,
+    /// Longest Euler substep of the prediction, s (default 2; below 2 t_o = 12.2 s for the ohmic lag).
+    pub substep_s: f64,
+    /// Voltage error scale, V (default 2 mV).
+    pub voltage_scale_v: f64,
+    /// Weight of the end-of-discharge term (default 1; 0 leaves it out).
+    pub eod_weight: f64,
+    /// End-of-discharge error scale, s (default 30).
+    pub eod_scale_s: f64,
+}
+
+impl Default for PredictiveCost {
+    fn default() -> Self {
+        Self { horizon_s: 600.0, substep_s: 2.0, voltage_scale_v: 0.002, eod_weight: 1.0, eod_scale_s: 30.0 }
     }
 }

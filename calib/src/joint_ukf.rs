@@ -19,15 +19,16 @@
 //!
 //! This module never prints.
 
+use crate::{Calibrator, Interval};
 use bcal_common::battery::{BatteryModel, Degradation};
 use bcal_common::math::{idx, ModelState};
 use bcal_common::measured::cellmodel::{
     interval_drive, ocv_v, switch_time_unknown, xn_from_rest_voltage, DriveKind, Settle,
 };
 use bcal_common::measured::scenario::{rest_state, Sample};
-use bcal_common::measured::tracker::{Interval, TrackerSpec};
+pub use bcal_common::measured::tracker::JointUkfSettings;
+use bcal_common::measured::tracker::TrackerSpec;
 use nalgebra::{SMatrix, SVector};
-use serde::{Deserialize, Serialize};
 
 const N: usize = 9;
 const N_SIGMA: usize = 2 * N + 1;
@@ -45,38 +46,8 @@ const SCALE: [f64; N] = [1.0, 1.0, 1.0, 1.0, 0.1, 0.1, 0.1, 1.0, 1.0];
 /// Electrochemical state indices in z order (the model's, without temperature).
 const STATE_IDX: [usize; 7] = [idx::QP_S, idx::QP_B, idx::QN_B, idx::QN_S, idx::V_O, idx::V_SN, idx::V_SP];
 
-/// Every setting of the joint filter; [`tune`](crate::measured_eval) picks them on validation.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct JointUkfSettings {
-    /// Measurement noise standard deviation, V.
-    pub meas_std_v: f64,
-    /// Random walk of each parameter per sqrt(second), z units.
-    pub param_walk_per_sqrt_s: f64,
-    /// Process noise of the charge states per sqrt(second), C.
-    pub charge_walk_c_per_sqrt_s: f64,
-    /// Process noise of the overpotential states per sqrt(second), V.
-    pub voltage_walk_v_per_sqrt_s: f64,
-    /// Prior standard deviations of qMobile and Ro, z units (the prototype: 1000 C and 0.03 ohm).
-    pub prior_std_z: [f64; 2],
-    /// Merwe sigma-point spread.
-    pub alpha: f64,
-}
-
-impl Default for JointUkfSettings {
-    fn default() -> Self {
-        Self {
-            meas_std_v: 0.003,
-            param_walk_per_sqrt_s: 1e-5,
-            charge_walk_c_per_sqrt_s: 0.05,
-            voltage_walk_v_per_sqrt_s: 1e-4,
-            prior_std_z: [0.25, 0.15],
-            alpha: 0.5,
-        }
-    }
-}
-
 /// Numerical rescues of one run (the paper-setting UKF's counters).
-pub type JointUkfCounters = crate::ukf::UkfCounters;
+pub type JointUkfCounters = crate::rescue::UkfCounters;
 
 /// The filter along one discharge.
 #[derive(Clone, Debug)]
@@ -99,7 +70,54 @@ pub struct JointUkf {
     kn_kp: (f64, f64),
     ref_k: f64,
     ro_factor: f64,
+    /// Factors on the parameters' random-walk variance (qMobile, Ro) and on the measurement variance for
+    /// the next steps: 1 is the tuned filter; an adaptive rule or a policy sets them ([`Self::set_noise_scales`]).
+    noise_scales: NoiseScales,
+    /// What the last update saw (None before the first update and after a skipped one).
+    last_update: Option<UpdateInfo>,
+    /// Standard deviations either side of the mean of the 90 % interval it reports as a calibrator.
+    interval_scale: [f64; 2],
     pub counters: JointUkfCounters,
+}
+
+/// The filter's noise as an adaptive rule or a policy sets it for the steps to come: the parameters'
+/// random-walk variance outright, and a factor on the tuned measurement variance. The default is the
+/// tuned filter.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NoiseScales {
+    /// Random-walk variance of zq and zr per second, z^2/s (None: the tuned walk squared).
+    pub param_walk_var_per_s: Option<[f64; 2]>,
+    /// Factor on the tuned measurement variance.
+    pub meas_var: f64,
+}
+
+impl Default for NoiseScales {
+    fn default() -> Self {
+        Self { param_walk_var_per_s: None, meas_var: 1.0 }
+    }
+}
+
+/// The last measurement update: the innovation, its predicted variance and the parts that make it, and the
+/// gain of the two parameters (what covariance matching and the learned correction read).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct UpdateInfo {
+    /// Measured minus predicted voltage, V.
+    pub innovation_v: f64,
+    /// Predicted variance of the innovation, V^2 (the sigma points' spread plus the measurement variance).
+    pub innovation_var_v2: f64,
+    /// The measurement variance in it, V^2 (sensor noise as set, plus a switch's timing uncertainty).
+    pub meas_var_v2: f64,
+    /// Kalman gain of zq and zr, z units per V.
+    pub param_gain: [f64; 2],
+    /// Time since the previous reading, s.
+    pub dt_s: f64,
+}
+
+impl UpdateInfo {
+    /// The innovation in units of its predicted standard deviation.
+    pub fn normalised(&self) -> f64 {
+        self.innovation_v / self.innovation_var_v2.max(1e-30).sqrt()
+    }
 }
 
 fn degradation(spec: &TrackerSpec, z: &Vec9) -> Degradation {
@@ -134,6 +152,9 @@ impl JointUkf {
             kn_kp,
             ref_k,
             ro_factor: 1.0,
+            noise_scales: NoiseScales::default(),
+            last_update: None,
+            interval_scale: [1.645; 2],
             counters: JointUkfCounters::default(),
         }
     }
@@ -264,7 +285,7 @@ impl JointUkf {
     }
 
     fn sqrt_p(&mut self) -> Option<Mat9> {
-        crate::ukf::sqrt_or_rescue(&mut self.p, &self.p0, 1e-10, &mut self.counters)
+        crate::rescue::sqrt_or_rescue(&mut self.p, &self.p0, 1e-10, &mut self.counters)
     }
 
     /// Takes one reading.
@@ -286,6 +307,7 @@ impl JointUkf {
         }
         self.last = Some(*s);
         let Some(l) = self.sqrt_p() else {
+            self.last_update = None;
             self.counters.skipped_updates += 1;
             return;
         };
@@ -318,8 +340,13 @@ impl JointUkf {
             self.s.param_walk_per_sqrt_s,
             self.s.param_walk_per_sqrt_s,
         ];
+        let ns = self.noise_scales;
         for k in 0..N {
-            p[(k, k)] += (q[k] / if k < 4 { q_max } else { SCALE[k] }).powi(2) * dt;
+            let var_per_s = match (k, ns.param_walk_var_per_s) {
+                (7.., Some(w)) => w[k - 7],
+                _ => (q[k] / if k < 4 { q_max } else { SCALE[k] }).powi(2),
+            };
+            p[(k, k)] += var_per_s * dt;
         }
         // A switch at an unknown time within the interval moves an unknown charge, uniform over dI dt: it
         // leaves the positive electrode's surface and the negative's together (faster than diffusion).
@@ -335,6 +362,7 @@ impl JointUkf {
         // Update with the voltage (the propagated points stand in for redrawn ones).
         let ys: Vec<f64> = pts.iter().map(|z| self.voltage(z)).collect();
         if ys.iter().any(|y| !y.is_finite()) {
+            self.last_update = None;
             self.counters.skipped_updates += 1;
             self.z = mean;
             self.p = p;
@@ -342,7 +370,9 @@ impl JointUkf {
         }
         let y_mean: f64 = (0..N_SIGMA).map(|k| ys[k] * self.wm[k]).sum();
         let r_o = degradation(&self.spec, &mean).r_o_ohm * self.ro_factor;
-        let mut s_yy = self.s.meas_std_v.powi(2) + self.settle.voltage_variance_v2(s.t_s, r_o, self.model.params.t_o_s);
+        let meas_var = self.s.meas_std_v.powi(2) * ns.meas_var
+            + self.settle.voltage_variance_v2(s.t_s, r_o, self.model.params.t_o_s);
+        let mut s_yy = meas_var;
         let mut p_zy = Vec9::zeros();
         for k in 0..N_SIGMA {
             let dy = ys[k] - y_mean;
@@ -350,13 +380,22 @@ impl JointUkf {
             p_zy += (pts[k] - mean) * (self.wc[k] * dy);
         }
         if s_yy <= 0.0 || !s_yy.is_finite() {
+            self.last_update = None;
             self.counters.skipped_updates += 1;
             self.z = mean;
             self.p = p;
             return;
         }
         let k_gain = p_zy / s_yy;
-        self.z = mean + k_gain * (s.voltage_v - y_mean);
+        let innovation_v = s.voltage_v - y_mean;
+        self.last_update = Some(UpdateInfo {
+            innovation_v,
+            innovation_var_v2: s_yy,
+            meas_var_v2: meas_var,
+            param_gain: [k_gain[7], k_gain[8]],
+            dt_s: dt,
+        });
+        self.z = mean + k_gain * innovation_v;
         self.p = p - k_gain * k_gain.transpose() * s_yy;
         self.p = (self.p + self.p.transpose()) * 0.5;
         self.z[7] = self.z[7].clamp(0.0, 1.0);
@@ -367,15 +406,86 @@ impl JointUkf {
         degradation(&self.spec, &self.z)
     }
 
-    /// The filter's 90 % interval per parameter: +-1.645 standard deviations of its covariance.
+    /// The tuned settings the filter runs with.
+    pub fn settings(&self) -> &JointUkfSettings {
+        &self.s
+    }
+
+    /// The calibrator's settings (ranges, model).
+    pub fn spec(&self) -> &TrackerSpec {
+        &self.spec
+    }
+
+    /// Sets the noise of the steps to come (a walk variance in [0, 1] z^2/s, a measurement factor in
+    /// [1e-6, 1e6]; a non-finite value leaves the tuned one).
+    pub fn set_noise_scales(&mut self, scales: NoiseScales) {
+        let walk = scales.param_walk_var_per_s.filter(|w| w.iter().all(|v| v.is_finite()));
+        let meas = if scales.meas_var.is_finite() { scales.meas_var.clamp(1e-6, 1e6) } else { 1.0 };
+        self.noise_scales =
+            NoiseScales { param_walk_var_per_s: walk.map(|w| w.map(|v| v.clamp(0.0, 1.0))), meas_var: meas };
+    }
+
+    /// The model's parameters (electrode windows and the rest), as the filter runs them.
+    pub fn model_params(&self) -> &bcal_common::battery::BatteryParams {
+        &self.model.params
+    }
+
+    pub fn noise_scales(&self) -> NoiseScales {
+        self.noise_scales
+    }
+
+    /// The last measurement update (None before the first and after a skipped one).
+    pub fn last_update(&self) -> Option<&UpdateInfo> {
+        self.last_update.as_ref()
+    }
+
+    /// Whether the first reading has started the filter.
+    pub fn started(&self) -> bool {
+        self.started
+    }
+
+    /// The parameters' mean in z units (unclamped by the model's ranges: the filter's own coordinates).
+    pub fn mean_z(&self) -> [f64; 2] {
+        [self.z[7], self.z[8]]
+    }
+
+    /// The parameters' covariance in z units: [var q, cov qr, var r].
+    pub fn param_cov_z(&self) -> [f64; 3] {
+        [self.p[(7, 7)].max(0.0), self.p[(7, 8)], self.p[(8, 8)].max(0.0)]
+    }
+
+    /// The mean state's negative-electrode mole fraction (charge left, as the filter believes it).
+    pub fn xn(&self) -> f64 {
+        self.z[2] + self.z[3]
+    }
+
+    /// The mean's ohmic overpotential and the two Butler-Volmer ones, V.
+    pub fn overpotentials_v(&self) -> [f64; 3] {
+        [self.z[4] * SCALE[4], self.z[5] * SCALE[5], self.z[6] * SCALE[6]]
+    }
+
+    /// The filter's 90 % interval per parameter: +-1.645 standard deviations of its covariance (or the
+    /// scale set by [`Self::with_interval_scale`]).
     pub fn interval(&self) -> Option<Interval> {
+        self.interval_scaled(self.interval_scale)
+    }
+
+    /// The same filter reporting `scale` standard deviations either side as its 90 % interval (a scale
+    /// chosen on validation, as every method's is).
+    pub fn with_interval_scale(mut self, scale: [f64; 2]) -> Self {
+        self.interval_scale = scale;
+        self
+    }
+
+    /// The interval `scale` standard deviations either side of the mean, per parameter (a scale chosen on
+    /// validation, as every method's is).
+    pub fn interval_scaled(&self, scale: [f64; 2]) -> Option<Interval> {
         if !self.started {
             return None;
         }
         let sd = [self.p[(7, 7)].max(0.0).sqrt(), self.p[(8, 8)].max(0.0).sqrt()];
-        let k = 1.645;
-        let lo = self.spec.from_z([self.z[7] - k * sd[0], self.z[8] - k * sd[1]]);
-        let hi = self.spec.from_z([self.z[7] + k * sd[0], self.z[8] + k * sd[1]]);
+        let lo = self.spec.from_z([self.z[7] - scale[0] * sd[0], self.z[8] - scale[1] * sd[1]]);
+        let hi = self.spec.from_z([self.z[7] + scale[0] * sd[0], self.z[8] + scale[1] * sd[1]]);
         Some(Interval { q_mobile_c: [lo.q_mobile_c, hi.q_mobile_c], r_o_ohm: [lo.r_o_ohm, hi.r_o_ohm] })
     }
 
@@ -407,6 +517,24 @@ impl JointUkf {
         z[7] = target[0];
         z[8] = target[1];
         self.state_of(&z)
+    }
+}
+
+impl Calibrator for JointUkf {
+    fn step(&mut self, s: &Sample) {
+        JointUkf::step(self, s)
+    }
+    fn estimate(&self) -> Degradation {
+        JointUkf::estimate(self)
+    }
+    fn interval(&self) -> Option<Interval> {
+        JointUkf::interval(self)
+    }
+    fn state(&self) -> Option<ModelState> {
+        Some(JointUkf::state(self))
+    }
+    fn state_under(&self, d: &Degradation) -> Option<ModelState> {
+        Some(JointUkf::state_given(self, d))
     }
 }
 
