@@ -8,7 +8,7 @@ use bcal_common::battery::BatteryModel;
 use bcal_common::dataset::Dataset;
 use bcal_common::hash::fnv1a64;
 use bcal_common::mdp::{CalibrationEnv, MdpSpec};
-use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::policy::{PolicyNet, Scratch};
 use bcal_common::wire::{Transition, MAX_ACT, MAX_OBS};
 use rand::rngs::SmallRng;
@@ -22,6 +22,21 @@ pub fn actor_seed(run_seed: u64, actor_id: u32, stream: &str) -> u64 {
     bytes.extend_from_slice(&u64::from(actor_id).to_le_bytes());
     bytes.extend_from_slice(stream.as_bytes());
     fnv1a64(&bytes)
+}
+
+/// The other actions a correction step is also scored with: the zero action (the filter itself) and
+/// uniform draws, `correction.counterfactual_actions` in all (none for other designs, or when the policy
+/// sets the filter's noise: those actions change what comes next).
+fn counterfactual_actions(spec: &MeasuredSpec, rng: &mut SmallRng) -> Vec<([f32; 2], f64)> {
+    let c = &spec.correction;
+    if spec.design != Design::UkfCorrection || c.noise_actions || c.counterfactual_actions == 0 {
+        return Vec::new();
+    }
+    let mut v = vec![([0.0f32; 2], 0.0)];
+    for _ in 1..c.counterfactual_actions {
+        v.push(([rng.random_range(-1.0..=1.0), rng.random_range(-1.0..=1.0)], 0.0));
+    }
+    v
 }
 
 /// The environments of one task (one per actor process).
@@ -113,16 +128,27 @@ impl ActorEnvs {
                 || noise.sample(StandardNormal),
                 &mut t.action[..ad],
             );
+            let mut others = Vec::new();
             let s = match &mut self.kind {
                 Kind::Paper { spec, model, train, envs } => {
                     envs[k].step(spec, model, train, &t.action[..ad], &mut t.next_obs[..od], &mut self.env_rng)
                 }
-                Kind::Measured { spec, envs } => envs[k].step(spec, &t.action[..ad], &mut t.next_obs[..od]),
+                Kind::Measured { spec, envs } => {
+                    others = counterfactual_actions(spec, &mut self.env_rng);
+                    envs[k].step_with(spec, &t.action[..ad], &mut others, &mut t.next_obs[..od])
+                }
             };
             t.cost = s.cost as f32;
             // Window and episode ends are time limits, not terminal states: the learner bootstraps through them.
             t.terminal = 0.0;
             out.push(t);
+            for (a, cost) in others {
+                let mut o = t;
+                o.action = [0.0; bcal_common::wire::MAX_ACT];
+                o.action[..2].copy_from_slice(&a);
+                o.cost = cost as f32;
+                out.push(o);
+            }
         }
     }
 }

@@ -35,8 +35,8 @@ pub struct Correction {
     /// floor when that is zero).
     tuned_walk_var: f64,
     walk_var_ref: f64,
-    /// Shift of the reported estimate, in the filter's standard deviations.
-    shift_sd: [f64; 2],
+    /// The action's shift of the reported estimate, in [-1, 1] of its largest shift.
+    shift: [f64; 2],
     /// The last action (what the policy set; it sees it again).
     last_action: [f64; CORRECTION_ACT_DIM],
     last: Option<Sample>,
@@ -48,6 +48,12 @@ pub struct Correction {
     innovation_slow: f64,
     nis_slow: f64,
     readings: u64,
+    /// The first reading's voltage (a cell at rest: its open-circuit voltage), V.
+    rest_v: f64,
+    /// Sum and count of the normalised innovations under load (their mean says how the model's shape
+    /// departs from the cell's over the whole discharge so far).
+    loaded_innovation_sum: f64,
+    loaded_updates: f64,
 }
 
 impl Correction {
@@ -59,7 +65,7 @@ impl Correction {
             tuned_walk_var,
             ukf: JointUkf::new(ukf, tracker),
             spec: spec.clone(),
-            shift_sd: [0.0; 2],
+            shift: [0.0; 2],
             last_action: [0.0; CORRECTION_ACT_DIM],
             last: None,
             first_t_s: 0.0,
@@ -70,6 +76,9 @@ impl Correction {
             innovation_slow: 0.0,
             nis_slow: 1.0,
             readings: 0,
+            rest_v: 0.0,
+            loaded_innovation_sum: 0.0,
+            loaded_updates: 0.0,
         }
     }
 
@@ -90,6 +99,7 @@ impl Correction {
             None => {
                 self.first_t_s = s.t_s;
                 self.last_switch_t_s = s.t_s;
+                self.rest_v = s.voltage_v;
             }
             Some(p) => {
                 // Charge drawn: the measured current held from the previous reading (as the filter drives).
@@ -106,6 +116,10 @@ impl Correction {
             self.innovation_fast += (nu - self.innovation_fast) / FAST_READINGS.min(self.readings as f64);
             self.innovation_slow += (nu - self.innovation_slow) / SLOW_READINGS.min(self.readings as f64);
             self.nis_slow += (nu * nu - self.nis_slow) / SLOW_READINGS.min(self.readings as f64);
+            if s.current_a.abs() >= REST_CURRENT_A {
+                self.loaded_innovation_sum += nu;
+                self.loaded_updates += 1.0;
+            }
         }
         self.last = Some(*s);
     }
@@ -156,6 +170,8 @@ impl Correction {
             if self.loaded { 1.0 } else { 0.0 },
             self.last_action[2],
             self.last_action[3],
+            (self.rest_v - 3.6) / 0.5,
+            self.loaded_innovation_sum / self.loaded_updates.max(1.0) / 2.0,
         ];
         for (o, v) in out.iter_mut().zip(f) {
             *o = v as f32;
@@ -168,7 +184,9 @@ impl Correction {
         let a: [f64; CORRECTION_ACT_DIM] =
             std::array::from_fn(|k| action.get(k).map_or(0.0, |v| f64::from(v.clamp(-1.0, 1.0))));
         self.last_action = a;
-        self.shift_sd = [a[0] * self.spec.shift_max_sd, a[1] * self.spec.shift_max_sd];
+        // a |a|: fine control near zero, where a precisely known parameter (Ro within a fraction of a
+        // percent) can only be nudged, and the whole reach at the ends, where model error needs it.
+        self.shift = [a[0] * a[0].abs(), a[1] * a[1].abs()];
         // Zero action is the tuned filter exactly (also when its tuned walk is zero).
         let walk = if a[2] == 0.0 {
             self.tuned_walk_var
@@ -179,11 +197,13 @@ impl Correction {
         self.ukf.set_noise_scales(NoiseScales { param_walk_var_per_s: Some([walk; 2]), meas_var });
     }
 
-    /// The corrected estimate: the filter's mean shifted by the action's standard deviations.
+    /// The corrected estimate: the filter's mean shifted by the action (in units of its largest shift: the
+    /// filter's standard deviations plus a floor).
     pub fn estimate(&self) -> Degradation {
         let z = self.ukf.mean_z();
         let sd = self.sd_z();
-        self.ukf.spec().from_z([z[0] + self.shift_sd[0] * sd[0], z[1] + self.shift_sd[1] * sd[1]])
+        let reach = |k: usize| self.spec.shift_max_sd * sd[k] + self.spec.shift_floor_z;
+        self.ukf.spec().from_z([z[0] + self.shift[0] * reach(0), z[1] + self.shift[1] * reach(1)])
     }
 
     /// The 90 % interval around the corrected estimate: the filter's standard deviations times the
@@ -234,8 +254,9 @@ impl Calibrator for CorrectionCalibrator<'_> {
         self.core.ingest(s);
         self.core.observe(&mut self.obs);
         let mut a = [0f32; CORRECTION_ACT_DIM];
-        self.net.act_deterministic(&self.obs, &mut self.scratch, &mut a);
-        self.core.apply_action(&a);
+        let n = self.net.layout().act_dim.min(CORRECTION_ACT_DIM);
+        self.net.act_deterministic(&self.obs, &mut self.scratch, &mut a[..n]);
+        self.core.apply_action(&a[..n]);
     }
     fn estimate(&self) -> Degradation {
         self.core.estimate()

@@ -70,8 +70,8 @@ pub fn predictive_cost(
     let mut j = k + 1;
     let (mut sq, mut n) = (0.0, 0usize);
     let mut model_eod = None;
-    let h_max = c.substep_s.max(1e-3);
     loop {
+        let h_max = if t - t0 < c.horizon_s { c.substep_s } else { c.eod_substep_s }.max(1e-3);
         let v = model.voltage_v(&x, &d);
         if !v.is_finite() {
             break;

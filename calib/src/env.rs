@@ -90,13 +90,19 @@ impl Reader {
     }
 }
 
-/// The predictive cost of a correction's estimate at reading `k` of `episode`.
+/// The predictive cost of a correction's estimate at reading `k` of `episode` ([`bcal_common::measured::env::PredictiveCost`]).
 pub fn correction_cost(spec: &MeasuredSpec, c: &Correction, episode: &Episode, k: usize) -> f64 {
     let Some(x) = c.state() else { return 0.0 };
     let ext = &spec.tracker.model;
     let ref_k = ext.reference_k.unwrap_or(episode.samples[0].temperature_k);
     let m = PredictionModel::at(ext, crate::cost::temperature_of(&x), ref_k, spec.tracker.cutoff_v);
-    predictive_cost(&spec.cost, &m, episode, k, &x, &c.estimate()).cost
+    let own = predictive_cost(&spec.cost, &m, episode, k, &x, &c.estimate()).cost;
+    if !spec.cost.relative {
+        return own;
+    }
+    let f = c.ukf();
+    let filter = predictive_cost(&spec.cost, &m, episode, k, &f.state(), &f.estimate()).cost;
+    (own - filter).clamp(-4.0, 4.0).exp()
 }
 
 /// One training environment.
@@ -131,6 +137,24 @@ impl MeasuredEnv {
 
     /// Applies `action`, reads the next sample, writes the next observation; resets after the last reading.
     pub fn step(&mut self, spec: &MeasuredSpec, action: &[f32], next_obs: &mut [f32]) -> EnvStep {
+        self.step_with(spec, action, &mut [], next_obs)
+    }
+
+    /// [`Self::step`], with the cost of each of `others` (action, cost) at the same reading first: their
+    /// transitions share this one's observations ([`bcal_common::measured::env::CorrectionSpec::counterfactual_actions`]).
+    pub fn step_with(
+        &mut self,
+        spec: &MeasuredSpec,
+        action: &[f32],
+        others: &mut [([f32; 2], f64)],
+        next_obs: &mut [f32],
+    ) -> EnvStep {
+        if let Reader::Correction(c) = &mut self.reader {
+            for (a, cost) in others.iter_mut() {
+                c.apply_action(a);
+                *cost = correction_cost(spec, c, &self.episode, self.k);
+            }
+        }
         self.reader.apply_action(action);
         let cost = match &self.reader {
             // The estimate chosen at reading k, judged by how it predicts what comes after k.

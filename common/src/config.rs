@@ -628,6 +628,37 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
     finite_range("measured.scenario.rest_s", sc.rest_s, 1.0, 3600.0)?;
     finite_range("measured.scenario.segment_hold_s", sc.segment_hold_s, 1.0, 36_000.0)?;
     finite_range("measured.scenario.ambient_c", sc.ambient_c, -30.0, 60.0)?;
+    if !(0.0..=1.0).contains(&sc.unknown_request_probability) {
+        return Err(invalid(
+            "measured.scenario.unknown_request_probability",
+            sc.unknown_request_probability.to_string(),
+            "must be in [0, 1]",
+        ));
+    }
+    let me = &sc.model_error;
+    if !(0.0..=1.0).contains(&me.probability) {
+        return Err(invalid(
+            "measured.scenario.model_error.probability",
+            me.probability.to_string(),
+            "must be in [0, 1]",
+        ));
+    }
+    finite_range("measured.scenario.model_error.xp_shift", me.xp_shift, -0.3, 0.3)?;
+    finite_range("measured.scenario.model_error.xn_shift", me.xn_shift, -0.3, 0.3)?;
+    finite_range("measured.scenario.model_error.kinetics_scale", me.kinetics_scale, 1e-3, 1e3)?;
+    finite_range("measured.scenario.model_error.diffusion_scale", me.diffusion_scale, 1e-3, 1e3)?;
+    finite_range("measured.scenario.model_error.voltage_bias_v", me.voltage_bias_v, -0.1, 0.1)?;
+    if me.probability > 0.0 {
+        // The corners of the ranges must still make a model the simulator can run.
+        for xp in me.xp_shift {
+            for xn in me.xn_shift {
+                let e = crate::measured::scenario::CellError { xp_shift: xp, xn_shift: xn, ..Default::default() };
+                e.apply(&sc.model).check("measured.scenario.model_error").map_err(|why| {
+                    invalid("measured.scenario.model_error", format!("xp_shift {xp}, xn_shift {xn}"), &why)
+                })?;
+            }
+        }
+    }
     for (key, l) in [
         ("measured.scenario.train", &sc.train),
         ("measured.scenario.validation", &sc.validation),
@@ -795,8 +826,8 @@ mod tests {
         assert_eq!(TrainConfig::from_toml_over(&p.to_toml(), Preset::PaperTuned).unwrap(), p);
         let m = Preset::Measured.config();
         assert_eq!(m.env.observation, Observation::Measured);
-        // The correction policy's four action dimensions.
-        assert_eq!(m.validate().unwrap().target_entropy, -16.0);
+        // The correction policy's two shifts.
+        assert_eq!(m.validate().unwrap().target_entropy, -8.0);
         // An older run folder's single interval scale reads as the same factor for both parameters.
         let old = TrainConfig::from_toml("[measured.tracker]\ninterval_scale = 2.5\n").unwrap();
         assert_eq!(old.measured.tracker.interval_scale, [2.5, 2.5]);

@@ -440,12 +440,18 @@ pub fn score(episodes: &[Episode], traces: &[Trace]) -> MethodScores {
     m
 }
 
-/// One noise level's results.
+/// One test condition's results: a noise level, and the probability of each model-error cause the cells
+/// carry ([`bcal_common::measured::scenario::ModelErrorConfig`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct NoiseLevel {
     pub voltage_noise_mv: f64,
+    #[serde(default)]
+    pub model_error_probability: f64,
     pub methods: BTreeMap<String, MethodScores>,
 }
+
+/// The model error the other test condition's cells carry when the task's cells carry none.
+pub const OTHER_MODEL_ERROR_PROBABILITY: f64 = 0.5;
 
 /// Everything `report.json` holds for the measured-only setting.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -457,6 +463,10 @@ pub struct MeasuredReport {
     /// The headline level's methods (same layout as the paper report: `methods.<name>.nrmse_pct`, `step_us`).
     pub methods: BTreeMap<String, MethodScores>,
     pub noise_levels: Vec<NoiseLevel>,
+    /// The same methods on the test cells of the other model at the headline noise: the exact model when the
+    /// task's cells carry model error, cells that carry it otherwise.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub other_model: Option<NoiseLevel>,
     pub test_episodes: usize,
     pub test_readings: usize,
     pub validation_episodes: usize,
@@ -745,8 +755,16 @@ pub fn evaluate_measured(
     let mut headline_episodes = Vec::new();
     let mut counters = JointUkfCounters::default();
     let mut test_readings = 0;
-    for &v in &opts.voltage_noise_levels_v {
-        let test = episodes_of(&with_voltage_noise(sc, v), Split::Test, n_test, "test")?;
+    // The test conditions: each noise level on the task's cells, then the same cells' other model (the exact
+    // model when the task's cells carry model error, else cells that do) at the headline noise.
+    let mut conditions: Vec<(f64, ScenarioConfig, bool)> =
+        opts.voltage_noise_levels_v.iter().map(|&v| (v, with_voltage_noise(sc, v), false)).collect();
+    let mut other = with_voltage_noise(sc, headline_v);
+    other.model_error.probability = if sc.model_error.probability > 0.0 { 0.0 } else { OTHER_MODEL_ERROR_PROBABILITY };
+    conditions.push((headline_v, other, true));
+    let mut other_model = None;
+    for (v, cond, is_other) in conditions {
+        let test = episodes_of(&cond, Split::Test, n_test, "test")?;
         let mut methods: Vec<(&'static str, Make)> = Vec::new();
         if let Some(net) = &net {
             let t = rl_task.clone();
@@ -781,7 +799,7 @@ pub fn evaluate_measured(
             let s = spec.tracker.clone();
             methods.push(("uncalibrated", Box::new(move || Box::new(Uncalibrated::new(&s)))));
         }
-        let headline = (v - headline_v).abs() < 1e-12;
+        let headline = (v - headline_v).abs() < 1e-12 && !is_other;
         let mut scores = BTreeMap::new();
         for (key, make) in &methods {
             let traces: Vec<Trace> =
@@ -802,8 +820,9 @@ pub fn evaluate_measured(
                 headline_traces.push((*key, traces));
             }
             progress(&format!(
-                "{:>4.1} mV {key}: NRMSE q {:.2} % r {:.2} % (second half {:.2} / {:.2}), coverage {:?}/{:?}{}",
+                "{:>4.1} mV{} {key}: NRMSE q {:.2} % r {:.2} % (second half {:.2} / {:.2}), coverage {:?}/{:?}{}",
                 v * 1e3,
+                if is_other { format!(", model error {:.1}", cond.model_error.probability) } else { String::new() },
                 m.nrmse_pct.q_mobile.unwrap_or(f64::NAN),
                 m.nrmse_pct.r_o.unwrap_or(f64::NAN),
                 m.second_half_nrmse_pct.q_mobile.unwrap_or(f64::NAN),
@@ -818,7 +837,16 @@ pub fn evaluate_measured(
             test_readings = test.iter().map(|e| e.samples.len()).sum();
             headline_episodes = test;
         }
-        levels.push(NoiseLevel { voltage_noise_mv: v * 1e3, methods: scores });
+        let level = NoiseLevel {
+            voltage_noise_mv: v * 1e3,
+            model_error_probability: cond.model_error.probability,
+            methods: scores,
+        };
+        if is_other {
+            other_model = Some(level);
+        } else {
+            levels.push(level);
+        }
     }
     if let Some(t) = &mut ukf_tuning {
         t.counters_on_test = counters;
@@ -837,6 +865,7 @@ pub fn evaluate_measured(
         quick: opts.quick,
         methods: methods.unwrap_or_default(),
         noise_levels: levels,
+        other_model,
         test_episodes: n_test,
         test_readings,
         validation_episodes: validation.len(),

@@ -19,10 +19,12 @@ use crate::score::score;
 use crate::tune;
 use bcal_calib::tune::JointUkfGrid;
 use bcal_common::battery::Degradation;
-use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
+use bcal_common::measured::tracker::JointUkfSettings;
 use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::policy::PolicyFile;
+use bcal_common::policy::PolicyNet;
 use bcal_doctor::fit::{refit_cycles, FitConfig, FitRecord};
 use bcal_doctor::model_file::DiagnosedModel;
 use bcal_doctor::{Cause, Discharge, ExtParams};
@@ -269,64 +271,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         )));
     }
 
-    // RL: the run's policy files, the one the validation cycles prefer.
-    if !input.policies.is_empty() {
-        let mut nets = Vec::new();
-        for (pf, path) in &input.policies {
-            let Some(task) = pf.task.measured() else {
-                return Err(CalibrateError::PolicyTask { path: path.clone(), observation: pf.task.observation_name() });
-            };
-            if !task.tracker.model.same_kind(&neutral) {
-                return Err(CalibrateError::PolicyModel {
-                    path: path.clone(),
-                    trained: task.tracker.model.label(),
-                    model: neutral.label(),
-                });
-            }
-            let net = pf.net()?;
-            let mut widths = vec![task.tracker.prior_std_z];
-            widths.extend(tune::RL_PRIOR_STD_Z.iter().filter(|w| **w != task.tracker.prior_std_z));
-            for w in widths {
-                let unit = TrackerSpec { interval_scale: [1.0; 2], prior_std_z: w, ..task.tracker.clone() };
-                nets.push((net.clone(), unit, path.clone(), pf.update_step));
-            }
-        }
-        let cands: Vec<(String, Streaming)> = nets
-            .iter()
-            .map(|(net, unit, path, update)| {
-                (
-                    format!("{path} (update {update}), prior_std_z {}", unit.prior_std_z),
-                    Streaming::Rl { spec: unit.clone(), net },
-                )
-            })
-            .collect();
-        progress(&format!(
-            "RL-LAC: choosing among {} policy files on {} validation cycles",
-            cands.len(),
-            validation.len()
-        ));
-        let choice =
-            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
-        let (net, unit, path, update) = &nets[choice.index];
-        progress(&format!(
-            "RL-LAC: policy {path} (update {update}, prior_std_z {}); validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
-            unit.prior_std_z,
-            choice.candidates[0].eod_error_pct,
-            choice.interval_scale,
-            choice.validation_eod_coverage_pct.map_or("-".into(), |c| format!("{c:.0} %"))
-        ));
-        let t0 = Instant::now();
-        let cal = Streaming::Rl { spec: unit.clone(), net };
-        let r = run_sequence(&cal, &judged, &judged_before, cut, &[choice.interval_scale], false).remove(0);
-        progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
-        runs.push(("rl", r));
-        settings.insert(
-            "rl".into(),
-            serde_json::json!({"policy_file": path, "update_step": update, "validation": choice, "tracker": unit}),
-        );
-    }
-    // The joint UKF: the grid's settings, chosen the same way.
-    if input.ukf {
+    // The joint UKF: the grid's settings, chosen on the validation cycles (first: the RL correction may
+    // start from it).
+    let mut ukf_best = None;
+    if input.ukf
+        || input.policies.iter().any(|(pf, _)| pf.task.measured().is_some_and(|t| t.design == Design::UkfCorrection))
+    {
         let grid = input.ukf_grid.candidates();
         progress(&format!(
             "joint UKF: choosing among {} settings on {} validation cycles",
@@ -346,6 +296,99 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             choice.interval_scale,
             choice.validation_eod_coverage_pct.map_or("-".into(), |c| format!("{c:.0} %"))
         ));
+        ukf_best = Some((best, choice));
+    }
+
+    // RL: the run's policy files, the one the validation cycles prefer.
+    if !input.policies.is_empty() {
+        let mut nets: Vec<PolicyNet> = Vec::new();
+        for (pf, path) in &input.policies {
+            let Some(task) = pf.task.measured() else {
+                return Err(CalibrateError::PolicyTask { path: path.clone(), observation: pf.task.observation_name() });
+            };
+            if !task.tracker.model.same_kind(&neutral) {
+                return Err(CalibrateError::PolicyModel {
+                    path: path.clone(),
+                    trained: task.tracker.model.label(),
+                    model: neutral.label(),
+                });
+            }
+            nets.push(pf.net()?);
+        }
+        let mut cands: Vec<(String, Streaming)> = Vec::new();
+        let mut meta: Vec<(String, u64, serde_json::Value)> = Vec::new();
+        for ((pf, path), net) in input.policies.iter().zip(&nets) {
+            let task = pf.task.measured().expect("checked above");
+            match task.design {
+                Design::WindowFit => {
+                    let mut widths = vec![task.tracker.prior_std_z];
+                    widths.extend(tune::RL_PRIOR_STD_Z.iter().filter(|w| **w != task.tracker.prior_std_z));
+                    for w in widths {
+                        let unit = TrackerSpec { interval_scale: [1.0; 2], prior_std_z: w, ..task.tracker.clone() };
+                        cands.push((
+                            format!("{path} (update {}), prior_std_z {w}", pf.update_step),
+                            Streaming::Rl { spec: unit.clone(), net },
+                        ));
+                        meta.push((path.clone(), pf.update_step, serde_json::json!({"tracker": unit})));
+                    }
+                }
+                Design::UkfCorrection => {
+                    // The filter it corrects: the one it trained on (at the real-cell prior widths), or the
+                    // joint UKF chosen on these validation cycles (its zero action is then that baseline).
+                    let own = task.ukf_settings();
+                    let mut filters: Vec<(String, JointUkfSettings)> = tune::RL_PRIOR_STD_Z
+                        .iter()
+                        .map(|w| {
+                            (format!("its own filter, prior std {w}"), JointUkfSettings { prior_std_z: [*w; 2], ..own })
+                        })
+                        .collect();
+                    if let Some((b, _)) = &ukf_best {
+                        filters.push(("the joint UKF chosen here".into(), *b));
+                    }
+                    for (what, f) in filters {
+                        let mut t = task.clone();
+                        t.ukf = Some(f);
+                        t.correction.interval_scale = [1.0; 2];
+                        meta.push((
+                            path.clone(),
+                            pf.update_step,
+                            serde_json::json!({"filter": f, "design": "ukf-correction"}),
+                        ));
+                        cands.push((
+                            format!("{path} (update {}), {what}", pf.update_step),
+                            Streaming::Correction { task: Box::new(t), net },
+                        ));
+                    }
+                }
+            }
+        }
+        progress(&format!(
+            "RL-LAC: choosing among {} candidates (policy files x filters or prior widths) on {} validation cycles",
+            cands.len(),
+            validation.len()
+        ));
+        let choice =
+            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
+        let (path, update, setting) = &meta[choice.index];
+        progress(&format!(
+            "RL-LAC: {}; validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
+            choice.chosen,
+            choice.candidates[0].eod_error_pct,
+            choice.interval_scale,
+            choice.validation_eod_coverage_pct.map_or("-".into(), |c| format!("{c:.0} %"))
+        ));
+        let t0 = Instant::now();
+        let r = run_sequence(&cands[choice.index].1, &judged, &judged_before, cut, &[choice.interval_scale], false)
+            .remove(0);
+        progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
+        runs.push(("rl", r));
+        settings.insert(
+            "rl".into(),
+            serde_json::json!({"policy_file": path, "update_step": update, "validation": choice, "setting": setting}),
+        );
+    }
+    if input.ukf {
+        let (best, choice) = ukf_best.clone().expect("chosen above");
         let t0 = Instant::now();
         let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: best };
         let r = run_sequence(&cal, &judged, &judged_before, cut, &[choice.interval_scale], false).remove(0);

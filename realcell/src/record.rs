@@ -92,7 +92,17 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
         .collect();
     let loaded: Vec<f64> = (on..=last).map(|k| d.current_a[k]).filter(|i| *i > LOAD_THRESHOLD_A).collect();
     let current_a = loaded.iter().sum::<f64>() / loaded.len().max(1) as f64;
-    let data_capacity_ah = cut.map(|k| d.charge_ah(on.saturating_sub(1), k + 1));
+    // The charge drawn up to the interpolated cut-off, not to the first reading below it (which can lie a
+    // sample interval, 10-20 s on a NASA cycler, past it).
+    let data_capacity_ah = cut.zip(eod_s).map(|(k, eod)| {
+        let to_before = d.charge_ah(on.saturating_sub(1), k);
+        let (t0, t1) = (d.time_s[k - 1], d.time_s[k]);
+        let f = if t1 > t0 { ((eod - t0) / (t1 - t0)).clamp(0.0, 1.0) } else { 1.0 };
+        let (i0, i1) = (d.current_a[k - 1].max(0.0), d.current_a[k].max(0.0));
+        // Trapezoid from the reading before to the crossing, the current taken linear in between.
+        let i_at = i0 + f * (i1 - i0);
+        to_before + 0.5 * (i0 + i_at) * f * (t1 - t0) / 3600.0
+    });
     Ok(CellRecord {
         cell: d.cell.clone(),
         cycle: d.cycle,
@@ -146,8 +156,9 @@ mod tests {
         // 3.0 V at 20 s, 2.6 V at 30 s: 2.7 V at 27.5 s.
         assert!((r.eod_s.unwrap() - 27.5).abs() < 1e-9);
         assert_eq!(r.current_a, 2.0);
-        // Trapezoids from the rest reading before the load to the cut-off: 10 + 20 + 20 C = 50 C.
-        assert!((r.data_capacity_ah.unwrap() - 50.0 / 3600.0).abs() < 1e-12);
+        // Trapezoids from the rest reading before the load to the interpolated cut-off at 27.5 s:
+        // 10 + 20 + 2 A * 7.5 s = 45 C (not the 50 C up to the first reading below it).
+        assert!((r.data_capacity_ah.unwrap() - 45.0 / 3600.0).abs() < 1e-12);
         assert_eq!(r.reading_at_fraction(0.5), Some(2));
     }
 

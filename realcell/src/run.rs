@@ -11,8 +11,9 @@ use crate::predict::{self, Predicted, Predictor};
 use crate::record::CellRecord;
 use bcal_calib::joint_ukf::{JointUkf, JointUkfSettings};
 use bcal_calib::Interval;
-use bcal_calib::{Calibrator, RlCalibrator, Uncalibrated};
+use bcal_calib::{Calibrator, CorrectionCalibrator, RlCalibrator, Uncalibrated};
 use bcal_common::battery::Degradation;
+use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::policy::PolicyNet;
@@ -50,8 +51,14 @@ pub struct CycleRun {
 
 /// A streaming calibrator to build per discharge.
 pub enum Streaming<'a> {
+    /// The RL policy of the window-fit design (issue 12).
     Rl {
         spec: TrackerSpec,
+        net: &'a PolicyNet,
+    },
+    /// The RL correction of the joint UKF (issue 18): the task holds the filter it corrects.
+    Correction {
+        task: Box<MeasuredSpec>,
         net: &'a PolicyNet,
     },
     Ukf {
@@ -76,6 +83,10 @@ impl<'a> Streaming<'a> {
         };
         match self {
             Streaming::Rl { spec, net } => Streaming::Rl { spec: moved(spec), net },
+            Streaming::Correction { task, net } => Streaming::Correction {
+                task: Box::new(MeasuredSpec { tracker: moved(&task.tracker), ..(**task).clone() }),
+                net,
+            },
             Streaming::Ukf { spec, settings } => Streaming::Ukf { spec: moved(spec), settings: *settings },
             Streaming::Pinned { spec, d } => Streaming::Pinned { spec: spec.clone(), d: *d },
         }
@@ -85,6 +96,7 @@ impl<'a> Streaming<'a> {
     pub fn spec(&self) -> &TrackerSpec {
         match self {
             Streaming::Rl { spec, .. } | Streaming::Ukf { spec, .. } | Streaming::Pinned { spec, .. } => spec,
+            Streaming::Correction { task, .. } => &task.tracker,
         }
     }
 
@@ -99,6 +111,10 @@ impl<'a> Streaming<'a> {
         };
         match self {
             Streaming::Rl { spec, net } => Streaming::Rl { spec: on(spec), net },
+            Streaming::Correction { task, net } => Streaming::Correction {
+                task: Box::new(MeasuredSpec { tracker: on(&task.tracker), ..(**task).clone() }),
+                net,
+            },
             Streaming::Ukf { spec, settings } => Streaming::Ukf { spec: on(spec), settings: *settings },
             Streaming::Pinned { spec, d } => Streaming::Pinned { spec: on(spec), d: *d },
         }
@@ -107,6 +123,7 @@ impl<'a> Streaming<'a> {
     fn build(&self) -> Box<dyn Calibrator + '_> {
         match self {
             Streaming::Rl { spec, net } => Box::new(RlCalibrator::new(spec, net)),
+            Streaming::Correction { task, net } => Box::new(CorrectionCalibrator::new(task, net)),
             Streaming::Ukf { spec, settings } => Box::new(JointUkf::new(*settings, spec)),
             Streaming::Pinned { spec, d } => Box::new(Uncalibrated::pinned(spec, d)),
         }

@@ -102,11 +102,13 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
     assert_eq!(r.cycles_judged, (13..=24).collect::<Vec<u32>>());
     assert_eq!(r.records.reaching_cutoff, 12, "every synthetic record ends at the cut-off under load");
 
-    // The data's own charge to the cut-off is the truth within a sample interval's charge (19 s at 2 A).
+    // The data's own charge to the interpolated cut-off is the truth within the load-on's and the crossing's
+    // share of a sample interval (the switch and the crossing fall between readings 9-19 s apart: a few
+    // seconds of 2 A each), far better than integrating to the first reading below the cut-off.
     for (rec, (_, truth_ah)) in cal.judged.iter().zip(&all[12..]) {
         let data = rec.data_capacity_ah.expect("every record reaches the cut-off");
         assert!(
-            (data - truth_ah).abs() < 19.0 * CURRENT_A / 3600.0,
+            (data - truth_ah).abs() < 8.0 * CURRENT_A / 3600.0,
             "cycle {}: data {data} truth {truth_ah}",
             rec.cycle
         );
@@ -131,10 +133,10 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
     // every calibrated method beats the new-cell model by far.
     assert!(cap("ukf", "50") < 0.03, "ukf {}", cap("ukf", "50"));
     assert!(
-        cap("ukf", "100") < cap("previous_cycle", "100"),
+        cap("ukf", "50") < cap("previous_cycle", "50"),
         "ukf {} previous {}",
-        cap("ukf", "100"),
-        cap("previous_cycle", "100")
+        cap("ukf", "50"),
+        cap("previous_cycle", "50")
     );
     for m in ["fit", "ukf", "previous_cycle"] {
         assert!(
@@ -144,7 +146,8 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
             cap("uncalibrated", "50")
         );
     }
-    // Intervals are calibrated on the validation cycles, and the report says how often they hold.
+    // Intervals are calibrated on the validation cycles and hold on the judged ones about as often as a 90 %
+    // interval should (12 cycles: one miss more or less moves it by 8 points).
     let cov = r.methods["ukf"].scores.coverage_90_pct["eod"].expect("the UKF has intervals");
-    assert!(cov > 40.0, "ukf EOD coverage {cov}");
+    assert!((75.0..=100.0).contains(&cov), "ukf EOD coverage {cov}");
 }

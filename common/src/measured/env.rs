@@ -8,8 +8,9 @@ use super::tracker::{JointUkfSettings, TrackerSpec, OBS_DIM};
 use serde::{Deserialize, Serialize};
 
 /// Features the correction policy observes (`bcal_calib::correction`).
-pub const CORRECTION_OBS_DIM: usize = 22;
-/// Its action: a shift of each estimate and the log-scales of the parameter walk and the measurement noise.
+pub const CORRECTION_OBS_DIM: usize = 24;
+/// Its largest action: a shift of each estimate and the log-scales of the parameter walk and the
+/// measurement noise (the last two only with [`CorrectionSpec::noise_actions`]).
 pub const CORRECTION_ACT_DIM: usize = 4;
 
 /// Everything that defines the measured-only MDP: the cells it trains and is judged on, and the calibrator.
@@ -55,7 +56,8 @@ impl MeasuredSpec {
     pub fn act_dim(&self) -> usize {
         match self.design {
             Design::WindowFit => 2,
-            Design::UkfCorrection => CORRECTION_ACT_DIM,
+            Design::UkfCorrection if self.correction.noise_actions => CORRECTION_ACT_DIM,
+            Design::UkfCorrection => 2,
         }
     }
 
@@ -92,15 +94,30 @@ impl Design {
     }
 }
 
-/// How the correction policy's action acts on the joint UKF. Action a in [-1, 1]^4: the reported estimate
-/// is the filter's mean plus a[0..2] * `shift_max_sd` of its standard deviations (the filter itself keeps its
-/// own mean); the parameter walk's variance of the next steps is max(tuned, floor) * 10^(a[2] *
-/// `walk_decades`) and the measurement variance the tuned one * 10^(a[3] * `meas_decades`).
+/// How the correction policy's action acts on the joint UKF. Action a in [-1, 1]^2 (or ^4): the reported
+/// estimate is the filter's mean plus a|a| * (`shift_max_sd` standard deviations of the filter +
+/// `shift_floor_z` of the range) (the filter itself keeps its own mean: the floor lets a correction reach a
+/// bias larger than the filter believes it can be, as model error makes it); with `noise_actions`, the
+/// parameter walk's variance of the next steps is max(tuned, floor) * 10^(a[2] * `walk_decades`) and the
+/// measurement variance the tuned one * 10^(a[3] * `meas_decades`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct CorrectionSpec {
     /// Largest shift of each estimate, in the filter's standard deviations (default 2).
     pub shift_max_sd: f64,
+    /// Part of the largest shift that does not shrink with the filter's spread, fraction of each range
+    /// (default 0.1: 400 C of qMobile, 0.02 ohm of Ro).
+    pub shift_floor_z: f64,
+    /// Extra transitions per step with other actions at the same reading: the zero action (the filter) and
+    /// `counterfactual_actions - 1` drawn uniformly. A shift only moves the reported estimate, not the
+    /// filter, so the next observation is the same whatever the action: each is a true transition of the
+    /// MDP, and together they show the critic what the action changes at one reading (default 3; 0 off;
+    /// ignored with `noise_actions`, whose actions act on what comes next).
+    pub counterfactual_actions: usize,
+    /// Whether the policy also sets the filter's noise (actions 3 and 4). Off by default: on the validation
+    /// cells no setting of the tuned filter's noise per sampling regime gains more than 1 % of its NRMSE, while
+    /// the extra actions' delayed effect on the cost makes the learning noisier (docs/tuning.md).
+    pub noise_actions: bool,
     /// Largest change of the parameter walk's variance, decades either way (default 2).
     pub walk_decades: f64,
     /// Largest change of the measurement variance, decades either way (default 1).
@@ -117,6 +134,9 @@ impl Default for CorrectionSpec {
     fn default() -> Self {
         Self {
             shift_max_sd: 2.0,
+            shift_floor_z: 0.1,
+            counterfactual_actions: 3,
+            noise_actions: false,
             walk_decades: 2.0,
             meas_decades: 1.0,
             walk_floor_per_sqrt_s: 1e-6,
@@ -127,17 +147,26 @@ impl Default for CorrectionSpec {
 
 /// The correction policy's cost (training only): the calibrated model's error at predicting what comes
 /// next. At each reading the model runs forward from the estimate chosen then (the filter's state given
-/// that estimate) under the measured current of the readings ahead, over `horizon_s`, against the
-/// simulated cell's own voltage there; where the episode reaches the cut-off, the end of discharge it
-/// predicts under the cell's own future load joins it. c = ln(1 + rms / `voltage_scale_v`) +
-/// `eod_weight` ln(1 + |EOD error| / `eod_scale_s`). The true parameters never enter it.
+/// that estimate) under the simulated cell's own load, over `horizon_s`, against the cell's own voltage
+/// at the readings there; where the episode reaches the cut-off, the end of discharge it predicts joins
+/// it: e = ln(1 + rms / `voltage_scale_v`) + `eod_weight` ln(1 + |EOD error| / `eod_scale_s`). With
+/// `relative` (the default) the cost is exp(e(corrected) - e(filter)), clamped to e^-4..e^4: the same
+/// prediction judged against the uncorrected filter's at the same reading. Its minimum is still the
+/// estimate that predicts best (the filter's error does not depend on the action), but the critic no longer
+/// has to learn how hard each reading is before it can see what an action changes. The true parameters
+/// never enter it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct PredictiveCost {
     /// How far ahead the voltage is predicted, s (default 600).
     pub horizon_s: f64,
-    /// Longest Euler substep of the prediction, s (default 2; below 2 t_o = 12.2 s for the ohmic lag).
+    /// Longest Euler substep of the prediction over the horizon, s (default 2; below 2 t_o = 12.2 s for the
+    /// ohmic lag).
     pub substep_s: f64,
+    /// Longest Euler substep from the horizon on to the end of discharge, s (default 5).
+    pub eod_substep_s: f64,
+    /// Judge the corrected prediction against the filter's own (default true).
+    pub relative: bool,
     /// Voltage error scale, V (default 2 mV).
     pub voltage_scale_v: f64,
     /// Weight of the end-of-discharge term (default 1; 0 leaves it out).
@@ -148,6 +177,14 @@ pub struct PredictiveCost {
 
 impl Default for PredictiveCost {
     fn default() -> Self {
-        Self { horizon_s: 600.0, substep_s: 2.0, voltage_scale_v: 0.002, eod_weight: 1.0, eod_scale_s: 30.0 }
+        Self {
+            horizon_s: 600.0,
+            substep_s: 2.0,
+            eod_substep_s: 5.0,
+            relative: true,
+            voltage_scale_v: 0.002,
+            eod_weight: 1.0,
+            eod_scale_s: 30.0,
+        }
     }
 }

@@ -103,6 +103,10 @@ pub struct ScenarioConfig {
     pub segment_hold_s: [f64; 2],
     /// Probability that a piecewise segment is a rest.
     pub segment_rest_probability: f64,
+    /// Probability that an episode's readings do not say what load was asked for (`Request::Unknown`), as a
+    /// cycler's export does not: every input a calibrator meets on real records then also occurs in
+    /// training (default 0.5).
+    pub unknown_request_probability: f64,
     pub train: SplitLoads,
     pub validation: SplitLoads,
     pub test: SplitLoads,
@@ -122,6 +126,100 @@ pub struct ScenarioConfig {
     pub sensor: SensorConfig,
     /// The true cells' model: the base one, or the doctor's extended one (a real cell's setting).
     pub model: super::extension::ModelExtension,
+    /// What each cell carries beyond that model, drawn per episode (none by default).
+    pub model_error: ModelErrorConfig,
+}
+
+/// What simulated cells carry that the calibrators' model lacks, as real cells do (issue 18, item 4): the
+/// doctor's ageing causes beyond qMobile and Ro (electrode balance, charge transfer, diffusion) and a
+/// voltage-sensor offset. Each is present in an episode's cell with `probability`, its size drawn
+/// uniformly from its range (factors log-uniformly), independently of the others. The default ranges span
+/// what `bcal diagnose` fitted on the NASA cells over their lives (xp_shift 0.01 -> 0.11, xn_shift
+/// -0.04 -> -0.15 on B0005; kinetics factors down to a fifth); probability 0 (the default) is the exact
+/// model.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ModelErrorConfig {
+    /// Probability that an episode's cell carries each cause (0: every cell is the model itself).
+    pub probability: f64,
+    /// Shift of the positive electrode's mole fraction at full charge, added to the model's.
+    pub xp_shift: [f64; 2],
+    /// Shift of the negative electrode's mole fraction at full charge, added to the model's.
+    pub xn_shift: [f64; 2],
+    /// Factor on both Butler-Volmer rate constants (log-uniform).
+    pub kinetics_scale: [f64; 2],
+    /// Factor on the bulk-surface diffusion time (log-uniform).
+    pub diffusion_scale: [f64; 2],
+    /// Constant voltage-sensor offset, V.
+    pub voltage_bias_v: [f64; 2],
+}
+
+impl Default for ModelErrorConfig {
+    fn default() -> Self {
+        Self {
+            probability: 0.0,
+            xp_shift: [-0.02, 0.1],
+            xn_shift: [-0.15, 0.02],
+            kinetics_scale: [0.2, 1.5],
+            diffusion_scale: [0.3, 3.0],
+            voltage_bias_v: [-0.015, 0.015],
+        }
+    }
+}
+
+/// What one episode's cell carries beyond the model (neutral: nothing).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct CellError {
+    pub xp_shift: f64,
+    pub xn_shift: f64,
+    pub kinetics_scale: f64,
+    pub diffusion_scale: f64,
+    pub voltage_bias_v: f64,
+}
+
+impl Default for CellError {
+    fn default() -> Self {
+        Self { xp_shift: 0.0, xn_shift: 0.0, kinetics_scale: 1.0, diffusion_scale: 1.0, voltage_bias_v: 0.0 }
+    }
+}
+
+impl CellError {
+    /// Whether the cell is the model itself.
+    pub fn is_none(&self) -> bool {
+        *self == CellError::default()
+    }
+
+    /// The true cell's model: `model` with this error.
+    pub fn apply(&self, model: &super::extension::ModelExtension) -> super::extension::ModelExtension {
+        super::extension::ModelExtension {
+            xp_shift: model.xp_shift + self.xp_shift,
+            xn_shift: model.xn_shift + self.xn_shift,
+            kinetics_scale: model.kinetics_scale * self.kinetics_scale,
+            t_diffusion_s: model.t_diffusion_s * self.diffusion_scale,
+            ..model.clone()
+        }
+    }
+
+    fn draw(cfg: &ModelErrorConfig, rng: &mut SmallRng) -> Self {
+        let p = cfg.probability.clamp(0.0, 1.0);
+        let mut e = CellError::default();
+        let log_uniform = |rng: &mut SmallRng, [lo, hi]: [f64; 2]| uniform(rng, [lo.ln(), hi.ln()]).exp();
+        if rng.random_bool(p) {
+            e.xp_shift = uniform(rng, cfg.xp_shift);
+            e.xn_shift = uniform(rng, cfg.xn_shift);
+        }
+        if rng.random_bool(p) {
+            e.kinetics_scale = log_uniform(rng, cfg.kinetics_scale);
+        }
+        if rng.random_bool(p) {
+            e.diffusion_scale = log_uniform(rng, cfg.diffusion_scale);
+        }
+        if rng.random_bool(p) {
+            e.voltage_bias_v = uniform(rng, cfg.voltage_bias_v);
+        }
+        e
+    }
 }
 
 impl Default for ScenarioConfig {
@@ -135,6 +233,7 @@ impl Default for ScenarioConfig {
             load_kinds: LoadKind::ALL.to_vec(),
             segment_hold_s: [10.0, 600.0],
             segment_rest_probability: 0.15,
+            unknown_request_probability: 0.5,
             // Disjoint levels: test extrapolates to loads above training, validation sits between.
             train: SplitLoads { power_w: [8.0, 13.0], current_a: [2.0, 3.25] },
             validation: SplitLoads { power_w: [13.0, 14.0], current_a: [3.25, 3.5] },
@@ -148,6 +247,7 @@ impl Default for ScenarioConfig {
             test_episodes: 96,
             sensor: SensorConfig::default(),
             model: super::extension::ModelExtension::default(),
+            model_error: ModelErrorConfig::default(),
         }
     }
 }
@@ -187,6 +287,16 @@ pub struct EpisodeSpec {
     pub interval_s: [f64; 2],
     /// Seed of the sampling times and the sensor noise.
     pub noise_seed: u64,
+    /// What the cell carries beyond the model (scoring reads it; calibrators never do).
+    #[serde(default)]
+    pub cell_error: CellError,
+    /// Whether the readings say what load was asked for (a BMS knows; a cycler's export does not).
+    #[serde(default = "yes")]
+    pub request_known: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// One sensor reading.
@@ -299,12 +409,18 @@ pub fn draw_spec(cfg: &ScenarioConfig, split: Split, rng: &mut SmallRng) -> Epis
     };
     let ambient_k = if cfg.thermal { KELVIN_0C + uniform(rng, cfg.ambient_c) } else { cfg.model.params().tb0_k };
     let interval_s = cfg.sample_interval_s[rng.random_range(0..cfg.sample_interval_s.len())];
-    EpisodeSpec { truth, soc0, kind, profile, rest_s, ambient_k, interval_s, noise_seed: rng.random() }
+    let noise_seed = rng.random();
+    let request_known = !rng.random_bool(cfg.unknown_request_probability.clamp(0.0, 1.0));
+    // Drawn last, and only when asked for: exact-model episode sets stay what they were.
+    let cell_error =
+        if cfg.model_error.probability > 0.0 { CellError::draw(&cfg.model_error, rng) } else { CellError::default() };
+    EpisodeSpec { truth, soc0, kind, profile, rest_s, ambient_k, interval_s, noise_seed, cell_error, request_known }
 }
 
 /// Simulates `spec` to the cut-off (or until the model is empty) and reads it through the sensor.
 pub fn simulate(cfg: &ScenarioConfig, spec: &EpisodeSpec) -> Result<Episode, ModelError> {
-    let params = BatteryParams { tb0_k: spec.ambient_k, ..cfg.model.params() };
+    let true_model = spec.cell_error.apply(&cfg.model);
+    let params = BatteryParams { tb0_k: spec.ambient_k, ..true_model.params() };
     let mut model = BatteryModel::new(params, cfg.thermal)?;
     model.check_degradation(&spec.truth)?;
     let kn_kp = (model.params.kn, model.params.kp);
@@ -347,10 +463,10 @@ pub fn simulate(cfg: &ScenarioConfig, spec: &EpisodeSpec) -> Result<Episode, Mod
         if t_s + 1e-9 >= next_sample_s || ended {
             samples.push(Sample {
                 t_s,
-                voltage_v: v + s.voltage_bias_v + nv.sample(&mut rng),
+                voltage_v: v + s.voltage_bias_v + spec.cell_error.voltage_bias_v + nv.sample(&mut rng),
                 current_a: i + s.current_bias_a + ni.sample(&mut rng),
                 temperature_k: x[idx::T_B] + nt.sample(&mut rng),
-                request: Request::of(load),
+                request: if spec.request_known { Request::of(load) } else { Request::Unknown },
             });
             true_voltage_v.push(v);
             next_sample_s = t_s + uniform(&mut rng, spec.interval_s).round().max(dt);
