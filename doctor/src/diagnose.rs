@@ -19,6 +19,7 @@ use crate::fit::{fit, refit_cycles, simulate_record, CycleStart, FitConfig, FitR
 use crate::record::{Discharge, Windows, DEFAULT_CUTOFF_V, PARTIAL_START_DROP_V};
 use crate::sim::{Cause, ExtParams};
 use bcal_common::battery::Degradation;
+use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::BTreeMap;
 
@@ -100,7 +101,7 @@ impl CycleFit {
 
     /// This cycle's fit as the start of another.
     pub fn start(&self) -> CycleStart {
-        CycleStart { d: self.degradation(), ext: self.ext }
+        CycleStart { d: self.degradation(), ext: self.ext, rmse_v: Some(self.rmse_mv / 1000.0) }
     }
 }
 
@@ -337,11 +338,16 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
     let noise_mv = base_train_structure.noise_mv;
 
     // 2. Each candidate alone.
-    let mut results: Vec<(Cause, ModelResult)> = Vec::new();
-    for &c in &cfg.causes {
-        let f = fit(&cfg.fit, &p.train, &[c], &ExtParams::default(), Some(&base_train_starts))?;
-        results.push((c, judge(cfg, &p, &[c], f, Some(&base), Some(&base_held_starts))?));
-    }
+    // The candidates are independent: run side by side (each one's fits are parallel over records too, and
+    // rayon shares the cores between both levels).
+    let mut results: Vec<(Cause, ModelResult)> = cfg
+        .causes
+        .par_iter()
+        .map(|&c| {
+            let f = fit(&cfg.fit, &p.train, &[c], &ExtParams::default(), Some(&base_train_starts))?;
+            Ok((c, judge(cfg, &p, &[c], f, Some(&base), Some(&base_held_starts))?))
+        })
+        .collect::<Result<_, DoctorError>>()?;
     results.sort_by(|a, b| a.1.score_mv.total_cmp(&b.1.score_mv));
     let ranking: Vec<&'static str> = results.iter().map(|(c, _)| c.name()).collect();
     // The verdict is `none` when the base model already meets the noise on every judged sample, or when
@@ -361,19 +367,25 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
         let mut chosen = vec![results[0].0];
         extended = results[0].1.clone();
         while chosen.len() < cfg.max_causes {
+            let starts: Vec<CycleStart> = extended.train_cycles.iter().map(CycleFit::start).collect();
+            let held: Vec<CycleStart> = extended.heldout_cycles.iter().map(CycleFit::start).collect();
+            let tried: Vec<(Cause, ModelResult)> = results
+                .iter()
+                .filter(|(c, r)| !chosen.contains(c) && r.gain_pct >= cfg.min_step_gain_pct)
+                .collect::<Vec<_>>()
+                .into_par_iter()
+                .map(|(c, _)| {
+                    let mut causes = chosen.clone();
+                    causes.push(*c);
+                    let f = fit(&cfg.fit, &p.train, &causes, &extended.ext, Some(&starts))?;
+                    Ok((*c, judge(cfg, &p, &causes, f, Some(&base), Some(&held))?))
+                })
+                .collect::<Result<_, DoctorError>>()?;
+            // The first of equal scores, in ranking order, as the sequential search took it.
             let mut best_next: Option<(Cause, ModelResult)> = None;
-            for (c, r) in &results {
-                if chosen.contains(c) || r.gain_pct < cfg.min_step_gain_pct {
-                    continue;
-                }
-                let mut causes = chosen.clone();
-                causes.push(*c);
-                let starts: Vec<CycleStart> = extended.train_cycles.iter().map(CycleFit::start).collect();
-                let held: Vec<CycleStart> = extended.heldout_cycles.iter().map(CycleFit::start).collect();
-                let f = fit(&cfg.fit, &p.train, &causes, &extended.ext, Some(&starts))?;
-                let m = judge(cfg, &p, &causes, f, Some(&base), Some(&held))?;
+            for (c, m) in tried {
                 if best_next.as_ref().is_none_or(|(_, b)| m.score_mv < b.score_mv) {
-                    best_next = Some((*c, m));
+                    best_next = Some((c, m));
                 }
             }
             // A cause joins when it lowers the held-out RMSE by the step gain and also lowers the penalised
@@ -491,7 +503,7 @@ fn judge(
                         ext.set(s.name, crate::fit::ext_value(&last, s.name).unwrap_or(s.start));
                     }
                 }
-                CycleStart { d: st.d, ext }
+                CycleStart { d: st.d, ext, rmse_v: st.rmse_v }
             })
             .collect()
     });
