@@ -245,9 +245,8 @@ pub struct ExtendedCell {
     xp_min: f64,
     xp_span: f64,
     q_s_max_c: f64,
-    /// Surface and bulk volumes, m^3 (the common model derives them the same way from its parameters).
-    vol_s_m3: f64,
-    vol_b_m3: f64,
+    /// Reciprocals the step multiplies by (a division costs several multiplications).
+    per_step: PerStep,
     /// Rate constants at ambient temperature (the Arrhenius reference).
     kn: f64,
     kp: f64,
@@ -255,6 +254,19 @@ pub struct ExtendedCell {
     /// and positive overpotential lags (steps repeat between samples: one exp per lag per sample).
     decay_dt_s: f64,
     decay: [f64; 3],
+}
+
+/// Constants of the right-hand side, as reciprocals.
+#[derive(Clone, Copy, Debug)]
+struct PerStep {
+    inv_q_s_max: f64,
+    inv_vol_s: f64,
+    inv_vol_b: f64,
+    inv_t_diffusion: f64,
+    half_inv_sn: f64,
+    half_inv_sp: f64,
+    /// R / (F alpha), V/K.
+    v_part_per_k: f64,
 }
 
 /// The state indices of the three overpotential lags advanced exactly over a step (ohmic, negative, positive).
@@ -301,8 +313,16 @@ impl ExtendedCell {
             xp_min: base.xp_min,
             xp_span: base.xp_max - base.xp_min,
             q_s_max_c: model.q_max_c(&d) * p.vol_s_fraction,
-            vol_s_m3: p.vol_s_fraction * p.vol_m3,
-            vol_b_m3: p.vol_m3 * (1.0 - p.vol_s_fraction),
+            per_step: PerStep {
+                inv_q_s_max: 1.0 / (model.q_max_c(&d) * p.vol_s_fraction),
+                // The surface and bulk volumes, as the common model derives them.
+                inv_vol_s: 1.0 / (p.vol_s_fraction * p.vol_m3),
+                inv_vol_b: 1.0 / (p.vol_m3 * (1.0 - p.vol_s_fraction)),
+                inv_t_diffusion: 1.0 / p.t_diffusion_s,
+                half_inv_sn: 0.5 / p.sn_m2,
+                half_inv_sp: 0.5 / p.sp_m2,
+                v_part_per_k: GAS_CONSTANT / FARADAY / p.alpha,
+            },
             kn: p.kn,
             kp: p.kp,
             model,
@@ -384,17 +404,18 @@ impl ExtendedCell {
     fn rates_and_steady(&self, i_a: f64, d: &Degradation) -> (ModelState, [f64; 3]) {
         let p = &self.model.params;
         let x = &self.x;
+        let k = &self.per_step;
         let (lo, hi) = MOLE_FRACTION_CLIP;
-        let v_part = GAS_CONSTANT / FARADAY * x[idx::T_B] / p.alpha;
+        let v_part = k.v_part_per_k * x[idx::T_B];
         let pow_alpha = |v: f64| if p.alpha == 0.5 { v.sqrt() } else { v.powf(p.alpha) };
-        let xn_s = (x[idx::QN_S] / self.q_s_max_c).clamp(lo, hi);
-        let diff_n = (x[idx::QN_B] / self.vol_b_m3 - x[idx::QN_S] / self.vol_s_m3) / p.t_diffusion_s;
+        let xn_s = (x[idx::QN_S] * k.inv_q_s_max).clamp(lo, hi);
+        let diff_n = (x[idx::QN_B] * k.inv_vol_b - x[idx::QN_S] * k.inv_vol_s) * k.inv_t_diffusion;
         let jn0 = p.kn * pow_alpha((1.0 - xn_s) * xn_s);
-        let xp_s = (x[idx::QP_S] / self.q_s_max_c).clamp(lo, hi);
-        let diff_p = (x[idx::QP_B] / self.vol_b_m3 - x[idx::QP_S] / self.vol_s_m3) / p.t_diffusion_s;
+        let xp_s = (x[idx::QP_S] * k.inv_q_s_max).clamp(lo, hi);
+        let diff_p = (x[idx::QP_B] * k.inv_vol_b - x[idx::QP_S] * k.inv_vol_s) * k.inv_t_diffusion;
         let jp0 = p.kp * pow_alpha((1.0 - xp_s) * xp_s);
         let steady =
-            [i_a * d.r_o_ohm, v_part * asinh(i_a / p.sn_m2 / (jn0 + jn0)), v_part * asinh(i_a / p.sp_m2 / (jp0 + jp0))];
+            [i_a * d.r_o_ohm, v_part * asinh(i_a * k.half_inv_sn / jn0), v_part * asinh(i_a * k.half_inv_sp / jp0)];
         let mut rates = ModelState::zeros();
         rates[idx::QP_S] = i_a + diff_p;
         rates[idx::QP_B] = -diff_p;
@@ -580,7 +601,8 @@ mod tests {
                 // (got, want, scale): a lag's steady value is rebuilt from x + tau dx, exact to the state's size.
                 let mut pairs: Vec<(f64, f64, f64)> = [idx::QP_S, idx::QP_B, idx::QN_B, idx::QN_S, idx::T_B]
                     .into_iter()
-                    .map(|j| (rates[j], want[j], want[j].abs()))
+                    // Rates in C/s (A) and K/s: to 1e-12 of an ampere where they vanish (a cell at rest).
+                    .map(|j| (rates[j], want[j], want[j].abs().max(1.0)))
                     .collect();
                 for ((j, tau_s), got) in LAGS.into_iter().zip([p.t_o_s, p.t_sn_s, p.t_sp_s]).zip(steady) {
                     let w = x[j] + tau_s * want[j];
