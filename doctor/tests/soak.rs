@@ -10,7 +10,9 @@
 //! `BCAL_DOCTOR_SOAK_CAUSES` limits the truths (comma list of cause names); `BCAL_DOCTOR_SOAK_OUT` also
 //! writes the report (Markdown) to that file, and `BCAL_DOCTOR_SOAK_JSONL` appends every cell's candidate
 //! figures to that file (one JSON line per cell). Rows are the hidden truth, columns the cause the doctor
-//! named; held-out gains are per truth over the seeds.
+//! named; held-out gains are per truth over the seeds. The last two rows are whole lives ([`LIFE_CAUSES`]:
+//! a sensor offset over a constant-current life, recovery after rest), named by the voltage diagnosis and
+//! the lifetime one together ([`life_named`]; `recovery` is its own column).
 
 mod common;
 
