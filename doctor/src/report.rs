@@ -212,11 +212,11 @@ fn lifetime_section(o: &mut String, l: &Lifetime) {
     let _ = writeln!(o, "\n## The cell's life across discharges\n");
     let _ = writeln!(
         o,
-        "**Recovery after rest: {}.** {} Fitted on cycles {}-{}, judged on {}-{}; capacity is the charge drawn \
+        "**Recovery after rest{}:** {}. Fitted on cycles {}-{}, judged on {}-{}; capacity is the charge drawn \
          under load to the cut-off. Model: capacity = trend (linear in cycle, and in ambient temperature and load \
          current when they vary) + A R, where each rest fills R by 1 - exp(-rest / tau) and each discharge wears \
          it off by exp(-1 / d).\n",
-        if l.recovery { "present" } else { "not named" },
+        if l.recovery { "" } else { " not named" },
         l.verdict,
         l.train_cycles.0,
         l.train_cycles.1,
