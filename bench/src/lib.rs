@@ -6,13 +6,15 @@
 //! - [`calib`]: UKF, RL policy and direct-mapping steps in us and in battery-model steps;
 //! - [`transport`]: actor -> replay transitions per second and one-way latency through iceoryx2 across
 //!   processes, beside an in-process crossbeam channel carrying the same batches;
-//! - [`learner`]: LAC updates per second at batch 256 with the paper's networks.
+//! - [`learner`]: LAC updates per second at batch 256 with the paper's networks;
+//! - [`doctor`]: one diagnosis with every candidate cause, per record and cause (`--only doctor`).
 //!
 //! [`run`] runs the selected parts into a [`BenchReport`] (serialised as bench.json); [`render_table`]
 //! prints it. Like the evaluator, the library never prints: progress goes to a callback. Timing never
 //! fails anything: the report states what was measured and under which load.
 
 pub mod calib;
+pub mod doctor;
 pub mod learner;
 pub mod model;
 pub mod transport;
@@ -36,25 +38,29 @@ pub struct Parts {
     pub calib: bool,
     pub transport: bool,
     pub learner: bool,
+    #[serde(default)]
+    pub doctor: bool,
 }
 
 impl Parts {
-    pub const ALL: Parts = Parts { model: true, calib: true, transport: true, learner: true };
-    pub const NAMES: [&'static str; 4] = ["model", "calib", "transport", "learner"];
+    pub const ALL: Parts = Parts { model: true, calib: true, transport: true, learner: true, doctor: true };
+    pub const NAMES: [&'static str; 5] = ["model", "calib", "transport", "learner", "doctor"];
 
     /// Parses a comma-separated list of [`Self::NAMES`].
     pub fn parse(list: &str) -> Result<Self, String> {
-        let mut p = Parts { model: false, calib: false, transport: false, learner: false };
+        const NONE: Parts = Parts { model: false, calib: false, transport: false, learner: false, doctor: false };
+        let mut p = NONE;
         for name in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
             match name {
                 "model" => p.model = true,
                 "calib" => p.calib = true,
                 "transport" => p.transport = true,
                 "learner" => p.learner = true,
+                "doctor" => p.doctor = true,
                 other => return Err(format!("unknown part `{other}`; the parts are {}", Self::NAMES.join(", "))),
             }
         }
-        if p == (Parts { model: false, calib: false, transport: false, learner: false }) {
+        if p == NONE {
             return Err(format!("name at least one part of {}", Self::NAMES.join(", ")));
         }
         Ok(p)
@@ -79,6 +85,9 @@ pub struct Settings {
     pub learner_rows: Vec<(Vec<usize>, usize)>,
     /// Learner minibatch (the paper's 256).
     pub learner_batch: usize,
+    /// Records of the doctor part's diagnosis.
+    #[serde(default)]
+    pub doctor_records: usize,
 }
 
 impl Settings {
@@ -105,6 +114,7 @@ impl Settings {
             learner_window_s: 6.0,
             learner_rows,
             learner_batch: 256,
+            doctor_records: 24,
         }
     }
 
@@ -123,6 +133,7 @@ impl Settings {
             },
             learner_window_s: 0.8,
             learner_rows: vec![(calib::HIDDEN_PAPER.to_vec(), 1), (calib::HIDDEN_DEFAULT.to_vec(), 1)],
+            doctor_records: 6,
             ..Self::full()
         }
     }
@@ -208,6 +219,8 @@ pub struct BenchReport {
     pub transport: Option<transport::TransportReport>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub learner: Option<LearnerReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub doctor: Option<doctor::DoctorRow>,
     /// Wall time of the whole run, s.
     pub seconds: f64,
 }
@@ -234,6 +247,7 @@ pub fn run(
         calib: None,
         transport: None,
         learner: None,
+        doctor: None,
         seconds: 0.0,
     };
     if parts.model {
@@ -291,6 +305,15 @@ pub fn run(
             rows.push(LearnerRowWithRatio { ratio_to_first: row.updates_per_s / first, row });
         }
         report.learner = Some(LearnerReport { rows });
+    }
+    if parts.doctor {
+        progress(&format!("doctor: one diagnosis, every cause, {} simulated records ...", settings.doctor_records));
+        let row = doctor::measure(settings.doctor_records)?;
+        progress(&format!(
+            "doctor: {:.1} s, {:.3} s per record and cause",
+            row.seconds, row.seconds_per_record_and_cause
+        ));
+        report.doctor = Some(row);
     }
     // Last: from the transport part on, iceoryx2 captures Ctrl-C for the rest of the process (the part's
     // loops ask for it; later work would not).
@@ -446,6 +469,22 @@ pub fn render_table(r: &BenchReport) -> String {
             );
         }
     }
+    if let Some(d) = &r.doctor {
+        let _ = writeln!(o, "\n## Doctor (one diagnosis, every candidate cause; `bcal diagnose`'s defaults)\n");
+        let _ = writeln!(o, "| records | causes | samples per record | step s | s | s per record and cause | named |");
+        let _ = writeln!(o, "| ---: | ---: | ---: | ---: | ---: | ---: | --- |");
+        let _ = writeln!(
+            o,
+            "| {} | {} | {} | {} | {} | {} | {} |",
+            d.records,
+            d.causes,
+            d.samples,
+            num(d.dt_s),
+            num(d.seconds),
+            num(d.seconds_per_record_and_cause),
+            d.cause
+        );
+    }
     o
 }
 
@@ -455,7 +494,10 @@ mod tests {
 
     #[test]
     fn parts_parse_and_refuse_unknown_names() {
-        assert_eq!(Parts::parse("model,learner").unwrap(), Parts { calib: false, transport: false, ..Parts::ALL });
+        assert_eq!(
+            Parts::parse("model,learner").unwrap(),
+            Parts { calib: false, transport: false, doctor: false, ..Parts::ALL }
+        );
         assert!(Parts::parse("model,gpu").unwrap_err().contains("unknown part `gpu`"));
         assert!(Parts::parse(" , ").is_err());
     }

@@ -19,6 +19,7 @@ use crate::fit::{fit, refit_cycles, simulate_record, CycleStart, FitConfig, FitR
 use crate::record::{Discharge, Windows, DEFAULT_CUTOFF_V, PARTIAL_START_DROP_V};
 use crate::sim::{Cause, ExtParams};
 use bcal_common::battery::Degradation;
+use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::BTreeMap;
 
@@ -100,7 +101,7 @@ impl CycleFit {
 
     /// This cycle's fit as the start of another.
     pub fn start(&self) -> CycleStart {
-        CycleStart { d: self.degradation(), ext: self.ext }
+        CycleStart { d: self.degradation(), ext: self.ext, rmse_v: Some(self.rmse_mv / 1000.0) }
     }
 }
 
@@ -191,9 +192,17 @@ pub struct Diagnosis {
     pub cell: String,
     /// The named cause: the best candidate, or `none`.
     pub cause: &'static str,
+    /// What the verdict rests on: `fit_window` (the held-out loads, as ranked in `candidates`),
+    /// `rest_before` (the load showed nothing and the rest before it named the cause: `rest_candidates`),
+    /// or `none`.
+    pub named_on: &'static str,
     /// Every candidate's name, best first.
     pub ranking: Vec<&'static str>,
     pub candidates: Vec<Candidate>,
+    /// When the load showed nothing but the rest before it did: the candidates with shared parameters
+    /// fitted on the training rests too, best first by held-out RMSE over the load and the rest (their
+    /// `score_mv` stays the fit window's). Empty otherwise.
+    pub rest_candidates: Vec<Candidate>,
     pub base: ModelResult,
     pub extended: ModelResult,
     /// Held-out gain of the extended model over the base, %.
@@ -208,6 +217,9 @@ pub struct Diagnosis {
     /// Records that ended under load at or below the cut-off, used as complete discharges.
     pub ended_at_cutoff_count: usize,
     pub settings: Settings,
+    /// The cell's life across discharges ([`crate::lifetime::assess`]): `None` until the caller adds it (it
+    /// needs every record of the life and their start times, which the voltage diagnosis does not see).
+    pub lifetime: Option<crate::lifetime::Lifetime>,
 }
 
 /// The settings the diagnosis ran with.
@@ -259,6 +271,19 @@ fn prepare<'a>(cfg: &DiagnoseConfig, train: &'a [Discharge], heldout: &'a [Disch
                     Some(format!("ends under load at {:.3} V, above {cutoff_said}: truncated", last_v(&w))),
                 ),
                 Some(w) if w.fit_len() < 5 => ("excluded", Some("fewer than 5 loaded samples above the floor".into())),
+                // Every loaded sample follows a load step (or its settling time): the load switches about as
+                // often as it is sampled (B0025's 20 s square wave at 10 s samples), so when each step came,
+                // and with it every sampled voltage, is unknown.
+                Some(w) if FitRecord::new(d, w, fc).used.len() < 5 => (
+                    "excluded",
+                    Some(format!(
+                        "{} of {} loaded samples above the floor follow a load step by less than {} s: the load \
+                         switches about as often as it is sampled, so no sampled voltage can be fitted",
+                        w.fit_len() - FitRecord::new(d, w, fc).used.len(),
+                        w.fit_len(),
+                        fc.settle_s
+                    )),
+                ),
                 Some(w) if w.ended_at_cutoff => (
                     role,
                     Some(format!(
@@ -337,11 +362,16 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
     let noise_mv = base_train_structure.noise_mv;
 
     // 2. Each candidate alone.
-    let mut results: Vec<(Cause, ModelResult)> = Vec::new();
-    for &c in &cfg.causes {
-        let f = fit(&cfg.fit, &p.train, &[c], &ExtParams::default(), Some(&base_train_starts))?;
-        results.push((c, judge(cfg, &p, &[c], f, Some(&base), Some(&base_held_starts))?));
-    }
+    // The candidates are independent: run side by side (each one's fits are parallel over records too, and
+    // rayon shares the cores between both levels).
+    let mut results: Vec<(Cause, ModelResult)> = cfg
+        .causes
+        .par_iter()
+        .map(|&c| {
+            let f = fit(&cfg.fit, &p.train, &[c], &ExtParams::default(), Some(&base_train_starts))?;
+            Ok((c, judge(cfg, &p, &[c], f, Some(&base), Some(&base_held_starts))?))
+        })
+        .collect::<Result<_, DoctorError>>()?;
     results.sort_by(|a, b| a.1.score_mv.total_cmp(&b.1.score_mv));
     let ranking: Vec<&'static str> = results.iter().map(|(c, _)| c.name()).collect();
     // The verdict is `none` when the base model already meets the noise on every judged sample, or when
@@ -353,27 +383,69 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
         && (base_rest.samples == 0 || base_rest.rmse_mv <= cfg.noise_factor * noise_mv);
     let best_gain = results.first().map_or(0.0, |r| r.1.gain_pct.max(r.1.record_gain_pct));
     let is_noise = base_within_noise || best_gain < cfg.min_gain_pct;
-    let cause = if is_noise { "none" } else { results[0].0.name() };
+    let mut cause = if is_noise { "none" } else { results[0].0.name() };
+    let mut named_on = if is_noise { "none" } else { "fit_window" };
+    let mut extended_from_rest: Option<ModelResult> = None;
+
+    // 2b. When the load shows nothing but the rest before it does, the rest is the only evidence left: under
+    // one constant current a sensor offset is exactly Ro * I to the calibrated Ro, so its parameter is not
+    // even determined by the fit window (a whole constant-current life hiding a 15-30 mV offset was named
+    // `none`; its candidate's offset wandered to wherever the flat direction left it). The candidates with
+    // shared parameters are then fitted on the training records' rests too, judged on the held-out records
+    // with their rests (where nothing is calibrated), and ranked by that RMSE with the same penalty.
+    let mut rest_results: Vec<(Cause, ModelResult)> = Vec::new();
+    let rest_shows = base_rest.samples > 0 && base_rest.rmse_mv > cfg.noise_factor * noise_mv;
+    if is_noise && rest_shows {
+        let train_rest: Vec<FitRecord<'_>> = p.train.iter().cloned().map(FitRecord::with_rest_before).collect();
+        let has_temperature = p.train.iter().all(|r| r.d.temperature_k.is_some());
+        rest_results = cfg
+            .causes
+            .par_iter()
+            .filter(|c| !c.params(has_temperature).is_empty())
+            .map(|&c| {
+                let f = fit(&cfg.fit, &train_rest, &[c], &ExtParams::default(), Some(&base_train_starts))?;
+                Ok((c, judge(cfg, &p, &[c], f, Some(&base), Some(&base_held_starts))?))
+            })
+            .collect::<Result<_, DoctorError>>()?;
+        let rest_score = |m: &ModelResult| m.heldout_record_rmse_mv * (1.0 + cfg.penalty_per_param * m.n_params as f64);
+        rest_results.sort_by(|a, b| rest_score(&a.1).total_cmp(&rest_score(&b.1)));
+        // Named when it lowers the judged record's RMSE by the naming gain without costing the fit window
+        // more than the extension step's gain.
+        if let Some((c, m)) = rest_results
+            .first()
+            .filter(|(_, m)| m.record_gain_pct >= cfg.min_gain_pct && m.gain_pct >= -cfg.min_step_gain_pct)
+        {
+            cause = c.name();
+            named_on = "rest_before";
+            extended_from_rest = Some(m.clone());
+        }
+    }
 
     // 3. Extended model: add causes while each buys held-out accuracy.
-    let mut extended = base.clone();
+    let mut extended = extended_from_rest.unwrap_or_else(|| base.clone());
     if !is_noise {
         let mut chosen = vec![results[0].0];
         extended = results[0].1.clone();
         while chosen.len() < cfg.max_causes {
+            let starts: Vec<CycleStart> = extended.train_cycles.iter().map(CycleFit::start).collect();
+            let held: Vec<CycleStart> = extended.heldout_cycles.iter().map(CycleFit::start).collect();
+            let tried: Vec<(Cause, ModelResult)> = results
+                .iter()
+                .filter(|(c, r)| !chosen.contains(c) && r.gain_pct >= cfg.min_step_gain_pct)
+                .collect::<Vec<_>>()
+                .into_par_iter()
+                .map(|(c, _)| {
+                    let mut causes = chosen.clone();
+                    causes.push(*c);
+                    let f = fit(&cfg.fit, &p.train, &causes, &extended.ext, Some(&starts))?;
+                    Ok((*c, judge(cfg, &p, &causes, f, Some(&base), Some(&held))?))
+                })
+                .collect::<Result<_, DoctorError>>()?;
+            // The first of equal scores, in ranking order, as the sequential search took it.
             let mut best_next: Option<(Cause, ModelResult)> = None;
-            for (c, r) in &results {
-                if chosen.contains(c) || r.gain_pct < cfg.min_step_gain_pct {
-                    continue;
-                }
-                let mut causes = chosen.clone();
-                causes.push(*c);
-                let starts: Vec<CycleStart> = extended.train_cycles.iter().map(CycleFit::start).collect();
-                let held: Vec<CycleStart> = extended.heldout_cycles.iter().map(CycleFit::start).collect();
-                let f = fit(&cfg.fit, &p.train, &causes, &extended.ext, Some(&starts))?;
-                let m = judge(cfg, &p, &causes, f, Some(&base), Some(&held))?;
+            for (c, m) in tried {
                 if best_next.as_ref().is_none_or(|(_, b)| m.score_mv < b.score_mv) {
-                    best_next = Some((*c, m));
+                    best_next = Some((c, m));
                 }
             }
             // A cause joins when it lowers the held-out RMSE by the step gain and also lowers the penalised
@@ -392,6 +464,18 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
         }
     }
     let gain_pct = extended.gain_pct;
+    let candidate = |(c, r): &(Cause, ModelResult)| Candidate {
+        cause: c.name(),
+        params: r.params.clone(),
+        cycle_params: r.cycle_params.clone(),
+        train_rmse_mv: r.train_rmse_mv,
+        heldout_rmse_mv: r.heldout_rmse_mv,
+        gain_pct: r.gain_pct,
+        record_gain_pct: r.record_gain_pct,
+        score_mv: r.score_mv,
+        removes: r.removes.clone(),
+    };
+    let rest_candidates = rest_results.iter().map(candidate).collect();
     let candidates = results
         .iter()
         .map(|(c, r)| Candidate {
@@ -409,8 +493,10 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
     Ok(Diagnosis {
         cell,
         cause,
+        named_on,
         ranking,
         candidates,
+        rest_candidates,
         base,
         extended,
         gain_pct,
@@ -434,6 +520,7 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
             cutoff_given: cfg.cutoff_v.is_some(),
             partial_start_drop_v: cfg.partial_start_drop_v,
         },
+        lifetime: None,
     })
 }
 
@@ -491,7 +578,7 @@ fn judge(
                         ext.set(s.name, crate::fit::ext_value(&last, s.name).unwrap_or(s.start));
                     }
                 }
-                CycleStart { d: st.d, ext }
+                CycleStart { d: st.d, ext, rmse_v: st.rmse_v }
             })
             .collect()
     });

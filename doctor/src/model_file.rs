@@ -1,7 +1,9 @@
 //! Reading back the model a diagnosis chose (`diagnosis.json`'s `extended` part): its causes and the
 //! shared parameters fitted on the training cycles. `bcal calibrate --model` and `bcal cell-config
 //! --model` run the calibrators on it; the per-cycle parameters are calibrated again on every cycle.
+//! [`load_lifetime`] reads the capacity lifetime model (recovery after rest) a calibrator's prior can use.
 
+use crate::lifetime::LifetimeModel;
 use crate::sim::{Cause, ExtParams};
 use crate::DoctorError;
 use bcal_common::text::shown;
@@ -81,9 +83,74 @@ pub fn load_model(path: &Path) -> Result<DiagnosedModel, DoctorError> {
     Ok(DiagnosedModel { cell: f.cell, path: file, causes, shared, cycles })
 }
 
+/// The capacity lifetime model of a diagnosis (`diagnosis.json`'s `lifetime`, see [`crate::lifetime`]), for a
+/// calibrator's prior across discharges ([`crate::lifetime::LifeTracker`]): the model with recovery when the
+/// diagnosis named recovery after rest, else the trend alone. `Ok(None)` when the diagnosis has no lifetime
+/// section or its capacity series was not fitted.
+pub fn load_lifetime(path: &Path) -> Result<Option<LifetimeModel>, DoctorError> {
+    let file = if path.is_dir() { path.join("diagnosis.json") } else { path.to_path_buf() };
+    let text = std::fs::read_to_string(&file).map_err(|source| DoctorError::Io { path: file.clone(), source })?;
+    let bad = |why: String| DoctorError::BadModelFile { path: file.clone(), why };
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| bad(format!("not a diagnosis written by bcal diagnose ({e})")))?;
+    let Some(life) = v.get("lifetime").filter(|l| !l.is_null()) else { return Ok(None) };
+    let Some(capacity) = life.get("capacity").filter(|c| !c.is_null()) else { return Ok(None) };
+    let recovery = life.get("recovery").and_then(serde_json::Value::as_bool).unwrap_or(false);
+    let key = if recovery { "with_recovery" } else { "without_recovery" };
+    let model = capacity.get(key).ok_or_else(|| bad(format!("`lifetime.capacity.{key}` is missing")))?;
+    let m: LifetimeModel = serde_json::from_value(model.clone())
+        .map_err(|e| bad(format!("`lifetime.capacity.{key}` is not a lifetime model ({e})")))?;
+    let numbers =
+        [m.intercept, m.per_cycle, m.amplitude, m.tau_rest_s, m.decay_discharges, m.usual_rest_s, m.residual_sd];
+    if numbers.iter().any(|x| !x.is_finite())
+        || (m.amplitude > 0.0 && !(m.tau_rest_s > 0.0 && m.decay_discharges > 0.0))
+    {
+        return Err(bad(format!("`lifetime.capacity.{key}` holds a value out of range: {m:?}")));
+    }
+    Ok(Some(m))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_diagnosis_reads_back_its_lifetime_model() {
+        use crate::lifetime::{Condition, Quantity};
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("diagnosis.json");
+        let m = LifetimeModel {
+            quantity: Quantity::CapacityAh,
+            intercept: 1.8,
+            per_cycle: -0.003,
+            reference_cycle: 20.5,
+            per_kelvin: 0.0,
+            per_ampere: 0.0,
+            reference: Condition { ambient_c: 24.0, current_a: 2.0 },
+            amplitude: 0.065,
+            tau_rest_s: 54_720.0,
+            decay_discharges: 5.0,
+            usual_rest_s: 17_000.0,
+            residual_sd: 0.004,
+            jump_sd_fraction: 0.5,
+        };
+        let trend = LifetimeModel { amplitude: 0.0, tau_rest_s: 0.0, decay_discharges: 0.0, ..m };
+        let file = |recovery: bool| {
+            serde_json::json!({"cell": "B0005", "lifetime": {"recovery": recovery,
+                "capacity": {"with_recovery": m, "without_recovery": trend}}})
+            .to_string()
+        };
+        std::fs::write(&p, file(true)).unwrap();
+        assert_eq!(load_lifetime(dir.path()).unwrap(), Some(m));
+        std::fs::write(&p, file(false)).unwrap();
+        assert_eq!(load_lifetime(&p).unwrap(), Some(trend));
+        std::fs::write(&p, r#"{"cell":"B0005","lifetime":null}"#).unwrap();
+        assert_eq!(load_lifetime(&p).unwrap(), None);
+        std::fs::write(&p, r#"{"lifetime":{"recovery":true,"capacity":{"with_recovery":{"quantity":"capacity_ah"}}}}"#)
+            .unwrap();
+        let e = load_lifetime(&p).unwrap_err().to_string();
+        assert!(e.contains("lifetime.capacity.with_recovery") && e.contains("diagnosis.json"), "{e}");
+    }
 
     #[test]
     fn a_diagnosis_reads_back_its_causes_and_shared_values_and_bad_files_are_refused() {

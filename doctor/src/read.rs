@@ -188,6 +188,50 @@ pub struct ReadReport {
     pub skipped: Vec<Skipped>,
     /// Everything else worth saying: gaps kept, segments dropped, a sign against the format's convention.
     pub notes: Vec<String>,
+    /// When each record read started on the source's clock (NASA: `start_time` in metadata.csv, as seconds
+    /// since 1970 read as UTC; a CSV: its time column at the record's first sample), for the lifetime
+    /// diagnosis's rest between discharges ([`crate::lifetime`]). Records whose start is unknown are absent.
+    pub starts: Vec<RecordStart>,
+}
+
+/// When a record started, s on the source's clock (only differences between records mean anything).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct RecordStart {
+    pub cycle: u32,
+    pub start_s: f64,
+}
+
+/// Parses NASA's `start_time`, a MATLAB date vector printed by numpy (`[2008. 4. 2. 15. 25. 41.593]` or
+/// `[2.0080e+03 4.0000e+00 ...]`), into seconds since 1970-01-01 read as UTC. `None` unless it holds six
+/// finite numbers forming a calendar date and time.
+pub fn parse_matlab_datevec(text: &str) -> Option<f64> {
+    let inner = text.trim().strip_prefix('[')?.strip_suffix(']')?;
+    let v: Vec<f64> = inner
+        .split(|c: char| c.is_whitespace() || c == ',')
+        .filter(|s| !s.is_empty())
+        .map(str::parse)
+        .collect::<Result<_, _>>()
+        .ok()?;
+    let [y, mo, d, h, mi, sec] = <[f64; 6]>::try_from(v).ok()?;
+    let whole = |x: f64, lo: f64, hi: f64| (x.fract() == 0.0 && (lo..=hi).contains(&x)).then_some(x as i64);
+    let (y, mo, d, h, mi) = (
+        whole(y, 1900.0, 2200.0)?,
+        whole(mo, 1.0, 12.0)?,
+        whole(d, 1.0, 31.0)?,
+        whole(h, 0.0, 23.0)?,
+        whole(mi, 0.0, 59.0)?,
+    );
+    if !(0.0..61.0).contains(&sec) {
+        return None;
+    }
+    // Days from 1970-01-01 to the civil date (H. Hinnant's days_from_civil).
+    let yy = if mo <= 2 { y - 1 } else { y };
+    let era = yy.div_euclid(400);
+    let yoe = yy - era * 400;
+    let doy = (153 * (mo + if mo > 2 { -3 } else { 9 }) + 2) / 5 + d - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    let days = era * 146_097 + doe - 719_468;
+    Some(days as f64 * 86_400.0 + (h * 3600 + mi * 60) as f64 + sec)
 }
 
 impl ReadReport {
@@ -295,8 +339,11 @@ fn nasa_folder(
         col("filename")?,
         col("Capacity")?,
     );
-    // (test_id, filename, ambient_c, capacity_ah, metadata line) of the cell's discharges.
+    // Optional: without it the records read as before and the lifetime diagnosis has no schedule.
+    let c_start = headers.iter().position(|h| h.trim() == "start_time");
+    // (test_id, filename, ambient_c, capacity_ah, start, metadata line) of the cell's discharges.
     let mut rows = Vec::new();
+    let mut bad_starts = Vec::new();
     for rec in rdr.records() {
         let rec = rec.map_err(|e| csv_error(&meta_path, e, &mut lines))?;
         if rec.get(c_type) != Some("discharge") || rec.get(c_cell) != Some(cell) {
@@ -313,7 +360,11 @@ fn nasa_folder(
         if !matches!((parts.next(), parts.next()), (Some(std::path::Component::Normal(_)), None)) {
             return Err(DoctorError::NotAFileName { path: meta_path, line, value: shown(file, 80) });
         }
-        rows.push((test_id, file.to_string(), ambient_c, capacity_ah));
+        let start_s = c_start.and_then(|c| rec.get(c)).and_then(parse_matlab_datevec);
+        if let (Some(c), None) = (c_start, start_s) {
+            bad_starts.push(format!("line {line}: `{}`", shown(rec.get(c).unwrap_or(""), 40)));
+        }
+        rows.push((test_id, file.to_string(), ambient_c, capacity_ah, start_s));
     }
     if rows.is_empty() {
         return Err(DoctorError::NothingSelected {
@@ -322,9 +373,18 @@ fn nasa_folder(
     }
     rows.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut report = ReadReport { format: if strict { "" } else { "nasa" }, ..ReadReport::default() };
+    if !bad_starts.is_empty() {
+        report.notes.push(format!(
+            "{}: field `start_time` is not a date vector [Y M D h m s] on {} of the cell's discharge rows (first: {}); \
+             the rest before those discharges is unknown",
+            meta_path.display(),
+            bad_starts.len(),
+            bad_starts[0]
+        ));
+    }
     let mut out = Vec::new();
     let mut first_error = None;
-    for (k, (_, file, ambient_c, capacity_ah)) in rows.into_iter().enumerate() {
+    for (k, (_, file, ambient_c, capacity_ah, start_s)) in rows.into_iter().enumerate() {
         let cycle = k as u32 + 1;
         if cycles.is_some_and(|r| !r.contains(&cycle)) {
             continue;
@@ -344,6 +404,7 @@ fn nasa_folder(
         match read {
             Ok((mut d, sign)) => {
                 d.stated_capacity_ah = capacity_ah;
+                report.starts.extend(start_s.map(|start_s| RecordStart { cycle, start_s }));
                 if !strict {
                     report.notes.extend(gap_note(&d, opts.gap_factor));
                     report.signs.push(sign);
@@ -704,6 +765,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             match validate(d).and_then(|d| plausible_charge(d, &cols.time.header)) {
                 Ok(d) => {
                     report.notes.extend(gap_note(&d, opts.gap_factor));
+                    report.starts.push(RecordStart { cycle: number, start_s: t0 });
                     out.push(d);
                 }
                 Err(e) => {
@@ -1445,6 +1507,28 @@ mod tests {
         assert_eq!(parse_cycle_range("3..=3").unwrap(), 3..=3);
         for bad in ["", "5", "0..3", "9..2", "a..b"] {
             assert!(parse_cycle_range(bad).is_err(), "{bad}");
+        }
+    }
+}
+
+#[cfg(test)]
+mod start_time_tests {
+    use super::parse_matlab_datevec;
+
+    #[test]
+    fn nasa_start_times_parse_in_both_printings() {
+        // B0005's first two discharges, as metadata.csv prints them.
+        let a = parse_matlab_datevec("[2.0080e+03 4.0000e+00 2.0000e+00 1.5000e+01 2.5000e+01 4.1593e+01]").unwrap();
+        let b = parse_matlab_datevec("[2008.       4.       2.      19.      43.      48.406]").unwrap();
+        assert!((b - a - (4.0 * 3600.0 + 18.0 * 60.0 + 6.813)).abs() < 1e-6, "{}", b - a);
+        // 2008-04-02 15:25:41.593 UTC.
+        assert!((a - 1_207_149_941.593).abs() < 1e-6, "{a}");
+        // Across a month and a leap day.
+        let feb = parse_matlab_datevec("[2008. 2. 28. 23. 0. 0.]").unwrap();
+        let mar = parse_matlab_datevec("[2008. 3. 1. 1. 0. 0.]").unwrap();
+        assert_eq!(mar - feb, 26.0 * 3600.0);
+        for bad in ["", "[]", "[2008 4 2 15 25]", "2008 4 2 15 25 41", "[2008 13 2 15 25 41]", "[2008 4 2 15 25 x]"] {
+            assert_eq!(parse_matlab_datevec(bad), None, "{bad}");
         }
     }
 }

@@ -4,6 +4,7 @@
 use crate::analysis::Structure;
 use crate::diagnose::{Diagnosis, ModelResult};
 use crate::error::DoctorError;
+use crate::lifetime::Lifetime;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -51,9 +52,10 @@ pub fn markdown(d: &Diagnosis) -> String {
     let _ = writeln!(o, "# Diagnosis of {}\n", d.cell);
     let _ = writeln!(
         o,
-        "**Cause: `{}`.** Base model held-out RMSE {:.1} mV; extended model ({}) {:.1} mV: gain {:.1} %. \
+        "**Cause: `{}`{}.** Base model held-out RMSE {:.1} mV; extended model ({}) {:.1} mV: gain {:.1} %. \
          Noise estimate {:.1} mV.\n",
         d.cause,
+        if d.named_on == "rest_before" { " (named on the rest before the load: the load showed nothing)" } else { "" },
         d.base.heldout_rmse_mv,
         if d.extended.causes.is_empty() { "no extension".to_string() } else { d.extended.causes.join(" + ") },
         d.extended.heldout_rmse_mv,
@@ -145,6 +147,28 @@ pub fn markdown(d: &Diagnosis) -> String {
             e.rmse_mv
         );
     }
+    if !d.rest_candidates.is_empty() {
+        let _ = writeln!(
+            o,
+            "\n## Candidates judged with the rest before the load (the load showed nothing, the rest did)\n\n\
+             Fitted on the training loads and rests, judged on the held-out loads and rests; best first by that \
+             RMSE{}.\n",
+            if d.named_on == "rest_before" { " (the verdict rests on this table)" } else { " (none gained enough)" }
+        );
+        let _ = writeln!(o, "| cause | shared params | held-out load RMSE mV | gain % | gain with rest % |");
+        let _ = writeln!(o, "| --- | --- | --- | --- | --- |");
+        for c in &d.rest_candidates {
+            let params = c.params.iter().map(|(k, v)| format!("{k} = {v:.4}")).collect::<Vec<_>>().join(", ");
+            let _ = writeln!(
+                o,
+                "| `{}` | {} | {:.2} | {:.1} | {:.1} |",
+                c.cause, params, c.heldout_rmse_mv, c.gain_pct, c.record_gain_pct
+            );
+        }
+    }
+    if let Some(l) = &d.lifetime {
+        lifetime_section(&mut o, l);
+    }
     let _ = writeln!(o, "\n## Records\n");
     let excluded: Vec<String> = d
         .records
@@ -179,4 +203,85 @@ pub fn markdown(d: &Diagnosis) -> String {
         s.max_causes
     );
     o
+}
+
+/// The cell's life: the verdict on recovery after rest, the model's numbers, the held-out capacity errors,
+/// and the per-cycle series.
+fn lifetime_section(o: &mut String, l: &Lifetime) {
+    let f = |x: Option<f64>, p: usize| x.map_or("-".to_string(), |v| format!("{v:.p$}"));
+    let _ = writeln!(o, "\n## The cell's life across discharges\n");
+    let _ = writeln!(
+        o,
+        "**Recovery after rest{}:** {}. Fitted on cycles {}-{}, judged on {}-{}; capacity is the charge drawn \
+         under load to the cut-off. Model: capacity = trend (linear in cycle, and in ambient temperature and load \
+         current when they vary) + A R, where each rest fills R by 1 - exp(-rest / tau) and each discharge wears \
+         it off by exp(-1 / d).\n",
+        if l.recovery { "" } else { " not named" },
+        l.verdict,
+        l.train_cycles.0,
+        l.train_cycles.1,
+        l.heldout_cycles.0,
+        l.heldout_cycles.1
+    );
+    let _ = writeln!(
+        o,
+        "| A Ah | tau h | d discharges | usual rest h | longest rest h | its jump Ah | held-out capacity RMSE one ahead, \
+         without -> with, Ah | gain % |"
+    );
+    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- | --- |");
+    let _ = writeln!(
+        o,
+        "| {} | {} | {} | {} | {} | {} | {} -> {} | {} |",
+        f(l.amplitude_ah, 3),
+        f(l.tau_rest_h, 1),
+        f(l.decay_discharges, 1),
+        f(l.usual_rest_s.map(|s| s / 3600.0), 1),
+        f(l.longest_rest_s.map(|s| s / 3600.0), 1),
+        f(l.largest_jump_ah, 3),
+        f(l.heldout_capacity_rmse_without_ah, 4),
+        f(l.heldout_capacity_rmse_ah, 4),
+        f(l.gain_pct, 0)
+    );
+    for s in [&l.capacity, &l.q_mobile].into_iter().flatten() {
+        let _ = writeln!(
+            o,
+            "\n{:?}: {} training and {} held-out values; one ahead {:.4} -> {:.4} ({:.0} %), open loop {:.4} -> {:.4} \
+             ({:.0} %); {:.0} % of held-out values inside the one-ahead 90 % interval.",
+            s.quantity,
+            s.train_points,
+            s.heldout_points,
+            s.heldout_rmse_without,
+            s.heldout_rmse,
+            s.gain_pct,
+            s.open_loop_rmse_without,
+            s.open_loop_rmse,
+            s.open_loop_gain_pct,
+            100.0 * s.interval_coverage
+        );
+    }
+    for n in &l.notes {
+        let _ = writeln!(o, "\nNote: {n}");
+    }
+    let _ = writeln!(
+        o,
+        "\n| cycle | role | rest before h | capacity Ah | predicted Ah (with / without recovery) | R | ambient C | current A | base qMobile C | base Ro ohm |"
+    );
+    let _ = writeln!(o, "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    for p in &l.series {
+        let _ = writeln!(
+            o,
+            "| {} | {} | {} | {} | {} / {} | {} | {:.1} | {:.2} | {} | {} |",
+            p.cycle,
+            p.role,
+            f(p.rest_before_s.map(|s| s / 3600.0), 1),
+            f(p.capacity_ah, 4),
+            f(p.predicted_ah, 4),
+            f(p.predicted_without_recovery_ah, 4),
+            f(p.recovery, 3),
+            p.condition.ambient_c,
+            p.condition.current_a,
+            f(p.q_mobile_c, 0),
+            f(p.r_o_ohm, 4)
+        );
+    }
 }

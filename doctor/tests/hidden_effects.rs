@@ -7,7 +7,7 @@
 
 mod common;
 
-use common::{cell, diagnose_cell, Effect, Truth, CYCLES, NOISE_V};
+use common::{cell, diagnose_cell, diagnose_life, Effect, Truth, CYCLES, NOISE_V};
 
 /// The seed of every CI case (the soak run reports seeds 1-8; thresholds were chosen on 100-104).
 const SEED: u64 = 1;
@@ -139,4 +139,42 @@ fn current_gain() {
             1.0 / gain
         );
     }
+}
+
+/// A 15-30 mV sensor offset over a whole life of constant-current discharges: under one current the offset is
+/// exactly Ro * I to the calibrated Ro, so the loads show nothing and only the rest before each load does. The
+/// doctor names it from the rest, with the offset within 2 mV of the truth, and finds no recovery.
+#[test]
+fn voltage_offset_over_a_constant_current_life() {
+    let (truth, diag) = diagnose_life("voltage_offset_life", SEED);
+    assert_eq!(diag.cause, "voltage_offset", "truth {truth:?}: {:?}", diag.rest_candidates);
+    assert_eq!(diag.named_on, "rest_before");
+    let offset_v = diag.extended.params["voltage_offset_v"];
+    assert!((offset_v - truth.offset_v).abs() < 0.002, "offset {offset_v:.4} V vs truth {:.4} V", truth.offset_v);
+    assert!(
+        diag.extended.heldout_record_rmse_mv < 2.0 * 1000.0 * NOISE_V,
+        "{:.2} mV",
+        diag.extended.heldout_record_rmse_mv
+    );
+    let life = diag.lifetime.unwrap();
+    assert!(!life.recovery, "{}", life.verdict);
+}
+
+/// Capacity recovering after the pauses of a test schedule (the generator's own reservoir, refilled during
+/// rests and used by discharges): the voltage diagnosis names nothing (qMobile, calibrated per cycle,
+/// follows the capacity), the lifetime diagnosis names recovery, lowers the held-out capacity error one ahead
+/// by 10 % or more, and puts what a long rest adds within a factor of two of the truth's reservoir.
+#[test]
+fn recovery_after_rest() {
+    let (truth, diag) = diagnose_life("recovery", SEED);
+    assert_eq!(diag.cause, "none", "candidates {:?}", diag.candidates);
+    let life = diag.lifetime.unwrap();
+    assert!(life.recovery, "truth {:?}: {}", truth.reservoir, life.verdict);
+    assert!(life.gain_pct.unwrap() >= 10.0, "{}", life.verdict);
+    // A full reservoir adds `gain` of qMobile; in capacity, that share of the cell's mean capacity.
+    let r = truth.reservoir.unwrap();
+    let caps: Vec<f64> = life.series.iter().filter_map(|p| p.capacity_ah).collect();
+    let want_ah = r.gain * caps.iter().sum::<f64>() / caps.len() as f64;
+    let got_ah = life.amplitude_ah.unwrap();
+    assert!((0.5..2.0).contains(&(got_ah / want_ah)), "A {got_ah:.3} Ah vs truth {want_ah:.3} Ah");
 }

@@ -8,11 +8,13 @@
 //! at 1-3 A (constant current, or piecewise with short rests), each a rest, the load down to the 3.0 V
 //! cut-off and a relaxation, sampled at irregular 5-20 s with Gaussian sensor noise (3 mV; 5-10 mA and
 //! 0.1-0.5 K drawn per cell). Capacity and resistance age from cycle to cycle; the two ageing effects
-//! (`electrode_balance`, `charge_transfer`) drift per cycle on top.
+//! (`electrode_balance`, `charge_transfer`) drift per cycle on top. [`life`] makes whole lives (40
+//! constant-current discharges on a test schedule) for the two lifetime truths, [`LIFE_CAUSES`].
 
 #![allow(dead_code)]
 
 pub mod cell;
+pub mod life;
 
 use bcal_doctor::read::read_generic;
 use bcal_doctor::{DiagnoseConfig, Discharge};
@@ -353,5 +355,48 @@ pub fn diagnose_cell(cause: &str, seed: u64) -> (Truth, bcal_doctor::Diagnosis) 
     assert_eq!(records.len(), CYCLES, "every discharge reads back");
     let (train, held) = records.split_at(N_TRAIN);
     let diag = bcal_doctor::diagnose(&config(), train, held).unwrap();
+    (truth, diag)
+}
+
+/// The truths of whole-life cells ([`life`]): a voltage-sensor offset over a whole constant-current life, and
+/// recovery after rest. Rows of the soak run's confusion matrix after [`CAUSES`].
+pub const LIFE_CAUSES: [&str; 2] = ["voltage_offset_life", "recovery"];
+
+/// What the doctor named for a whole-life cell: the voltage diagnosis's cause, `recovery` when the lifetime
+/// diagnosis names recovery and the voltage one names nothing, both joined by `+` otherwise.
+pub fn life_named(diag: &bcal_doctor::Diagnosis) -> String {
+    match (diag.cause, diag.lifetime.as_ref().is_some_and(|l| l.recovery)) {
+        (cause, false) => cause.to_string(),
+        ("none", true) => "recovery".to_string(),
+        (cause, true) => format!("{cause}+recovery"),
+    }
+}
+
+/// Draws the whole life hiding `cause` (a [`LIFE_CAUSES`] name) for `seed`, runs the voltage diagnosis on
+/// [`life::VOLTAGE_TRAIN`] / [`life::VOLTAGE_HELDOUT`] and the lifetime diagnosis on every record (fitted
+/// on cycles 1..=[`life::LIFE_TRAIN`], judged on the rest), attached to the diagnosis.
+pub fn diagnose_life(cause: &str, seed: u64) -> (life::LifeTruth, bcal_doctor::Diagnosis) {
+    use rand::SeedableRng;
+    let k = LIFE_CAUSES.iter().position(|c| *c == cause).expect("a life cause") as u64;
+    let mut rng = StdRng::seed_from_u64(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ (k << 56) ^ 0x11fe);
+    let truth = life::LifeTruth::draw(if cause == "recovery" { "recovery" } else { "voltage_offset" }, &mut rng);
+    let dir = tempfile::tempdir().unwrap();
+    let (records, starts) = life::write_and_read_life(dir.path(), &truth, &mut rng);
+    assert_eq!(records.len(), life::LIFE_CYCLES as usize, "every discharge reads back");
+    let pick =
+        |cycles: &[u32]| -> Vec<Discharge> { records.iter().filter(|d| cycles.contains(&d.cycle)).cloned().collect() };
+    let cfg = config();
+    let mut diag = bcal_doctor::diagnose(&cfg, &pick(&life::VOLTAGE_TRAIN), &pick(&life::VOLTAGE_HELDOUT)).unwrap();
+    let life_cfg = bcal_doctor::lifetime::LifetimeConfig::from_diagnose(&cfg);
+    let lifetime = bcal_doctor::lifetime::assess(
+        &life_cfg,
+        &records,
+        &starts,
+        &(1..=life::LIFE_TRAIN),
+        &(life::LIFE_TRAIN + 1..=life::LIFE_CYCLES),
+        Some(&diag),
+    )
+    .unwrap();
+    diag.lifetime = Some(lifetime);
     (truth, diag)
 }
