@@ -3,9 +3,10 @@
 //! physically meaningful extension of the model), judges them on held-out cycles, and extends the model with
 //! the winner(s).
 //!
-//! Data flow: [`read`] (NASA PCoE records or the generic CSV) -> [`record::Discharge`] -> [`fit`] (bounded
-//! least squares over [`sim`], the extended simulator) -> [`analysis`] (residual structure) -> [`diagnose`]
-//! (candidates, ranking, extension) -> [`report`] (JSON, Markdown) and [`plot`] (PNG, SVG).
+//! Data flow: [`input`] (what the user pointed at: cell, cycles, cut-off) and [`read`] (NASA PCoE records
+//! or the generic CSV) -> [`record::Discharge`] -> [`fit`] (bounded least squares over [`sim`], the extended
+//! simulator) -> [`analysis`] (residual structure) -> [`diagnose`] (candidates, ranking, extension) ->
+//! [`report`] (JSON, Markdown) and [`plot`] (PNG, SVG).
 //!
 //! The doctor never prints and never learns which effect a test hid: it sees only the data it is given.
 
@@ -13,6 +14,7 @@ pub mod analysis;
 pub mod diagnose;
 pub mod error;
 pub mod fit;
+pub mod input;
 pub mod model_file;
 pub mod plot;
 pub mod read;
