@@ -1,18 +1,21 @@
 //! bcal-bench: measures every performance figure the README quotes, each beside the baseline it is compared
 //! against, in one run (`bcal bench`; what each figure is: `docs/bench.md`).
 //!
-//! Four parts, each a module with one `measure` function:
+//! Five parts, each a module with one `measure` function:
 //! - [`model`]: battery-model steps per second on one core (the unit of everything else);
 //! - [`calib`]: UKF, RL policy and direct-mapping steps in us and in battery-model steps;
 //! - [`transport`]: actor -> replay transitions per second and one-way latency through iceoryx2 across
 //!   processes, beside an in-process crossbeam channel carrying the same batches;
-//! - [`learner`]: LAC updates per second at batch 256 with the paper's networks.
+//! - [`learner`]: LAC updates per second at batch 256 with the paper's networks;
+//! - [`follow`]: latency per reading of `bcal calibrate --follow -` (a real process on pipes), beside the
+//!   same stream stepped in process.
 //!
 //! [`run`] runs the selected parts into a [`BenchReport`] (serialised as bench.json); [`render_table`]
 //! prints it. Like the evaluator, the library never prints: progress goes to a callback. Timing never
 //! fails anything: the report states what was measured and under which load.
 
 pub mod calib;
+pub mod follow;
 pub mod learner;
 pub mod model;
 pub mod transport;
@@ -27,6 +30,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+pub use follow::SpawnFollow;
 pub use transport::{publish, PublisherArgs, SpawnPublisher};
 
 /// Which parts to run.
@@ -36,25 +40,29 @@ pub struct Parts {
     pub calib: bool,
     pub transport: bool,
     pub learner: bool,
+    #[serde(default)]
+    pub follow: bool,
 }
 
 impl Parts {
-    pub const ALL: Parts = Parts { model: true, calib: true, transport: true, learner: true };
-    pub const NAMES: [&'static str; 4] = ["model", "calib", "transport", "learner"];
+    pub const ALL: Parts = Parts { model: true, calib: true, transport: true, learner: true, follow: true };
+    pub const NONE: Parts = Parts { model: false, calib: false, transport: false, learner: false, follow: false };
+    pub const NAMES: [&'static str; 5] = ["model", "calib", "transport", "learner", "follow"];
 
     /// Parses a comma-separated list of [`Self::NAMES`].
     pub fn parse(list: &str) -> Result<Self, String> {
-        let mut p = Parts { model: false, calib: false, transport: false, learner: false };
+        let mut p = Parts::NONE;
         for name in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
             match name {
                 "model" => p.model = true,
                 "calib" => p.calib = true,
                 "transport" => p.transport = true,
                 "learner" => p.learner = true,
+                "follow" => p.follow = true,
                 other => return Err(format!("unknown part `{other}`; the parts are {}", Self::NAMES.join(", "))),
             }
         }
-        if p == (Parts { model: false, calib: false, transport: false, learner: false }) {
+        if p == Parts::NONE {
             return Err(format!("name at least one part of {}", Self::NAMES.join(", ")));
         }
         Ok(p)
@@ -79,6 +87,9 @@ pub struct Settings {
     pub learner_rows: Vec<(Vec<usize>, usize)>,
     /// Learner minibatch (the paper's 256).
     pub learner_batch: usize,
+    /// Readings timed per calibrator in the follow part.
+    #[serde(default)]
+    pub follow_readings: usize,
 }
 
 impl Settings {
@@ -105,6 +116,7 @@ impl Settings {
             learner_window_s: 6.0,
             learner_rows,
             learner_batch: 256,
+            follow_readings: 300,
         }
     }
 
@@ -123,6 +135,7 @@ impl Settings {
             },
             learner_window_s: 0.8,
             learner_rows: vec![(calib::HIDDEN_PAPER.to_vec(), 1), (calib::HIDDEN_DEFAULT.to_vec(), 1)],
+            follow_readings: 60,
             ..Self::full()
         }
     }
@@ -208,17 +221,20 @@ pub struct BenchReport {
     pub transport: Option<transport::TransportReport>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub learner: Option<LearnerReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub follow: Option<follow::FollowReport>,
     /// Wall time of the whole run, s.
     pub seconds: f64,
 }
 
 /// Runs the selected parts: model, calib, learner, then transport (the table prints transport before the
-/// learner). `spawn` builds the command of one transport publisher process; `cache_dir` is the dataset
-/// cache (experiment multi).
+/// learner). `spawn` builds the command of one transport publisher process, `spawn_follow` that of one
+/// `bcal calibrate --follow -`; `cache_dir` is the dataset cache (experiment multi).
 pub fn run(
     settings: &Settings,
     cache_dir: &Path,
     spawn: SpawnPublisher,
+    spawn_follow: SpawnFollow,
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<BenchReport> {
     let started = Instant::now();
@@ -234,6 +250,7 @@ pub fn run(
         calib: None,
         transport: None,
         learner: None,
+        follow: None,
         seconds: 0.0,
     };
     if parts.model {
@@ -291,6 +308,9 @@ pub fn run(
             rows.push(LearnerRowWithRatio { ratio_to_first: row.updates_per_s / first, row });
         }
         report.learner = Some(LearnerReport { rows });
+    }
+    if parts.follow {
+        report.follow = Some(follow::measure(settings.follow_readings, spawn_follow, progress)?);
     }
     // Last: from the transport part on, iceoryx2 captures Ctrl-C for the rest of the process (the part's
     // loops ask for it; later work would not).
@@ -378,6 +398,27 @@ pub fn render_table(r: &BenchReport) -> String {
             let _ = writeln!(o, "| {} | {} | {} |", row.label, num(row.us), num(row.model_steps));
         }
     }
+    if let Some(f) = &r.follow {
+        let _ = writeln!(
+            o,
+            "\n## Live readings: `bcal calibrate --follow -` (reading written to its estimate read back, through \
+             pipes; baseline: the same stream stepped in process)\n"
+        );
+        let _ = writeln!(o, "| calibrator | readings | p50 us | p90 us | max us | in process p50 us |");
+        let _ = writeln!(o, "| --- | ---: | ---: | ---: | ---: | ---: |");
+        for row in &f.rows {
+            let _ = writeln!(
+                o,
+                "| {} | {} | {} | {} | {} | {} |",
+                row.calibrator,
+                row.readings,
+                num(row.latency_p50_us),
+                num(row.latency_p90_us),
+                num(row.latency_max_us),
+                num(row.in_process_p50_us)
+            );
+        }
+    }
     if let Some(t) = &r.transport {
         let _ = writeln!(
             o,
@@ -455,7 +496,10 @@ mod tests {
 
     #[test]
     fn parts_parse_and_refuse_unknown_names() {
-        assert_eq!(Parts::parse("model,learner").unwrap(), Parts { calib: false, transport: false, ..Parts::ALL });
+        assert_eq!(
+            Parts::parse("model,learner").unwrap(),
+            Parts { calib: false, transport: false, follow: false, ..Parts::ALL }
+        );
         assert!(Parts::parse("model,gpu").unwrap_err().contains("unknown part `gpu`"));
         assert!(Parts::parse(" , ").is_err());
     }
