@@ -114,6 +114,7 @@ class Calibrator:
     its .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior).
     `model`: the doctor's extended model (diagnosis.json, or its folder). `config`: a bcal config TOML
     (`bcal cell-config` writes one per cell). `ambient_c`: temperature of readings that give none.
+    `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0).
 
     Raises ValueError for a bad kind or file content, FileNotFoundError / OSError for unreadable
     files, NotImplementedError for a kind this build lacks.
@@ -126,6 +127,7 @@ class Calibrator:
         model: Optional[PathLike] = None,
         config: Optional[PathLike] = None,
         ambient_c: Optional[float] = None,
+        cutoff_v: Optional[float] = None,
     ) -> None: ...
     @property
     def kind(self) -> str:

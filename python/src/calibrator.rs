@@ -37,7 +37,7 @@ fn build(kind: CalibratorKind, spec: &TrackerSpec) -> Result<Box<dyn CalibratorT
 /// `model`: the doctor's extended model (diagnosis.json of `bcal diagnose`, or its folder). `config`: a
 /// bcal config TOML (`bcal cell-config` writes one per cell) whose `measured.tracker` sets ranges, prior
 /// and cut-off. `ambient_c`: the temperature of readings that give none, deg C (default the model's
-/// 18.95 C). Raises ValueError (bad kind or files), FileNotFoundError / OSError (unreadable files) and
+/// 18.95 C). `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0). Raises ValueError (bad kind or files), FileNotFoundError / OSError (unreadable files) and
 /// NotImplementedError (a kind this build lacks).
 #[pyclass(module = "bcal")]
 pub struct Calibrator {
@@ -94,13 +94,14 @@ impl Calibrator {
 #[pymethods]
 impl Calibrator {
     #[new]
-    #[pyo3(signature = (kind, policy=None, model=None, config=None, ambient_c=None))]
+    #[pyo3(signature = (kind, policy=None, model=None, config=None, ambient_c=None, cutoff_v=None))]
     fn new(
         kind: &str,
         policy: Option<PathBuf>,
         model: Option<PathBuf>,
         config: Option<PathBuf>,
         ambient_c: Option<f64>,
+        cutoff_v: Option<f64>,
     ) -> PyResult<Self> {
         let kind: CalibratorKind = kind.parse().map_err(stream_error)?;
         if let Some(c) = ambient_c.filter(|c| !c.is_finite()) {
@@ -119,13 +120,17 @@ impl Calibrator {
             .map_err(doctor_error)?
             .map(|m| m.extension(reference_k));
         let policy_name = policy.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
-        let spec = resolve_spec(
+        let mut spec = resolve_spec(
             kind,
             config_spec.as_ref(),
             policy_file.as_ref().map(|p| (&p.task, policy_name.as_str())),
             ext.as_ref(),
         )
         .map_err(stream_error)?;
+        if let Some(v) = cutoff_v {
+            spec.cutoff_v =
+                bcal_common::simulate::positive(v).map_err(|why| value_error(format!("cutoff_v: {why}")))?;
+        }
         let cal = build(kind, &spec).map_err(stream_error)?;
         Ok(Self { kind, stream: Mutex::new(Stream::new(cal, &spec, ambient_c)) })
     }

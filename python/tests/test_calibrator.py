@@ -130,3 +130,10 @@ def test_prediction_state_and_spec(discharge):
     assert repr(cal) == f"Calibrator('fit', readings={half})"
     with pytest.raises(ValueError, match="current_a: -1 must be greater than 0"):
         cal.predict_eod_s(-1.0)
+    # A higher cut-off ends sooner; the same readings otherwise.
+    high = make("fit", cutoff_v=3.3)
+    for r in discharge.iloc[:half].itertuples():
+        h = high.step(r.time_s, r.voltage_v, r.current_a, r.temperature_c)
+    assert h["q_mobile"] == e["q_mobile"] and h["eod_s"] < e["eod_s"]
+    with pytest.raises(ValueError, match="cutoff_v: 0 must be greater than 0"):
+        make("fit", cutoff_v=0.0)
