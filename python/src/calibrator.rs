@@ -7,26 +7,43 @@ use crate::convert::{dict, from_serde};
 use crate::errors::{doctor_error, stream_error, value_error};
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::math::idx;
-use bcal_common::measured::calibrator::{Calibrator as CalibratorTrait, Uncalibrated, WindowFitCalibrator};
+use bcal_common::measured::calibrator::{
+    Calibrator as CalibratorTrait, RlCalibrator, Uncalibrated, WindowFitCalibrator,
+};
 use bcal_common::measured::stream::{resolve_spec, CalibratorKind, Estimate, Reading, Stream, StreamError};
 use bcal_common::measured::tracker::TrackerSpec;
-use bcal_common::policy::PolicyFile;
+use bcal_common::policy::{PolicyFile, PolicyNet};
 use pyo3::exceptions::PyOSError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
-/// The calibrator of `kind` on `spec`.
-fn build(kind: CalibratorKind, spec: &TrackerSpec) -> Result<Box<dyn CalibratorTrait + Send + 'static>, StreamError> {
-    match kind {
-        CalibratorKind::Fit => Ok(Box::new(WindowFitCalibrator::new(spec))),
-        CalibratorKind::Uncalibrated => Ok(Box::new(Uncalibrated::new(spec))),
-        CalibratorKind::Ukf | CalibratorKind::AdaptiveUkf | CalibratorKind::Rl => {
-            Err(StreamError::NotAvailable(kind.name()))
-        }
+/// The calibrator of `kind` on `spec` (`net`: the RL policy's network, for `rl`).
+fn build<'a>(
+    kind: CalibratorKind,
+    spec: &TrackerSpec,
+    net: Option<&'a PolicyNet>,
+) -> Result<Box<dyn CalibratorTrait + Send + 'a>, StreamError> {
+    match (kind, net) {
+        (CalibratorKind::Fit, _) => Ok(Box::new(WindowFitCalibrator::new(spec))),
+        (CalibratorKind::Uncalibrated, _) => Ok(Box::new(Uncalibrated::new(spec))),
+        (CalibratorKind::Rl, Some(net)) => Ok(Box::new(RlCalibrator::new(spec, net))),
+        (CalibratorKind::Rl, None) => Err(StreamError::NoPolicy),
+        (CalibratorKind::Ukf | CalibratorKind::AdaptiveUkf, _) => Err(StreamError::NotAvailable(kind.name())),
     }
 }
+
+type StreamOf<'a> = Stream<'a>;
+
+self_cell::self_cell!(
+    /// The RL policy's network (None for other kinds) and the stream whose calibrator borrows it.
+    struct Owned {
+        owner: Option<PolicyNet>,
+        #[not_covariant]
+        dependent: StreamOf,
+    }
+);
 
 /// A calibrator of the NASA Li-ion model fed one reading at a time, with no look-ahead: the estimate of
 /// qMobile (C) and Ro (ohm) with their 90 % intervals, and the end of discharge predicted from the
@@ -42,7 +59,7 @@ fn build(kind: CalibratorKind, spec: &TrackerSpec) -> Result<Box<dyn CalibratorT
 #[pyclass(module = "bcal")]
 pub struct Calibrator {
     kind: CalibratorKind,
-    stream: Mutex<Stream<'static>>,
+    stream: Mutex<Owned>,
 }
 
 fn load_policy(path: &Path) -> PyResult<PolicyFile> {
@@ -85,9 +102,9 @@ const RUN_COLUMNS: [&str; 10] =
     ["time_s", "q_mobile", "q_mobile_lo", "q_mobile_hi", "r_o", "r_o_lo", "r_o_hi", "eod_s", "eod_current_a", "row"];
 
 impl Calibrator {
-    fn with_stream<T>(&self, f: impl FnOnce(&mut Stream<'static>) -> T) -> T {
+    fn with_stream<T>(&self, f: impl FnOnce(&mut Stream<'_>) -> T) -> T {
         let mut s = self.stream.lock().unwrap_or_else(|e| e.into_inner());
-        f(&mut s)
+        s.with_dependent_mut(|_, stream| f(stream))
     }
 }
 
@@ -131,8 +148,11 @@ impl Calibrator {
             spec.cutoff_v =
                 bcal_common::simulate::positive(v).map_err(|why| value_error(format!("cutoff_v: {why}")))?;
         }
-        let cal = build(kind, &spec).map_err(stream_error)?;
-        Ok(Self { kind, stream: Mutex::new(Stream::new(cal, &spec, ambient_c)) })
+        let net = policy_file.as_ref().map(|p| p.net()).transpose().map_err(value_error)?;
+        let owned =
+            Owned::try_new(net, |net| build(kind, &spec, net.as_ref()).map(|cal| Stream::new(cal, &spec, ambient_c)))
+                .map_err(stream_error)?;
+        Ok(Self { kind, stream: Mutex::new(owned) })
     }
 
     /// The calibrator's kind ("ukf", "adaptive_ukf", "rl", "fit", "uncalibrated").

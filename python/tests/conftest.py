@@ -31,6 +31,23 @@ def bcal_cli() -> pathlib.Path:
     pytest.skip(msg)
 
 
+@pytest.fixture(scope="session")
+def rl_policy(tmp_path_factory) -> pathlib.Path:
+    """A measured-only RL policy file with fixed non-zero weights, written by the Rust test harness
+    (`cargo run -p bcal-tests --example write_policy`): Python cannot write one. Without cargo the RL
+    comparison skips (with BCAL_REQUIRE_CLI=1, as launch/test.sh runs it, it fails instead)."""
+    path = tmp_path_factory.mktemp("policy") / "test.bcalpol"
+    cargo = shutil.which("cargo")
+    if cargo is None:
+        if os.environ.get("BCAL_REQUIRE_CLI"):
+            pytest.fail("cargo is needed to write the test policy")
+        pytest.skip("cargo is needed to write the test policy")
+    out = subprocess.run([cargo, "run", "--quiet", "-p", "bcal-tests", "--example", "write_policy", "--", str(path)],
+                         cwd=REPO, capture_output=True, text=True, timeout=1200)
+    assert out.returncode == 0, out.stderr
+    return path
+
+
 def run_cli(cli: pathlib.Path, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([str(cli), *args], input=stdin, capture_output=True, text=True, timeout=600)
 

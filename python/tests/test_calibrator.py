@@ -49,6 +49,17 @@ def test_step_by_step_equals_the_cli_follow(bcal_cli, discharge, kind):
         assert abs(r_end - 0.14) < abs(0.15 - 0.14), r_end
 
 
+def test_an_rl_policy_file_gives_the_cli_s_estimates(bcal_cli, discharge, rl_policy):
+    cal = make("rl", policy=rl_policy)
+    ours = [cal.step(r.time_s, r.voltage_v, r.current_a, r.temperature_c) for r in discharge.itertuples()]
+    out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", f"rl:{rl_policy}",
+                  stdin=discharge.to_csv(index=False, float_format="%.17g"))
+    assert out.returncode == 0, out.stderr
+    theirs = [json.loads(line) for line in out.stdout.splitlines()]
+    assert [[a[f] for f in FIELDS] for a in ours] == [[b[f] for f in FIELDS] for b in theirs]
+    assert any(abs(a["q_mobile"] - 5500.0) > 1.0 for a in ours), "the policy moves the estimate"
+
+
 def test_run_on_a_dataframe_equals_stepping(discharge):
     frame = make("fit").run(discharge)
     assert list(frame.columns) == FIELDS + ["row"]

@@ -517,3 +517,15 @@ impl Drop for Piped {
         }
     }
 }
+
+/// Writes a measured-only RL policy file (the default cell setting, one hidden layer of 8) with fixed,
+/// non-zero weights: a policy whose actions move the estimate, for tests of `--calibrator rl:FILE` and the
+/// Python package's `Calibrator("rl")`. `tests/examples/write_policy.rs` writes one from the command line.
+pub fn write_test_policy(path: &Path) {
+    use bcal_common::policy::{PolicyFile, PolicyLayout};
+    let task = Task::Measured(bcal_common::measured::env::MeasuredSpec::default());
+    let layout = PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: vec![8] };
+    let params = (0..layout.n_params()).map(|k| 0.3 * (k as f32 * 1.618).sin()).collect();
+    let pf = PolicyFile { params, layout, task, experiment: bcal_common::dataset::Experiment::Multi, update_step: 1 };
+    pf.save(path).expect("write the test policy");
+}

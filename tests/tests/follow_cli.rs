@@ -167,3 +167,24 @@ fn follow_refuses_a_header_without_the_columns_and_a_missing_file() {
     assert!(!status.success());
     assert!(p.stderr().contains("--follow /nonexistent/live.csv: no such file"), "{}", p.stderr());
 }
+
+#[test]
+fn follow_runs_an_rl_policy_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let policy = dir.path().join("p.bcalpol");
+    bcal_tests::write_test_policy(&policy);
+    let arg = format!("rl:{}", policy.display());
+    let mut p = Piped::start("bcal", &["calibrate", "--follow", "-", "--calibrator", &arg]);
+    p.write_line("time_s,voltage_v,current_a");
+    let mut q = Vec::new();
+    for (k, (t, v, i)) in readings(20).into_iter().enumerate() {
+        p.write_line(&format!("{t},{v},{i}"));
+        q.push(estimate_of(&p, k as u64 + 2)["q_mobile"].as_f64().unwrap());
+    }
+    p.close_stdin();
+    let status = p.wait_timeout(WAIT).expect("ends");
+    assert!(status.success(), "{}", p.stderr());
+    assert!(p.stderr().contains("follow: rl on standard input"), "{}", p.stderr());
+    // The policy's actions move the estimate off the prior.
+    assert!(q.iter().any(|x| (x - 5500.0).abs() > 1.0), "{q:?}");
+}
