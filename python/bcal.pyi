@@ -117,7 +117,7 @@ class Calibrator:
     `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0).
 
     Raises ValueError for a bad kind or file content, FileNotFoundError / OSError for unreadable
-    files, NotImplementedError for a kind this build lacks.
+    files.
     """
 
     def __init__(

@@ -6,11 +6,8 @@
 //! of the figures (it waits for the process to start). The baseline is the same stream stepped in this
 //! process on the same readings (no pipes, no parsing, no printing).
 
+use bcal_calib::stream::{build, resolve, CalibratorKind, Reading, Stream};
 use bcal_common::battery::{BatteryModel, Degradation, Load};
-use bcal_common::measured::calibrator::{Calibrator, WindowFitCalibrator};
-use bcal_common::measured::stream::{Reading, Stream};
-use bcal_common::measured::tracker::TrackerSpec;
-use bcal_eval::joint_ukf::{JointUkf, JointUkfSettings};
 use serde::{Deserialize, Serialize};
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Command, Stdio};
@@ -20,7 +17,7 @@ use std::time::Instant;
 pub type SpawnFollow<'a> = &'a dyn Fn(&str) -> Command;
 
 /// The calibrators timed.
-pub const KINDS: [&str; 2] = ["ukf", "fit"];
+pub const KINDS: [&str; 3] = ["ukf", "adaptive_ukf", "fit"];
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FollowRow {
@@ -66,13 +63,10 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
 
-fn in_process_us(kind: &str, rs: &[Reading]) -> f64 {
-    let spec = TrackerSpec::default();
-    let cal: Box<dyn Calibrator + Send> = match kind {
-        "ukf" => Box::new(JointUkf::new(JointUkfSettings::default(), &spec)),
-        _ => Box::new(WindowFitCalibrator::new(&spec)),
-    };
-    let mut s = Stream::new(cal, &spec, None);
+fn in_process_us(kind: &str, rs: &[Reading]) -> anyhow::Result<f64> {
+    // The follow loop's own setup: the kind alone (no config, policy or model).
+    let setup = resolve(kind.parse::<CalibratorKind>()?, None, None, None)?;
+    let mut s = Stream::new(build(&setup, None)?, &setup.spec.tracker, None);
     let mut us: Vec<f64> = rs
         .iter()
         .map(|r| {
@@ -82,7 +76,7 @@ fn in_process_us(kind: &str, rs: &[Reading]) -> f64 {
         })
         .collect();
     us.sort_by(f64::total_cmp);
-    quantile(&us, 0.5)
+    Ok(quantile(&us, 0.5))
 }
 
 /// Times `n` readings through a follow process per calibrator of [`KINDS`].
@@ -122,7 +116,7 @@ pub fn measure(n: usize, spawn: SpawnFollow, progress: &mut dyn FnMut(&str)) -> 
             latency_p50_us: quantile(&us, 0.5),
             latency_p90_us: quantile(&us, 0.9),
             latency_max_us: us[us.len() - 1],
-            in_process_p50_us: in_process_us(kind, &rs),
+            in_process_p50_us: in_process_us(kind, &rs)?,
         };
         progress(&format!(
             "follow: {kind}: reading to estimate p50 {:.0} us, p90 {:.0} us (in process {:.0} us)",

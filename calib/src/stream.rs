@@ -198,12 +198,9 @@ pub fn resolve(
     };
     let mut spec = match (config, &policy_spec) {
         // The cell's config sets the cell; the policy keeps what it was trained as.
-        (Some(c), Some(p)) => MeasuredSpec {
-            scenario: c.scenario.clone(),
-            tracker: c.tracker.clone(),
-            ukf: c.ukf.or(p.ukf),
-            ..p.clone()
-        },
+        (Some(c), Some(p)) => {
+            MeasuredSpec { scenario: c.scenario.clone(), tracker: c.tracker.clone(), ukf: c.ukf.or(p.ukf), ..p.clone() }
+        }
         (Some(c), None) => c.clone(),
         (None, Some(p)) => p.clone(),
         (None, None) => MeasuredSpec::default(),
@@ -389,6 +386,37 @@ mod tests {
             assert_eq!(e.q_mobile_lo, bare.interval().map(|iv| iv.q_mobile_c[0]));
         }
         assert_eq!(stream.readings(), readings.len() as u64);
+    }
+
+    /// The setting: default, the config's, the policy's (its design and filter kept under a config), the
+    /// doctor's model on top; and the refusals.
+    #[test]
+    fn resolve_takes_config_then_policy_then_default() {
+        let d = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        assert_eq!(d.spec, MeasuredSpec::default());
+        let mut trained = MeasuredSpec { design: Design::WindowFit, ..MeasuredSpec::default() };
+        trained.tracker.prior = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.12 };
+        trained.ukf = Some(crate::JointUkfSettings { meas_std_v: 0.01, ..Default::default() });
+        let task = Task::Measured(trained.clone());
+        let rl = resolve(CalibratorKind::Rl, None, Some((&task, "p.bcalpol")), None).unwrap();
+        assert_eq!(rl.spec, trained);
+        let mut cell = MeasuredSpec::default();
+        cell.tracker.cutoff_v = 2.7;
+        let both = resolve(CalibratorKind::Rl, Some(&cell), Some((&task, "p.bcalpol")), None).unwrap();
+        assert_eq!((both.spec.tracker.cutoff_v, both.spec.design), (2.7, Design::WindowFit));
+        assert_eq!(both.ukf().meas_std_v, 0.01);
+        let ext = ModelExtension { causes: vec!["thermal".into()], ..Default::default() };
+        let on = resolve(CalibratorKind::Fit, Some(&cell), None, Some(&ext)).unwrap();
+        assert!(on.spec.tracker.use_measured_temperature && on.spec.tracker.model.has("thermal"));
+        assert_eq!(resolve(CalibratorKind::Rl, None, None, None).unwrap_err(), StreamError::NoPolicy);
+        assert_eq!(
+            resolve(CalibratorKind::Fit, None, Some((&task, "p")), None).unwrap_err(),
+            StreamError::PolicyWithoutRl("fit")
+        );
+        let e = resolve(CalibratorKind::Rl, None, Some((&task, "p")), Some(&ext)).unwrap_err();
+        assert!(e.to_string().contains("trained on the base model"), "{e}");
+        assert_eq!("adaptive-ukf".parse::<CalibratorKind>().unwrap(), CalibratorKind::AdaptiveUkf);
+        assert!("kalman".parse::<CalibratorKind>().is_err());
     }
 
     /// The prediction comes after the first loaded reading, lies ahead of it, and moves earlier with a

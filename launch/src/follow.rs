@@ -1,22 +1,21 @@
 //! `bcal calibrate --follow -|FILE`: one calibrator on readings as they arrive, from standard input or from
 //! a file another process is still writing. Each line (CSV rows under a `time_s,voltage_v,current_a
 //! [,temperature_c]` header, or JSON lines with those keys) goes through the stream the Python package
-//! runs too (`bcal_common::measured::stream`), and its estimate, interval and EOD prediction leave as
+//! runs too (`bcal_calib::stream`, which also builds the calibrator), and its estimate, interval and EOD
+//! prediction leave as
 //! one JSON line on standard output as soon as they are computed. A bad line is reported on standard
 //! error with its line number and skipped; end of input, `--idle-s` without a new line, or Ctrl-C
 //! (SIGINT, SIGTERM) ends the loop with a summary on standard error.
 //!
 //! A reader thread hands complete lines to the loop over a channel, so the loop can stop on a signal
-//! while the reader is blocked in a read. [`build`] is the one place that makes a calibrator here.
+//! while the reader is blocked in a read.
 
 use anyhow::{bail, Context};
+use bcal_calib::stream::{build, resolve, CalibratorKind, Estimate, Reading, Stream};
 use bcal_common::config::{Preset, TrainConfig};
-use bcal_common::measured::calibrator::{Calibrator, Uncalibrated, WindowFitCalibrator};
-use bcal_common::measured::stream::{resolve_spec, CalibratorKind, Reading, Stream};
-use bcal_common::measured::tracker::TrackerSpec;
-use bcal_common::policy::{PolicyFile, PolicyNet};
+use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::policy::PolicyFile;
 use bcal_doctor::read::CurrentSign;
-use bcal_eval::joint_ukf::{JointUkf, JointUkfSettings};
 use std::io::{BufRead, Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -39,24 +38,6 @@ pub struct FollowArgs {
     pub ambient_c: Option<f64>,
     pub current_sign: CurrentSign,
     pub idle_s: Option<f64>,
-}
-
-/// The calibrator of `kind` on `spec` (`net`: the RL policy's network, for `rl`).
-pub fn build<'a>(
-    kind: CalibratorKind,
-    spec: &TrackerSpec,
-    net: Option<&'a PolicyNet>,
-) -> anyhow::Result<Box<dyn Calibrator + Send + 'a>> {
-    Ok(match kind {
-        CalibratorKind::Ukf => Box::new(JointUkf::new(JointUkfSettings::default(), spec)),
-        CalibratorKind::Fit => Box::new(WindowFitCalibrator::new(spec)),
-        CalibratorKind::Uncalibrated => Box::new(Uncalibrated::new(spec)),
-        CalibratorKind::Rl => {
-            let net = net.context("the rl calibrator needs its policy network")?;
-            Box::new(bcal_common::measured::calibrator::RlCalibrator::new(spec, net))
-        }
-        CalibratorKind::AdaptiveUkf => bail!(bcal_common::measured::stream::StreamError::NotAvailable("adaptive_ukf")),
-    })
 }
 
 /// Events from the reader thread.
@@ -291,22 +272,23 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     let config = a
         .config
         .as_deref()
-        .map(|p| -> anyhow::Result<TrackerSpec> {
+        .map(|p| -> anyhow::Result<MeasuredSpec> {
             let c = TrainConfig::from_file_over(p, Preset::Measured)?;
             c.validate().with_context(|| format!("config {}", p.display()))?;
-            Ok(c.measured.tracker)
+            Ok(c.measured)
         })
         .transpose()?;
     let reference_k = a.ambient_c.map(|c| c + bcal_common::measured::scenario::KELVIN_0C);
     let model =
         a.model.as_deref().map(bcal_doctor::model_file::load_model).transpose()?.map(|m| m.extension(reference_k));
     let policy_name = policy_path.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
-    let mut spec =
-        resolve_spec(kind, config.as_ref(), policy.as_ref().map(|p| (&p.task, policy_name.as_str())), model.as_ref())?;
+    let mut setup =
+        resolve(kind, config.as_ref(), policy.as_ref().map(|p| (&p.task, policy_name.as_str())), model.as_ref())?;
     if let Some(v) = a.cutoff_v {
-        spec.cutoff_v = v;
+        setup.spec.tracker.cutoff_v = v;
     }
-    let mut stream = Stream::new(build(kind, &spec, net.as_ref())?, &spec, a.ambient_c);
+    let spec = setup.spec.tracker.clone();
+    let mut stream = Stream::new(build(&setup, net.as_ref())?, &spec, a.ambient_c);
     // The current's sign: positive discharges unless told otherwise (a stream cannot be read ahead to
     // decide, so `auto` takes the documented convention).
     let sign = if a.current_sign == CurrentSign::DischargeNegative { -1.0 } else { 1.0 };
@@ -390,7 +372,7 @@ fn take(
     stream: &mut Stream,
     step_us: &mut Vec<f64>,
     skipped: &mut Vec<u64>,
-) -> Option<bcal_common::measured::stream::Estimate> {
+) -> Option<Estimate> {
     let started = Instant::now();
     let result = layout.parse(line).and_then(|r| {
         let r = Reading { current_a: sign * r.current_a, ..r };
@@ -410,20 +392,14 @@ fn take(
 }
 
 /// Writes one estimate as a JSON line and flushes it.
-fn emit(out: &mut impl Write, line_no: u64, e: &bcal_common::measured::stream::Estimate) -> std::io::Result<()> {
+fn emit(out: &mut impl Write, line_no: u64, e: &Estimate) -> std::io::Result<()> {
     let mut v = serde_json::to_value(e).map_err(std::io::Error::other)?;
     v["line"] = serde_json::json!(line_no);
     writeln!(out, "{v}")?;
     out.flush()
 }
 
-fn summary(
-    ended: &Ended,
-    readings: u64,
-    skipped: &[u64],
-    last: Option<&bcal_common::measured::stream::Estimate>,
-    step_us: &[f64],
-) -> String {
+fn summary(ended: &Ended, readings: u64, skipped: &[u64], last: Option<&Estimate>, step_us: &[f64]) -> String {
     let why = match ended {
         Ended::EndOfInput => "end of input".to_string(),
         Ended::Signal => "stopped (Ctrl-C / SIGTERM)".to_string(),

@@ -1,38 +1,20 @@
 //! `bcal.Calibrator`: one calibrator fed one reading at a time through the stream `bcal calibrate
-//! --follow` runs (`bcal_common::measured::stream`), so a reading gives the same estimate here as there.
-//! Every use of calibrator types in the Python package sits in this module: [`build`] is the one place
-//! that makes a calibrator of a kind.
+//! --follow` runs (`bcal_calib::stream`: the same setup, the same calibrator built by the same function),
+//! so a reading gives the same estimate here as there. Every use of calibrator types in the Python package
+//! sits in this module.
 
 use crate::convert::{dict, from_serde};
-use crate::errors::{doctor_error, stream_error, value_error};
+use crate::errors::{doctor_error, value_error};
+use bcal_calib::stream::{build, resolve, CalibratorKind, Estimate, Reading, Stream, StreamError};
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::math::idx;
-use bcal_common::measured::calibrator::{
-    Calibrator as CalibratorTrait, RlCalibrator, Uncalibrated, WindowFitCalibrator,
-};
-use bcal_common::measured::stream::{resolve_spec, CalibratorKind, Estimate, Reading, Stream, StreamError};
-use bcal_common::measured::tracker::TrackerSpec;
+use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::{PolicyFile, PolicyNet};
 use pyo3::exceptions::PyOSError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-
-/// The calibrator of `kind` on `spec` (`net`: the RL policy's network, for `rl`).
-fn build<'a>(
-    kind: CalibratorKind,
-    spec: &TrackerSpec,
-    net: Option<&'a PolicyNet>,
-) -> Result<Box<dyn CalibratorTrait + Send + 'a>, StreamError> {
-    match (kind, net) {
-        (CalibratorKind::Fit, _) => Ok(Box::new(WindowFitCalibrator::new(spec))),
-        (CalibratorKind::Uncalibrated, _) => Ok(Box::new(Uncalibrated::new(spec))),
-        (CalibratorKind::Rl, Some(net)) => Ok(Box::new(RlCalibrator::new(spec, net))),
-        (CalibratorKind::Rl, None) => Err(StreamError::NoPolicy),
-        (CalibratorKind::Ukf | CalibratorKind::AdaptiveUkf, _) => Err(StreamError::NotAvailable(kind.name())),
-    }
-}
 
 type StreamOf<'a> = Stream<'a>;
 
@@ -54,8 +36,10 @@ self_cell::self_cell!(
 /// `model`: the doctor's extended model (diagnosis.json of `bcal diagnose`, or its folder). `config`: a
 /// bcal config TOML (`bcal cell-config` writes one per cell) whose `measured.tracker` sets ranges, prior
 /// and cut-off. `ambient_c`: the temperature of readings that give none, deg C (default the model's
-/// 18.95 C). `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0). Raises ValueError (bad kind or files), FileNotFoundError / OSError (unreadable files) and
-/// NotImplementedError (a kind this build lacks).
+/// 18.95 C). `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0). The
+/// joint UKF's settings are the config's or the RL run's (tuned on validation by `bcal train`), else the
+/// defaults; an RL policy runs as it was trained (on the window fit or as a correction of the joint UKF).
+/// Raises ValueError (bad kind or files) and FileNotFoundError / OSError (unreadable files).
 #[pyclass(module = "bcal")]
 pub struct Calibrator {
     kind: CalibratorKind,
@@ -73,13 +57,13 @@ fn load_policy(path: &Path) -> PyResult<PolicyFile> {
     })
 }
 
-fn load_config(path: &Path) -> PyResult<TrackerSpec> {
+fn load_config(path: &Path) -> PyResult<MeasuredSpec> {
     let c = TrainConfig::from_file_over(path, Preset::Measured).map_err(|e| match e {
         bcal_common::config::ConfigError::Read { .. } => PyOSError::new_err(e.to_string()),
         e => value_error(e),
     })?;
     c.validate().map_err(|e| value_error(format!("config {}: {e}", path.display())))?;
-    Ok(c.measured.tracker)
+    Ok(c.measured)
 }
 
 /// The estimate as the dict `step` returns (None where the calibrator cannot tell yet).
@@ -120,12 +104,12 @@ impl Calibrator {
         ambient_c: Option<f64>,
         cutoff_v: Option<f64>,
     ) -> PyResult<Self> {
-        let kind: CalibratorKind = kind.parse().map_err(stream_error)?;
+        let kind: CalibratorKind = kind.parse().map_err(value_error)?;
         if let Some(c) = ambient_c.filter(|c| !c.is_finite()) {
             return Err(value_error(format!("ambient_c = {c} is not a finite number")));
         }
         if policy.is_some() && kind != CalibratorKind::Rl {
-            return Err(stream_error(StreamError::PolicyWithoutRl(kind.name())));
+            return Err(value_error(StreamError::PolicyWithoutRl(kind.name())));
         }
         let policy_file = policy.as_deref().map(load_policy).transpose()?;
         let config_spec = config.as_deref().map(load_config).transpose()?;
@@ -137,21 +121,22 @@ impl Calibrator {
             .map_err(doctor_error)?
             .map(|m| m.extension(reference_k));
         let policy_name = policy.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
-        let mut spec = resolve_spec(
+        let mut setup = resolve(
             kind,
             config_spec.as_ref(),
             policy_file.as_ref().map(|p| (&p.task, policy_name.as_str())),
             ext.as_ref(),
         )
-        .map_err(stream_error)?;
+        .map_err(value_error)?;
         if let Some(v) = cutoff_v {
-            spec.cutoff_v =
+            setup.spec.tracker.cutoff_v =
                 bcal_common::simulate::positive(v).map_err(|why| value_error(format!("cutoff_v: {why}")))?;
         }
         let net = policy_file.as_ref().map(|p| p.net()).transpose().map_err(value_error)?;
-        let owned =
-            Owned::try_new(net, |net| build(kind, &spec, net.as_ref()).map(|cal| Stream::new(cal, &spec, ambient_c)))
-                .map_err(stream_error)?;
+        let owned = Owned::try_new(net, |net| {
+            build(&setup, net.as_ref()).map(|cal| Stream::new(cal, &setup.spec.tracker, ambient_c))
+        })
+        .map_err(value_error)?;
         Ok(Self { kind, stream: Mutex::new(owned) })
     }
 

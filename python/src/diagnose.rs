@@ -3,7 +3,7 @@
 
 use crate::convert::from_serde;
 use crate::errors::{doctor_error, value_error};
-use bcal_common::measured::stream::LOAD_THRESHOLD_A;
+use bcal_calib::stream::LOAD_THRESHOLD_A;
 use bcal_doctor::input::{cell_name, cutoff, read_any, split_cycles};
 use bcal_doctor::read::{parse_cycle_range, CurrentSign, ReadOptions};
 use bcal_doctor::{DiagnoseConfig, DoctorError};

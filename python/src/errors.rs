@@ -1,8 +1,8 @@
 //! Rust errors as Python exceptions: bad input (arguments, readings, files that are not what they should
-//! be) is `ValueError`, a file that cannot be read is `OSError` (`FileNotFoundError` when missing), a
-//! calibrator this build lacks is `NotImplementedError`; each carries the message the CLI prints.
+//! be) is `ValueError`, a file that cannot be read is `OSError` (`FileNotFoundError` when missing); each
+//! carries the message the CLI prints.
 
-use pyo3::exceptions::{PyFileNotFoundError, PyNotImplementedError, PyOSError, PyValueError};
+use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyValueError};
 use pyo3::PyErr;
 
 /// `ValueError` with `e`'s message.
@@ -20,13 +20,5 @@ pub fn doctor_error(e: bcal_doctor::DoctorError) -> PyErr {
             PyOSError::new_err(e.to_string())
         }
         _ => value_error(e),
-    }
-}
-
-/// A calibrator's setup error: `NotImplementedError` for one this build lacks, else `ValueError`.
-pub fn stream_error(e: bcal_common::measured::stream::StreamError) -> PyErr {
-    match e {
-        bcal_common::measured::stream::StreamError::NotAvailable(_) => PyNotImplementedError::new_err(e.to_string()),
-        e => value_error(e),
     }
 }

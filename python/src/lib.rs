@@ -1,7 +1,7 @@
 //! The `bcal` Python extension module: a thin pyo3 layer over the workspace's crates, with no logic of its
 //! own. `simulate` runs [`bcal_common::simulate`] (what `bcal simulate` runs), `diagnose` runs the doctor
 //! as `bcal diagnose` does, and `Calibrator` runs one calibrator on readings through the same stream
-//! (`bcal_common::measured::stream`) as `bcal calibrate --follow`. Every use of calibrator types sits in
+//! (`bcal_calib::stream`) as `bcal calibrate --follow`. Every use of calibrator types sits in
 //! [`calibrator`]. Errors become Python exceptions carrying the CLI's messages ([`errors`]).
 
 mod calibrator;

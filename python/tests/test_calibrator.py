@@ -17,10 +17,7 @@ FIELDS = ["time_s", "q_mobile", "q_mobile_lo", "q_mobile_hi", "r_o", "r_o_lo", "
 
 
 def make(kind: str, **kw) -> bcal.Calibrator:
-    try:
-        return bcal.Calibrator(kind, **kw)
-    except NotImplementedError as e:  # TEMPORARY until the rebase onto bcal-calib
-        pytest.skip(str(e))
+    return bcal.Calibrator(kind, **kw)
 
 
 @pytest.fixture(scope="module")
