@@ -130,24 +130,8 @@ fn load(a: &DiagnoseArgs) -> anyhow::Result<Loaded> {
         eprintln!("{line}");
     }
     anyhow::ensure!(!all.is_empty(), "{} holds no discharge record", a.data.display());
-    let last = all.iter().map(|d| d.cycle).max().unwrap_or(1);
-    let first = all.iter().map(|d| d.cycle).min().unwrap_or(1);
-    let (train_r, held_r): (RangeInclusive<u32>, RangeInclusive<u32>) = match (cycles, holdout) {
-        (Some(c), Some(h)) => (c, h),
-        (Some(c), None) => (c.clone(), c.end() + 1..=last),
-        (None, Some(h)) => (first..=h.start().saturating_sub(1).max(first), h),
-        (None, None) => {
-            let split = first + (last - first) / 3;
-            (first..=split, split + 1..=last)
-        }
-    };
-    let pick = |r: &RangeInclusive<u32>| -> Vec<Discharge> {
-        let wanted: Vec<u32> = r.clone().step_by(a.stride as usize).collect();
-        all.iter().filter(|d| wanted.contains(&d.cycle)).cloned().collect()
-    };
-    let (train, held) = (pick(&train_r), pick(&held_r));
-    anyhow::ensure!(!train.is_empty(), "no training record in cycles {train_r:?}");
-    anyhow::ensure!(!held.is_empty(), "no held-out record in cycles {held_r:?}");
+    let (train_r, held_r) = bcal_doctor::input::cycle_ranges(&all, cycles.clone(), holdout.clone());
+    let (train, held) = bcal_doctor::input::split_cycles(&all, cycles, holdout, a.stride)?;
     Ok(Loaded { cell, starts: report.starts, all, train_r, held_r, train, held })
 }
 
