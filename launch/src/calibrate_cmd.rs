@@ -297,6 +297,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Share of a cell policy's training episodes that are the cell's own recorded discharges (the rest are
+/// simulated cells around its model): half, so the policy meets the cell's real model error as often as the
+/// simulated variety around it.
+pub const RECORDED_SHARE: f64 = 0.5;
+
 pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let range = parse_cycle_range(&a.train_cycles)?;
     let cell = cell_name(&a.cell, &a.data)?;
@@ -321,7 +326,15 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     }
     let (causes, shared) = bcal_realcell::calibrate::model_parts(model.as_ref());
     let fits = bcal_realcell::calibrate::fits(&kept, &bcal_doctor::fit::FitConfig::default(), &causes, &shared)?;
-    let (spec, facts) = cell_spec(&records, &fits, cut);
+    let (mut spec, facts) = cell_spec(&records, &fits, cut);
+    // The cell's own recorded training discharges join the simulated ones in training (beside the config).
+    let set = bcal_realcell::recorded::recorded_set(&cell, &records, &fits);
+    let recorded_path = a.out.with_extension("recorded.json");
+    bcal_common::fsutil::write_atomic(&recorded_path, serde_json::to_string(&set)?.as_bytes())
+        .with_context(|| format!("cannot write {}", recorded_path.display()))?;
+    let file_name = recorded_path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    spec.scenario.recorded =
+        bcal_common::measured::scenario::RecordedConfig { path: Some(file_name), share: RECORDED_SHARE };
     let mut c: TrainConfig = Preset::Measured.config();
     c.measured = spec;
     c.learner.time_budget_s = a.budget_s;
@@ -335,7 +348,15 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     );
     bcal_common::fsutil::write_atomic(&a.out, format!("{header}{}", c.to_toml()).as_bytes())
         .with_context(|| format!("cannot write {}", a.out.display()))?;
-    println!("wrote {} (train with: bcal train --config {} --name NAME)", a.out.display(), a.out.display());
+    println!(
+        "wrote {} and its {} recorded training discharges ({} for validation) in {} (train with: bcal train --config {} \
+         --name NAME)",
+        a.out.display(),
+        set.train.len(),
+        set.validation.len(),
+        recorded_path.display(),
+        a.out.display()
+    );
     for r in &summary.refused {
         println!("refused: {r}");
     }

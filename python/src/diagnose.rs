@@ -4,7 +4,9 @@
 use crate::convert::from_serde;
 use crate::errors::{doctor_error, value_error};
 use bcal_calib::stream::LOAD_THRESHOLD_A;
-use bcal_doctor::input::{cell_name, cutoff, read_any, split_cycles};
+use bcal_doctor::input::{
+    cell_name, cutoff, cycle_ranges, diagnose_with_lifetime, read_any, split_cycles, DIAGNOSE_DT_MAX_S,
+};
 use bcal_doctor::read::{parse_cycle_range, CurrentSign, ReadOptions};
 use bcal_doctor::{DiagnoseConfig, DoctorError};
 use pyo3::prelude::*;
@@ -51,10 +53,12 @@ pub fn diagnose<'py>(
     let run = || -> Result<(bcal_doctor::Diagnosis, Vec<String>, Option<String>), DoctorError> {
         let cell = cell_name(cell.as_deref(), &data)?;
         let (all, report) = read_any(&data, &cell, None, &opts)?;
+        let (train_r, held_r) = cycle_ranges(&all, cycles.clone(), holdout.clone());
         let (train, held) = split_cycles(&all, cycles, holdout, stride)?;
         let cut = cutoff(cutoff_v, &data, &cell, &train, LOAD_THRESHOLD_A);
-        let cfg = DiagnoseConfig { cutoff_v: cut.as_ref().map(|c| c.0), ..DiagnoseConfig::default() };
-        let diag = bcal_doctor::diagnose(&cfg, &train, &held)?;
+        let mut cfg = DiagnoseConfig { cutoff_v: cut.as_ref().map(|c| c.0), ..DiagnoseConfig::default() };
+        cfg.fit.dt_max_s = DIAGNOSE_DT_MAX_S;
+        let (diag, _) = diagnose_with_lifetime(&cfg, &all, &report.starts, (&train_r, &held_r), &train, &held, true)?;
         Ok((diag, report.summary(), cut.map(|c| c.1)))
     };
     let (diag, notes, cut_source) = py.detach(run).map_err(doctor_error)?;

@@ -10,6 +10,7 @@ pub mod calibrate;
 pub mod cellspec;
 pub mod predict;
 pub mod record;
+pub mod recorded;
 pub mod report;
 pub mod run;
 pub mod score;
