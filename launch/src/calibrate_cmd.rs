@@ -327,10 +327,24 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let (causes, shared) = bcal_realcell::calibrate::model_parts(model.as_ref());
     let fits = bcal_realcell::calibrate::fits(&kept, &bcal_doctor::fit::FitConfig::default(), &causes, &shared)?;
     let (mut spec, facts) = cell_spec(&records, &fits, cut);
+    // The filter the correction policy trains on is the one `bcal calibrate` runs on this cell (chosen on
+    // the same validation cycles), so a zero action is that baseline in training and on the judged cycles;
+    // simulated cells start from a prior drawn at that filter's prior width, as the recorded ones start from
+    // the previous discharge's fit.
+    let neutral = bcal_realcell::calibrate::extension_of(&causes, &shared, records[0].ambient_k);
+    let grid = JointUkfGrid::real_cells().candidates();
+    eprintln!("choosing the cell's joint UKF among {} settings on its validation cycles ...", grid.len());
+    let (ukf, choice) =
+        bcal_realcell::calibrate::choose_cell_ukf(&spec.tracker, &records, &fits, &neutral, &grid, cut).ok_or_else(
+            || anyhow::anyhow!("too few training cycles of {cell} reach the cut-off to choose its filter: widen --train-cycles"),
+        )?;
+    eprintln!("joint UKF of {cell}: {ukf:?}; validation EOD error {:.2} %", choice.candidates[0].eod_error_pct);
+    spec.ukf = Some(ukf);
+    spec.scenario.prior_sd_z = Some(ukf.prior_std_z);
     // The cell's own recorded training discharges join the simulated ones in training (beside the config).
     let set = bcal_realcell::recorded::recorded_set(&cell, &records, &fits);
-    let recorded_path = a.out.with_extension("recorded.json");
-    bcal_common::fsutil::write_atomic(&recorded_path, serde_json::to_string(&set)?.as_bytes())
+    let recorded_path = a.out.with_extension("recorded.bin");
+    bcal_common::fsutil::write_atomic(&recorded_path, &set.to_bytes())
         .with_context(|| format!("cannot write {}", recorded_path.display()))?;
     let file_name = recorded_path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     spec.scenario.recorded =

@@ -144,6 +144,29 @@ fn before(
         .collect()
 }
 
+/// The joint UKF of a cell: the grid's settings chosen on the last training cycles (`train`, with their
+/// offline fits; the first starts from `spec`'s prior on `neutral`), each discharge starting from the fit
+/// of the one before it. What `bcal calibrate` runs as its `ukf`, and what `bcal cell-config` gives a cell's
+/// correction policy to train on, so that training and deployment run one filter. None without validation
+/// cycles.
+pub fn choose_cell_ukf(
+    spec: &TrackerSpec,
+    train: &[CellRecord],
+    train_fits: &[(Degradation, ModelExtension)],
+    neutral: &ModelExtension,
+    grid: &[JointUkfSettings],
+    cutoff_v: f64,
+) -> Option<(JointUkfSettings, tune::Choice)> {
+    let train_before = before(train, train_fits, &(spec.prior, neutral.clone()), &[], cutoff_v);
+    let validation_idx = tune::validation_records(train);
+    let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
+    let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
+    let cands: Vec<(String, Streaming)> =
+        grid.iter().map(|g| (format!("{g:?}"), Streaming::Ukf { spec: spec.clone(), settings: *g })).collect();
+    let choice = tune::choose(&cands, &validation, &validation_before, cutoff_v)?;
+    Some((grid[choice.index], choice))
+}
+
 /// What a calibration produced: the report and the runs the figures and per-reading files need.
 pub struct Calibration {
     pub report: CalibrationReport,
@@ -274,13 +297,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             grid.len(),
             validation.len()
         ));
-        let cands: Vec<(String, Streaming)> = grid
-            .iter()
-            .map(|g| (format!("{g:?}"), Streaming::Ukf { spec: spec.tracker.clone(), settings: *g }))
-            .collect();
-        let choice =
-            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
-        let best = grid[choice.index];
+        let (best, choice) = choose_cell_ukf(&spec.tracker, &train, &train_fits, &neutral, &grid, cut)
+            .expect("candidates and validation checked");
         progress(&format!(
             "joint UKF: validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
             choice.candidates[0].eod_error_pct,

@@ -158,13 +158,27 @@ pub struct RecordedSet {
 }
 
 impl RecordedSet {
+    /// The file's bytes (bincode: a recorded episode's unknown truth is NaN, which JSON cannot hold).
+    pub fn to_bytes(&self) -> Vec<u8> {
+        bincode::serde::encode_to_vec(self, bincode::config::standard()).expect("recorded sets always serialise")
+    }
+
     /// Reads a set written by `bcal cell-config`.
     pub fn load(path: &std::path::Path) -> Result<Self, String> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| format!("cannot read the recorded discharges {}: {e}", path.display()))?;
-        serde_json::from_str(&text).map_err(|e| {
-            format!("{}: not a set of recorded discharges ({e}); write it again with bcal cell-config", path.display())
-        })
+        let bytes =
+            std::fs::read(path).map_err(|e| format!("cannot read the recorded discharges {}: {e}", path.display()))?;
+        let redo = |why: String| {
+            format!(
+                "{}: not a set of recorded discharges ({why}); write it again with bcal cell-config",
+                path.display()
+            )
+        };
+        let (set, used): (Self, usize) =
+            bincode::serde::decode_from_slice(&bytes, bincode::config::standard()).map_err(|e| redo(e.to_string()))?;
+        if used != bytes.len() {
+            return Err(redo(format!("{} trailing bytes", bytes.len() - used)));
+        }
+        Ok(set)
     }
 }
 
@@ -604,6 +618,30 @@ mod tests {
             assert!(rms > 0.001 && rms < 0.006 || n < 30, "voltage noise {rms}");
         }
         assert!(kinds.len() >= 2, "{kinds:?}");
+    }
+
+    #[test]
+    fn a_recorded_set_with_unknown_truths_reads_back_and_a_damaged_file_is_refused() {
+        let cfg = ScenarioConfig::default();
+        let mut rng = SmallRng::seed_from_u64(5);
+        let mut spec = draw_spec(&cfg, Split::Train, &mut rng);
+        let mut e = simulate(&cfg, &spec).unwrap();
+        spec.truth = Degradation { q_mobile_c: f64::NAN, r_o_ohm: f64::NAN };
+        spec.soc0 = f64::NAN;
+        spec.prior = Some(Degradation { q_mobile_c: 7000.0, r_o_ohm: 0.12 });
+        e.spec = spec;
+        let set = RecordedSet { cell: "B0018".into(), train: vec![e.clone()], validation: vec![e] };
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cell.recorded.bin");
+        std::fs::write(&path, set.to_bytes()).unwrap();
+        let back = RecordedSet::load(&path).unwrap();
+        assert!(back.train[0].spec.truth.q_mobile_c.is_nan() && back.validation[0].spec.soc0.is_nan());
+        assert_eq!(back.train[0].samples, set.train[0].samples);
+        assert_eq!(back.train[0].spec.prior, set.train[0].spec.prior);
+        let bytes = set.to_bytes();
+        std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+        let err = RecordedSet::load(&path).unwrap_err();
+        assert!(err.contains("cell.recorded.bin") && err.contains("bcal cell-config"), "{err}");
     }
 
     #[test]
