@@ -334,10 +334,12 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let neutral = bcal_realcell::calibrate::extension_of(&causes, &shared, records[0].ambient_k);
     let grid = JointUkfGrid::real_cells().candidates();
     eprintln!("choosing the cell's joint UKF among {} settings on its validation cycles ...", grid.len());
-    let (ukf, choice) =
-        bcal_realcell::calibrate::choose_cell_ukf(&spec.tracker, &records, &fits, &neutral, &grid, cut).ok_or_else(
-            || anyhow::anyhow!("too few training cycles of {cell} reach the cut-off to choose its filter: widen --train-cycles"),
-        )?;
+    let (ukf, choice) = bcal_realcell::calibrate::choose_cell_ukf(&spec.tracker, &records, &fits, &neutral, &grid, cut)
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "too few training cycles of {cell} reach the cut-off to choose its filter: widen --train-cycles"
+            )
+        })?;
     eprintln!("joint UKF of {cell}: {ukf:?}; validation EOD error {:.2} %", choice.candidates[0].eod_error_pct);
     spec.ukf = Some(ukf);
     spec.scenario.prior_sd_z = Some(ukf.prior_std_z);
