@@ -10,7 +10,7 @@ use anyhow::{bail, Context};
 use bcal_calib::tune::JointUkfGrid;
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::policy::{PolicyFile, POLICY_BEST};
-use bcal_doctor::read::{parse_cycle_range, read_csv, read_nasa_with, CurrentSign, ReadOptions};
+use bcal_doctor::read::{parse_cycle_range, read_csv, read_nasa_with, CurrentSign, ReadOptions, RecordStart};
 use bcal_doctor::Discharge;
 use bcal_realcell::calibrate::{calibrate, CalibrateInput};
 use bcal_realcell::cellspec::cell_spec;
@@ -108,6 +108,16 @@ pub fn read(
     cycles: Option<&RangeInclusive<u32>>,
     opts: &ReadOptions,
 ) -> anyhow::Result<Vec<Discharge>> {
+    read_with_starts(data, cell, cycles, opts).map(|r| r.0)
+}
+
+/// [`read`], with when each record started (the rests between discharges).
+pub fn read_with_starts(
+    data: &Path,
+    cell: &str,
+    cycles: Option<&RangeInclusive<u32>>,
+    opts: &ReadOptions,
+) -> anyhow::Result<(Vec<Discharge>, Vec<RecordStart>)> {
     let (ds, rep) = if data.is_dir() {
         read_nasa_with(data, cell, cycles, opts)
             .with_context(|| format!("reading cell {cell} from {}", data.display()))?
@@ -118,7 +128,7 @@ pub fn read(
     for line in rep.summary() {
         eprintln!("{line}");
     }
-    Ok(ds)
+    Ok((ds, rep.starts))
 }
 
 /// The policy files of `rl:RUN`: a run folder's checkpoints (best and last by each criterion, duplicates
@@ -225,8 +235,9 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         );
     }
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
-    let train = read(&a.data, &cell, Some(&train_range), &opts)?;
-    let mut judged = read(&a.data, &cell, Some(&judged_range), &opts)?;
+    let (train, mut starts) = read_with_starts(&a.data, &cell, Some(&train_range), &opts)?;
+    let (mut judged, judged_starts) = read_with_starts(&a.data, &cell, Some(&judged_range), &opts)?;
+    starts.extend(judged_starts);
     // Read off the training records only, as cell-config does: the judged ones are not looked at.
     let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &a.data, &cell, &train)?;
     if a.stride > 1 {
@@ -263,6 +274,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         spec,
         ukf_grid: if a.quick { JointUkfGrid::real_cells_quick() } else { JointUkfGrid::real_cells() },
         model,
+        starts,
     };
     let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
     cal.report.seconds = started.elapsed().as_secs_f64();

@@ -96,6 +96,7 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
         spec: None,
         ukf_grid: JointUkfGrid::real_cells_quick(),
         model: None,
+        starts: Vec::new(),
     };
     let cal = calibrate(&input, &mut |m| eprintln!("{m}")).expect("the synthetic life calibrates");
     let r = &cal.report;
