@@ -85,10 +85,19 @@ impl ActorEnvs {
     }
 
     /// `n_envs` measured-only environments, each on its own stream of random training cells.
-    pub fn measured(spec: MeasuredSpec, n_envs: usize, seeds: (u64, u64), policy_scratch: Scratch) -> Self {
+    /// `recorded`: a real cell's recorded training discharges, drawn beside the simulated cells with the
+    /// scenario's share (empty: simulated cells only).
+    pub fn measured(
+        spec: MeasuredSpec,
+        recorded: Vec<bcal_common::measured::Episode>,
+        n_envs: usize,
+        seeds: (u64, u64),
+        policy_scratch: Scratch,
+    ) -> Self {
         assert!(spec.obs_dim() <= MAX_OBS && spec.act_dim() <= MAX_ACT, "MDP larger than the wire types");
         let mut env_rng = SmallRng::seed_from_u64(seeds.0);
-        let envs = (0..n_envs).map(|_| MeasuredEnv::new(&spec, env_rng.random())).collect();
+        let recorded = std::sync::Arc::new(recorded);
+        let envs = (0..n_envs).map(|_| MeasuredEnv::with_recorded(&spec, env_rng.random(), recorded.clone())).collect();
         let (obs_dim, act_dim) = (spec.obs_dim(), spec.act_dim());
         Self {
             kind: Kind::Measured { spec, envs },
@@ -206,13 +215,22 @@ mod tests {
         let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: vec![8] };
         let params: Vec<f32> = (0..layout.n_params()).map(|i| ((i % 5) as f32 - 2.0) * 0.05).collect();
         let policy = PolicyNet::from_flat(layout.clone(), params).unwrap();
-        let mut envs = ActorEnvs::measured(spec.clone(), 4, (3, 4), Scratch::new(&layout));
+        let mut envs = ActorEnvs::measured(spec.clone(), Vec::new(), 4, (3, 4), Scratch::new(&layout));
         let mut out = Vec::new();
         for _ in 0..50 {
             envs.step(&policy, &mut out);
         }
-        assert_eq!(out.len(), 200);
+        // Each step: the acted transition and the counterfactual ones at the same reading (the zero action
+        // first), sharing its observations.
+        let per = 1 + spec.correction.counterfactual_actions;
+        assert_eq!(out.len(), 50 * 4 * per);
         assert!(out.iter().all(|t| t.is_finite() && t.cost >= 0.0));
         assert!(out.iter().all(|t| t.obs[spec.obs_dim()..].iter().all(|v| *v == 0.0)));
+        for group in out.chunks(per) {
+            assert!(group.iter().all(|t| t.obs == group[0].obs && t.next_obs == group[0].next_obs));
+            assert_eq!(group[1].action, [0.0; bcal_common::wire::MAX_ACT]);
+            // The relative cost of the zero action is the filter's own: exactly 1.
+            assert_eq!(group[1].cost, 1.0);
+        }
     }
 }

@@ -46,6 +46,8 @@ pub enum ActorError {
     Write { path: PathBuf, source: std::io::Error },
     #[error("iceoryx2 {what}: {detail}")]
     Transport { what: &'static str, detail: String },
+    #[error("{0}")]
+    Recorded(String),
 }
 
 fn transport(what: &'static str) -> impl FnOnce(&dyn std::fmt::Debug) -> ActorError {
@@ -169,7 +171,17 @@ pub fn run(args: &ActorArgs) -> Result<ActorReport, ActorError> {
         (Task::Paper(spec), Some(train)) => {
             ActorEnvs::paper(spec, BatteryModel::default(), train, n_envs, seeds, Scratch::new(&layout))
         }
-        (Task::Measured(spec), _) => ActorEnvs::measured(spec, n_envs, seeds, Scratch::new(&layout)),
+        (Task::Measured(spec), _) => {
+            let recorded = match &spec.scenario.recorded.path {
+                Some(p) => {
+                    bcal_common::measured::scenario::RecordedSet::load(std::path::Path::new(p))
+                        .map_err(ActorError::Recorded)?
+                        .train
+                }
+                None => Vec::new(),
+            };
+            ActorEnvs::measured(spec, recorded, n_envs, seeds, Scratch::new(&layout))
+        }
         (Task::Paper(_), None) => unreachable!("the paper task loads its training split above"),
     };
     let publish_batch = run.limits.publish_batch;

@@ -1,13 +1,15 @@
 //! bcal-bench: measures every performance figure the README quotes, each beside the baseline it is compared
 //! against, in one run (`bcal bench`; what each figure is: `docs/bench.md`).
 //!
-//! Four parts, each a module with one `measure` function:
+//! Five parts, each a module with one `measure` function:
 //! - [`model`]: battery-model steps per second on one core (the unit of everything else);
 //! - [`calib`]: UKF, RL policy and direct-mapping steps in us and in battery-model steps;
 //! - [`transport`]: actor -> replay transitions per second and one-way latency through iceoryx2 across
 //!   processes, beside an in-process crossbeam channel carrying the same batches;
 //! - [`learner`]: LAC updates per second at batch 256 with the paper's networks;
 //! - [`doctor`]: one diagnosis with every candidate cause, per record and cause (`--only doctor`).
+//! - [`follow`]: latency per reading of `bcal calibrate --follow -` (a real process on pipes), beside the
+//!   same stream stepped in process.
 //!
 //! [`run`] runs the selected parts into a [`BenchReport`] (serialised as bench.json); [`render_table`]
 //! prints it. Like the evaluator, the library never prints: progress goes to a callback. Timing never
@@ -15,6 +17,7 @@
 
 pub mod calib;
 pub mod doctor;
+pub mod follow;
 pub mod learner;
 pub mod model;
 pub mod transport;
@@ -29,6 +32,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+pub use follow::SpawnFollow;
 pub use transport::{publish, PublisherArgs, SpawnPublisher};
 
 /// Which parts to run.
@@ -40,16 +44,19 @@ pub struct Parts {
     pub learner: bool,
     #[serde(default)]
     pub doctor: bool,
+    pub follow: bool,
 }
 
 impl Parts {
-    pub const ALL: Parts = Parts { model: true, calib: true, transport: true, learner: true, doctor: true };
-    pub const NAMES: [&'static str; 5] = ["model", "calib", "transport", "learner", "doctor"];
+    pub const ALL: Parts =
+        Parts { model: true, calib: true, transport: true, learner: true, doctor: true, follow: true };
+    pub const NONE: Parts =
+        Parts { model: false, calib: false, transport: false, learner: false, doctor: false, follow: false };
+    pub const NAMES: [&'static str; 6] = ["model", "calib", "transport", "learner", "doctor", "follow"];
 
     /// Parses a comma-separated list of [`Self::NAMES`].
     pub fn parse(list: &str) -> Result<Self, String> {
-        const NONE: Parts = Parts { model: false, calib: false, transport: false, learner: false, doctor: false };
-        let mut p = NONE;
+        let mut p = Parts::NONE;
         for name in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
             match name {
                 "model" => p.model = true,
@@ -57,10 +64,11 @@ impl Parts {
                 "transport" => p.transport = true,
                 "learner" => p.learner = true,
                 "doctor" => p.doctor = true,
+                "follow" => p.follow = true,
                 other => return Err(format!("unknown part `{other}`; the parts are {}", Self::NAMES.join(", "))),
             }
         }
-        if p == NONE {
+        if p == Parts::NONE {
             return Err(format!("name at least one part of {}", Self::NAMES.join(", ")));
         }
         Ok(p)
@@ -88,6 +96,9 @@ pub struct Settings {
     /// Records of the doctor part's diagnosis.
     #[serde(default)]
     pub doctor_records: usize,
+    /// Readings timed per calibrator in the follow part.
+    #[serde(default)]
+    pub follow_readings: usize,
 }
 
 impl Settings {
@@ -115,6 +126,7 @@ impl Settings {
             learner_rows,
             learner_batch: 256,
             doctor_records: 24,
+            follow_readings: 300,
         }
     }
 
@@ -134,6 +146,7 @@ impl Settings {
             learner_window_s: 0.8,
             learner_rows: vec![(calib::HIDDEN_PAPER.to_vec(), 1), (calib::HIDDEN_DEFAULT.to_vec(), 1)],
             doctor_records: 6,
+            follow_readings: 60,
             ..Self::full()
         }
     }
@@ -221,17 +234,19 @@ pub struct BenchReport {
     pub learner: Option<LearnerReport>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub doctor: Option<doctor::DoctorRow>,
+    pub follow: Option<follow::FollowReport>,
     /// Wall time of the whole run, s.
     pub seconds: f64,
 }
 
 /// Runs the selected parts: model, calib, learner, then transport (the table prints transport before the
-/// learner). `spawn` builds the command of one transport publisher process; `cache_dir` is the dataset
-/// cache (experiment multi).
+/// learner). `spawn` builds the command of one transport publisher process, `spawn_follow` that of one
+/// `bcal calibrate --follow -`; `cache_dir` is the dataset cache (experiment multi).
 pub fn run(
     settings: &Settings,
     cache_dir: &Path,
     spawn: SpawnPublisher,
+    spawn_follow: SpawnFollow,
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<BenchReport> {
     let started = Instant::now();
@@ -248,6 +263,7 @@ pub fn run(
         transport: None,
         learner: None,
         doctor: None,
+        follow: None,
         seconds: 0.0,
     };
     if parts.model {
@@ -314,6 +330,9 @@ pub fn run(
             row.seconds, row.seconds_per_record_and_cause
         ));
         report.doctor = Some(row);
+    }
+    if parts.follow {
+        report.follow = Some(follow::measure(settings.follow_readings, spawn_follow, progress)?);
     }
     // Last: from the transport part on, iceoryx2 captures Ctrl-C for the rest of the process (the part's
     // loops ask for it; later work would not).
@@ -399,6 +418,27 @@ pub fn render_table(r: &BenchReport) -> String {
         let _ = writeln!(o, "| --- | ---: | ---: |");
         for row in &c.rows {
             let _ = writeln!(o, "| {} | {} | {} |", row.label, num(row.us), num(row.model_steps));
+        }
+    }
+    if let Some(f) = &r.follow {
+        let _ = writeln!(
+            o,
+            "\n## Live readings: `bcal calibrate --follow -` (reading written to its estimate read back, through \
+             pipes; baseline: the same stream stepped in process)\n"
+        );
+        let _ = writeln!(o, "| calibrator | readings | p50 us | p90 us | max us | in process p50 us |");
+        let _ = writeln!(o, "| --- | ---: | ---: | ---: | ---: | ---: |");
+        for row in &f.rows {
+            let _ = writeln!(
+                o,
+                "| {} | {} | {} | {} | {} | {} |",
+                row.calibrator,
+                row.readings,
+                num(row.latency_p50_us),
+                num(row.latency_p90_us),
+                num(row.latency_max_us),
+                num(row.in_process_p50_us)
+            );
         }
     }
     if let Some(t) = &r.transport {
@@ -496,7 +536,7 @@ mod tests {
     fn parts_parse_and_refuse_unknown_names() {
         assert_eq!(
             Parts::parse("model,learner").unwrap(),
-            Parts { calib: false, transport: false, doctor: false, ..Parts::ALL }
+            Parts { calib: false, transport: false, doctor: false, follow: false, ..Parts::ALL }
         );
         assert!(Parts::parse("model,gpu").unwrap_err().contains("unknown part `gpu`"));
         assert!(Parts::parse(" , ").is_err());

@@ -145,10 +145,16 @@ mod tests {
             let x = rest_state(&model, d, xn_of_soc(&model.params, spec.soc0), model.params.tb0_k);
             predictive_cost(&c, &m, &ep, 0, &x, d)
         };
+        // At the simulator's own 1 s step the prediction from the truth IS the cell: the same Euler steps.
+        let exact = PredictiveCost { substep_s: 1.0, eod_substep_s: 1.0, ..c.clone() };
+        let same = predictive_cost(&exact, &m, &ep, 0, &x0, &spec.truth);
+        assert!(same.readings > 0);
+        assert!(same.voltage_rms_v < 1e-9 && same.eod_error_s == Some(0.0), "{same:?}");
+        // The default's coarser steps cost a few millivolts around the load switch (its 1 s timing falls
+        // inside a 2 s substep) and a few of its 5 s steps at the end.
         let truth = predictive_cost(&c, &m, &ep, 0, &x0, &spec.truth);
-        assert!(truth.readings > 0);
-        assert!(truth.voltage_rms_v < 1e-3, "{truth:?}");
-        assert!(truth.eod_error_s.unwrap().abs() <= 2.0 * c.substep_s + 1.0, "{truth:?}");
+        assert!(truth.voltage_rms_v < 5e-3, "{truth:?}");
+        assert!(truth.eod_error_s.unwrap().abs() <= 2.0 * c.eod_substep_s, "{truth:?}");
         let off =
             |dq: f64, dr: f64| Degradation { q_mobile_c: spec.truth.q_mobile_c + dq, r_o_ohm: spec.truth.r_o_ohm + dr };
         let small = at(&off(100.0, 0.002));

@@ -19,14 +19,19 @@ use bcal_common::dataset::Split;
 use bcal_common::mdp::EnvStep;
 use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::scenario::{draw_spec, simulate, Episode};
+use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::nrmse::NrmseAccumulator;
 use bcal_common::policy::{PolicyNet, Scratch};
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};
+use std::sync::Arc;
 
-/// Draws and simulates a training episode; a draw the model cannot simulate (none in the default ranges)
-/// is replaced by the next.
-fn training_episode(spec: &MeasuredSpec, rng: &mut SmallRng) -> Episode {
+/// Draws a training episode: a recorded discharge (with the share the scenario gives them), else a
+/// simulated cell; a draw the model cannot simulate (none in the default ranges) is replaced by the next.
+fn training_episode(spec: &MeasuredSpec, recorded: &[Episode], rng: &mut SmallRng) -> Episode {
+    if !recorded.is_empty() && rng.random_bool(spec.scenario.recorded.share.clamp(0.0, 1.0)) {
+        return recorded[rng.random_range(0..recorded.len())].clone();
+    }
     for _ in 0..100 {
         let s = draw_spec(&spec.scenario, Split::Train, rng);
         if let Ok(e) = simulate(&spec.scenario, &s) {
@@ -47,10 +52,17 @@ enum Reader {
 }
 
 impl Reader {
-    fn new(spec: &MeasuredSpec) -> Self {
+    /// The calibrator for `episode`: the task's, from the episode's own prior when it has one.
+    fn new(spec: &MeasuredSpec, episode: &Episode) -> Self {
+        let tracker = match episode.spec.prior {
+            Some(prior) => TrackerSpec { prior, ..spec.tracker.clone() },
+            None => spec.tracker.clone(),
+        };
         match spec.design {
-            Design::WindowFit => Reader::Window(Tracker::new(&spec.tracker)),
-            Design::UkfCorrection => Reader::Correction(Correction::of_task(spec)),
+            Design::WindowFit => Reader::Window(Tracker::new(&tracker)),
+            Design::UkfCorrection => {
+                Reader::Correction(Correction::new(&tracker, spec.ukf_settings(), &spec.correction))
+            }
         }
     }
 
@@ -113,21 +125,29 @@ pub struct MeasuredEnv {
     k: usize,
     reader: Reader,
     rng: SmallRng,
+    /// Recorded training discharges of a real cell drawn beside the simulated ones (shared by an actor's
+    /// environments).
+    recorded: Arc<Vec<Episode>>,
 }
 
 impl MeasuredEnv {
     pub fn new(spec: &MeasuredSpec, seed: u64) -> Self {
+        Self::with_recorded(spec, seed, Arc::new(Vec::new()))
+    }
+
+    /// An environment that also draws from `recorded` discharges (`scenario.recorded.share` of episodes).
+    pub fn with_recorded(spec: &MeasuredSpec, seed: u64, recorded: Arc<Vec<Episode>>) -> Self {
         let mut rng = SmallRng::seed_from_u64(seed);
-        let episode = training_episode(spec, &mut rng);
-        let mut env = Self { reader: Reader::new(spec), episode, k: 0, rng };
+        let episode = training_episode(spec, &recorded, &mut rng);
+        let mut env = Self { reader: Reader::new(spec, &episode), episode, k: 0, rng, recorded };
         env.reader.ingest(&env.episode.samples[0]);
         env
     }
 
     fn reset(&mut self, spec: &MeasuredSpec) {
-        self.episode = training_episode(spec, &mut self.rng);
+        self.episode = training_episode(spec, &self.recorded, &mut self.rng);
         self.k = 0;
-        self.reader = Reader::new(spec);
+        self.reader = Reader::new(spec, &self.episode);
         self.reader.ingest(&self.episode.samples[0]);
     }
 
@@ -203,7 +223,7 @@ pub fn rollout_policy(
     scratch: &mut Scratch,
     cost_stride: usize,
 ) -> Trace {
-    let mut reader = Reader::new(spec);
+    let mut reader = Reader::new(spec, episode);
     let mut obs = vec![0f32; spec.obs_dim()];
     let mut action = vec![0f32; spec.act_dim()];
     let n = episode.samples.len();
@@ -239,8 +259,11 @@ pub fn validate_policy(spec: &MeasuredSpec, episodes: &[Episode], net: &PolicyNe
     let (mut cost_sum, mut n) = (0.0, 0usize);
     for e in episodes {
         let t = rollout_policy(spec, e, net, &mut scratch, VALIDATION_COST_STRIDE);
-        for est in &t.estimates {
-            acc.add(est, &e.spec.truth);
+        // Recorded discharges have no true parameters: they count in the cost alone.
+        if e.spec.truth.q_mobile_c.is_finite() && e.spec.truth.r_o_ohm.is_finite() {
+            for est in &t.estimates {
+                acc.add(est, &e.spec.truth);
+            }
         }
         for (_, c) in &t.costs {
             cost_sum += c;

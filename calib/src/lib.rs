@@ -11,7 +11,8 @@
 //!   predictive cost of [`cost`];
 //! - [`direct`]: the direct mapping's inference (a network trained elsewhere on true parameters);
 //! - [`eod`]: end-of-discharge prediction from a calibrated state; [`env`]: the RL environment and the
-//!   rollouts the learner's validation and the evaluator share; [`tune`]: choices made on validation cells.
+//!   rollouts the learner's validation and the evaluator share; [`tune`]: choices made on validation cells;
+//!   [`stream`]: one calibrator on live readings (`bcal calibrate --follow`, the Python package).
 //!
 //! No libtorch here (the learner and the direct mapping's training own it), and nothing prints.
 
@@ -23,6 +24,7 @@ pub mod env;
 pub mod eod;
 pub mod joint_ukf;
 pub mod rescue;
+pub mod stream;
 pub mod tracker;
 pub mod tracker_based;
 pub mod tune;

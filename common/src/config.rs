@@ -635,6 +635,18 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
             "must be in [0, 1]",
         ));
     }
+    if !(0.0..=1.0).contains(&sc.recorded.share) {
+        return Err(invalid("measured.scenario.recorded.share", sc.recorded.share.to_string(), "must be in [0, 1]"));
+    }
+    if let Some(sd) = sc.prior_sd_z {
+        if !sd.iter().all(|v| v.is_finite() && *v >= 0.0 && *v <= 1.0) {
+            return Err(invalid(
+                "measured.scenario.prior_sd_z",
+                format!("{sd:?}"),
+                "must be in [0, 1] (fractions of the ranges)",
+            ));
+        }
+    }
     let me = &sc.model_error;
     if !(0.0..=1.0).contains(&me.probability) {
         return Err(invalid(

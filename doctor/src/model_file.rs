@@ -6,6 +6,7 @@
 use crate::lifetime::LifetimeModel;
 use crate::sim::{Cause, ExtParams};
 use crate::DoctorError;
+use bcal_common::measured::extension::ModelExtension;
 use bcal_common::text::shown;
 use serde::Deserialize;
 use std::collections::BTreeMap;
@@ -24,6 +25,29 @@ pub struct DiagnosedModel {
     pub shared: ExtParams,
     /// The cycles the diagnosis fitted or judged (its model has seen them).
     pub cycles: Vec<u32>,
+}
+
+impl DiagnosedModel {
+    /// The model as a calibrator runs it: the causes with their shared values and the per-cycle ones
+    /// neutral, its Arrhenius reference `reference_k` (None: the first reading's temperature).
+    pub fn extension(&self, reference_k: Option<f64>) -> ModelExtension {
+        extension_of(&self.causes, &self.shared, reference_k)
+    }
+}
+
+/// The calibrators' model of `causes` with the values of `ext` (shared and per-cycle), its Arrhenius
+/// reference `reference_k`: the one place that maps the doctor's parameters onto the model extension.
+pub fn extension_of(causes: &[Cause], ext: &ExtParams, reference_k: Option<f64>) -> ModelExtension {
+    ModelExtension {
+        causes: causes.iter().map(|c| c.name().to_string()).collect(),
+        xp_shift: ext.xp_shift,
+        xn_shift: ext.xn_shift,
+        kinetics_scale: ext.kinetics_scale,
+        ro_activation_k: ext.ro_activation_k,
+        kinetics_activation_k: ext.kinetics_activation_k,
+        t_diffusion_s: ext.t_diffusion_s,
+        reference_k,
+    }
 }
 
 #[derive(Deserialize)]

@@ -19,8 +19,9 @@ pub struct BenchArgs {
     #[arg(long, value_name = "FILE.json", default_value = "bench.json")]
     pub out: PathBuf,
     /// Parts to run, comma separated: model (battery-model steps/s), calib (UKF, RL policy and
-    /// direct-mapping step cost), transport (iceoryx2 vs crossbeam, 1/2/4 actors), learner (LAC updates/s).
-    #[arg(long, value_name = "PARTS", value_parser = Parts::parse, default_value = "model,calib,transport,learner")]
+    /// direct-mapping step cost), transport (iceoryx2 vs crossbeam, 1/2/4 actors), learner (LAC updates/s),
+    /// follow (latency per reading of `bcal calibrate --follow -`).
+    #[arg(long, value_name = "PARTS", value_parser = Parts::parse, default_value = "model,calib,transport,learner,follow")]
     pub only: Parts,
     /// Dataset cache folder for the calibrator timings (default: $BCAL_CACHE/datasets or
     /// ~/.cache/bcal/datasets).
@@ -66,6 +67,11 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         ]);
         c
     };
+    let spawn_follow = |kind: &str| {
+        let mut c = Command::new(&exe);
+        c.args(["calibrate", "--follow", "-", "--calibrator", kind]);
+        c
+    };
     let cache_dir = a.cache_dir.clone().unwrap_or_else(dataset::default_cache_dir);
     let started = Instant::now();
     let mut progress = |msg: &str| eprintln!("[{:6.1} s] {msg}", started.elapsed().as_secs_f64());
@@ -74,13 +80,13 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         if a.quick { " --quick" } else { "" },
         Parts::NAMES
             .iter()
-            .zip([a.only.model, a.only.calib, a.only.transport, a.only.learner])
+            .zip([a.only.model, a.only.calib, a.only.transport, a.only.learner, a.only.follow])
             .filter(|(_, on)| *on)
             .map(|(n, _)| *n)
             .collect::<Vec<_>>()
             .join(", ")
     ));
-    let report = bcal_bench::run(&settings, &cache_dir, &spawn, &mut progress)?;
+    let report = bcal_bench::run(&settings, &cache_dir, &spawn, &spawn_follow, &mut progress)?;
     print!("{}", bcal_bench::render_table(&report));
     bcal_common::fsutil::write_json_atomic(&a.out, &report)
         .with_context(|| format!("cannot write {}", a.out.display()))?;

@@ -10,7 +10,7 @@ use anyhow::{bail, Context};
 use bcal_calib::tune::JointUkfGrid;
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::policy::{PolicyFile, POLICY_BEST};
-use bcal_doctor::read::{parse_cycle_range, read_csv, read_nasa_with, CurrentSign, ReadOptions, RecordStart};
+use bcal_doctor::read::{parse_cycle_range, CurrentSign, ReadOptions, RecordStart};
 use bcal_doctor::Discharge;
 use bcal_realcell::calibrate::{calibrate, CalibrateInput};
 use bcal_realcell::cellspec::cell_spec;
@@ -23,8 +23,24 @@ use std::time::Instant;
 pub struct CalibrateArgs {
     /// Measured data: a NASA PCoE folder (metadata.csv and data/) or a generic CSV
     /// (time_s,voltage_v,current_a[,temperature_c][,cycle], current positive while discharging).
-    #[arg(long, value_name = "PATH")]
-    pub data: PathBuf,
+    #[arg(long, value_name = "PATH", required_unless_present = "follow")]
+    pub data: Option<PathBuf>,
+    /// Live readings instead of --data: `-` reads standard input, FILE follows a file another process is
+    /// still writing (from its start, then every line appended). CSV rows under a header
+    /// `time_s,voltage_v,current_a[,temperature_c]` or JSON lines with those keys; one JSON line per reading
+    /// on standard output (estimate, 90 % interval, predicted EOD) as soon as it is computed. A bad line is
+    /// reported with its number and skipped; end of input, --idle-s or Ctrl-C ends with a summary. Runs one
+    /// calibrator (--calibrator ukf by default; `fit` is then the streaming window fit) on a new cell's prior,
+    /// or on --config / --model.
+    #[arg(long, value_name = "-|FILE", conflicts_with_all = ["data", "cycles", "quick"])]
+    pub follow: Option<String>,
+    /// With --follow: the cell's config (a `bcal cell-config` TOML) whose measured.tracker sets the
+    /// calibrator's ranges, prior and cut-off.
+    #[arg(long, value_name = "FILE.toml", requires = "follow")]
+    pub config: Option<PathBuf>,
+    /// With --follow FILE: end when no new line has come for this long, s (default: follow until Ctrl-C).
+    #[arg(long, value_name = "S", requires = "follow", value_parser = crate::cli::positive_f64)]
+    pub idle_s: Option<f64>,
     /// Cell to read from a NASA folder (battery_id in metadata.csv; required there); for a CSV, the name the
     /// report gives it (default: the file's name).
     #[arg(long)]
@@ -46,7 +62,9 @@ pub struct CalibrateArgs {
     /// `ukf` (the joint UKF, its settings chosen on the last training cycles), `fit` (the doctor's offline
     /// least squares on the whole discharge: an oracle that sees the future). The references (uncalibrated,
     /// previous cycle, capacity trend) always run.
-    #[arg(long, value_delimiter = ',', default_value = "ukf,fit")]
+    /// Default `ukf,fit`; with --follow one of ukf, adaptive_ukf, fit (the streaming window fit),
+    /// uncalibrated or rl:FILE (default ukf).
+    #[arg(long, value_delimiter = ',')]
     pub calibrator: Vec<String>,
     /// Cut-off voltage of the end-of-discharge predictions, V (default: the cell's documented protocol, else
     /// what the training records show: where their discharges end under load).
@@ -66,8 +84,8 @@ pub struct CalibrateArgs {
     #[arg(long)]
     pub quick: bool,
     /// Output folder for calibration.json, calibration.md, the figures and readings/<method>/<cell>-<cycle>.csv.
-    #[arg(long, value_name = "DIR")]
-    pub out: PathBuf,
+    #[arg(long, value_name = "DIR", required_unless_present = "follow")]
+    pub out: Option<PathBuf>,
 }
 
 #[derive(clap::Args, Debug)]
@@ -111,20 +129,20 @@ pub fn read(
     read_with_starts(data, cell, cycles, opts).map(|r| r.0)
 }
 
-/// [`read`], with when each record started (the rests between discharges).
+/// [`read`], with when each record started (the rests between discharges, for the prior across them).
 pub fn read_with_starts(
     data: &Path,
     cell: &str,
     cycles: Option<&RangeInclusive<u32>>,
     opts: &ReadOptions,
 ) -> anyhow::Result<(Vec<Discharge>, Vec<RecordStart>)> {
-    let (ds, rep) = if data.is_dir() {
-        read_nasa_with(data, cell, cycles, opts)
-            .with_context(|| format!("reading cell {cell} from {}", data.display()))?
-    } else {
-        let (all, rep) = read_csv(data, opts).with_context(|| format!("reading {}", data.display()))?;
-        (all.into_iter().filter(|d| cycles.is_none_or(|c| c.contains(&d.cycle))).collect(), rep)
-    };
+    let (ds, rep) = bcal_doctor::input::read_any(data, cell, cycles, opts).with_context(|| {
+        if data.is_dir() {
+            format!("reading cell {cell} from {}", data.display())
+        } else {
+            format!("reading {}", data.display())
+        }
+    })?;
     for line in rep.summary() {
         eprintln!("{line}");
     }
@@ -169,19 +187,9 @@ fn policy_candidates(p: &Path) -> anyhow::Result<Vec<(PolicyFile, String)>> {
 const POLICY_CANDIDATES: [&str; 4] =
     [POLICY_BEST, "policy.best-tracking-error.bcalpol", "policy.best-nrmse.bcalpol", "policy.bcalpol"];
 
-/// The cut-off: given, else the documented protocol of a NASA cell, else what the records show (where
-/// the discharges that end under load end), else None.
+/// The cut-off and where it came from ([`bcal_doctor::input::cutoff`]).
 pub fn cutoff(given: Option<f64>, data: &Path, cell: &str, records: &[Discharge]) -> Option<(f64, String)> {
-    if let Some(v) = given {
-        return Some((v, "--cutoff-v".into()));
-    }
-    if data.is_dir() {
-        if let Some(v) = bcal_doctor::read::nasa_cutoff_v(data, cell) {
-            return Some((v, "the cell's documented protocol (extra_infos)".into()));
-        }
-    }
-    bcal_doctor::record::infer_cutoff_v(records, bcal_realcell::record::LOAD_THRESHOLD_A)
-        .map(|v| (v, format!("read off the data: the discharges that end under load end at or below {v:.3} V")))
+    bcal_doctor::input::cutoff(given, data, cell, records, bcal_realcell::record::LOAD_THRESHOLD_A)
 }
 
 /// [`cutoff`], or a refusal saying what to do.
@@ -202,16 +210,7 @@ fn cutoff_or_refuse(
 
 /// The cell's name: given, else (a CSV) the file's name; a NASA folder needs one.
 pub fn cell_name(given: &Option<String>, data: &Path) -> anyhow::Result<String> {
-    match given {
-        Some(c) => Ok(c.clone()),
-        None if data.is_dir() => {
-            bail!(
-                "{} is a NASA folder: pass --cell with one of its battery_id values (e.g. --cell B0005)",
-                data.display()
-            )
-        }
-        None => Ok(data.file_stem().map_or_else(|| "cell".into(), |s| s.to_string_lossy().into_owned())),
-    }
+    Ok(bcal_doctor::input::cell_name(given.as_deref(), data)?)
 }
 
 /// The doctor's model from `--model`, if given.
@@ -220,8 +219,29 @@ fn load_model(path: &Option<PathBuf>) -> anyhow::Result<Option<bcal_doctor::mode
 }
 
 pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
+    if let Some(source) = a.follow {
+        let calibrator = match a.calibrator.as_slice() {
+            [] => "ukf".to_string(),
+            [one] => one.clone(),
+            more => bail!("--follow runs one calibrator; --calibrator names {}: give one", more.join(",")),
+        };
+        return crate::follow::run(crate::follow::FollowArgs {
+            source,
+            calibrator,
+            model: a.model,
+            config: a.config,
+            cutoff_v: a.cutoff_v,
+            ambient_c: a.ambient_c,
+            current_sign: a.current_sign,
+            idle_s: a.idle_s,
+        });
+    }
+    let (Some(data), Some(out)) = (a.data.clone(), a.out.clone()) else {
+        bail!("give --data PATH and --out DIR (or --follow - for live readings)");
+    };
+    let calibrators = if a.calibrator.is_empty() { vec!["ukf".into(), "fit".into()] } else { a.calibrator.clone() };
     let started = Instant::now();
-    let cell = cell_name(&a.cell, &a.data)?;
+    let cell = cell_name(&a.cell, &data)?;
     let model = load_model(&a.model)?;
     let train_range = parse_cycle_range(&a.train_cycles)?;
     let judged_range = match &a.cycles {
@@ -235,11 +255,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         );
     }
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
-    let (train, mut starts) = read_with_starts(&a.data, &cell, Some(&train_range), &opts)?;
-    let (mut judged, judged_starts) = read_with_starts(&a.data, &cell, Some(&judged_range), &opts)?;
+    let (train, mut starts) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
+    let (mut judged, judged_starts) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
     starts.extend(judged_starts);
     // Read off the training records only, as cell-config does: the judged ones are not looked at.
-    let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &a.data, &cell, &train)?;
+    let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &data, &cell, &train)?;
     if a.stride > 1 {
         let first = judged.first().map_or(0, |d| d.cycle);
         judged.retain(|d| (d.cycle - first) % a.stride == 0);
@@ -247,7 +267,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     // The calibrators asked for.
     let mut policies: Vec<(PolicyFile, String)> = Vec::new();
     let (mut ukf, mut fit) = (false, false);
-    for c in &a.calibrator {
+    for c in &calibrators {
         match c.trim() {
             "ukf" => ukf = true,
             "fit" => fit = true,
@@ -279,15 +299,20 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
     cal.report.seconds = started.elapsed().as_secs_f64();
     let written =
-        bcal_realcell::report::write_outputs(&a.out, &mut cal.report, &cal.judged, &cal.train_capacities, &cal.runs)
-            .with_context(|| format!("cannot write into {}", a.out.display()))?;
+        bcal_realcell::report::write_outputs(&out, &mut cal.report, &cal.judged, &cal.train_capacities, &cal.runs)
+            .with_context(|| format!("cannot write into {}", out.display()))?;
     println!(
         "\n{}",
         bcal_realcell::report::render_markdown(&cal.report).lines().take(40).collect::<Vec<_>>().join("\n")
     );
-    println!("wrote {} files into {} in {:.0} s", written.len(), a.out.display(), started.elapsed().as_secs_f64());
+    println!("wrote {} files into {} in {:.0} s", written.len(), out.display(), started.elapsed().as_secs_f64());
     Ok(())
 }
+
+/// Share of a cell policy's training episodes that are the cell's own recorded discharges (the rest are
+/// simulated cells around its model): half, so the policy meets the cell's real model error as often as the
+/// simulated variety around it.
+pub const RECORDED_SHARE: f64 = 0.5;
 
 pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let range = parse_cycle_range(&a.train_cycles)?;
@@ -313,7 +338,15 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     }
     let (causes, shared) = bcal_realcell::calibrate::model_parts(model.as_ref());
     let fits = bcal_realcell::calibrate::fits(&kept, &bcal_doctor::fit::FitConfig::default(), &causes, &shared)?;
-    let (spec, facts) = cell_spec(&records, &fits, cut);
+    let (mut spec, facts) = cell_spec(&records, &fits, cut);
+    // The cell's own recorded training discharges join the simulated ones in training (beside the config).
+    let set = bcal_realcell::recorded::recorded_set(&cell, &records, &fits);
+    let recorded_path = a.out.with_extension("recorded.json");
+    bcal_common::fsutil::write_atomic(&recorded_path, serde_json::to_string(&set)?.as_bytes())
+        .with_context(|| format!("cannot write {}", recorded_path.display()))?;
+    let file_name = recorded_path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    spec.scenario.recorded =
+        bcal_common::measured::scenario::RecordedConfig { path: Some(file_name), share: RECORDED_SHARE };
     let mut c: TrainConfig = Preset::Measured.config();
     c.measured = spec;
     c.learner.time_budget_s = a.budget_s;
@@ -327,7 +360,15 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     );
     bcal_common::fsutil::write_atomic(&a.out, format!("{header}{}", c.to_toml()).as_bytes())
         .with_context(|| format!("cannot write {}", a.out.display()))?;
-    println!("wrote {} (train with: bcal train --config {} --name NAME)", a.out.display(), a.out.display());
+    println!(
+        "wrote {} and its {} recorded training discharges ({} for validation) in {} (train with: bcal train --config {} \
+         --name NAME)",
+        a.out.display(),
+        set.train.len(),
+        set.validation.len(),
+        recorded_path.display(),
+        a.out.display()
+    );
     for r in &summary.refused {
         println!("refused: {r}");
     }

@@ -111,28 +111,16 @@ impl DatasetSelect {
     }
 }
 
-fn parse_finite(s: &str) -> Result<f64, String> {
-    let v: f64 = s.trim().parse().map_err(|_| format!("`{s}` is not a number"))?;
-    if !v.is_finite() {
-        return Err(format!("`{s}` is not a finite number"));
-    }
-    Ok(v)
+fn parse_number(s: &str) -> Result<f64, String> {
+    s.trim().parse().map_err(|_| format!("`{s}` is not a number"))
 }
 
-/// A finite number > 0.
+/// A finite number > 0 (the check `bcal.simulate` makes too: [`bcal_common::simulate::positive`]).
 pub fn positive_f64(s: &str) -> Result<f64, String> {
-    let v = parse_finite(s)?;
-    if v <= 0.0 {
-        return Err(format!("{v} must be greater than 0"));
-    }
-    Ok(v)
+    bcal_common::simulate::positive(parse_number(s)?)
 }
 
 /// A finite number >= 0.
 pub fn non_negative_f64(s: &str) -> Result<f64, String> {
-    let v = parse_finite(s)?;
-    if v < 0.0 {
-        return Err(format!("{v} must not be negative"));
-    }
-    Ok(v)
+    bcal_common::simulate::non_negative(parse_number(s)?)
 }

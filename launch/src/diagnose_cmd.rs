@@ -4,9 +4,9 @@
 //! across every record of the two ranges, recovery after rest) into the same files.
 
 use anyhow::Context;
-use bcal_doctor::lifetime::{assess, LifetimeConfig};
+use bcal_doctor::input::diagnose_with_lifetime;
 use bcal_doctor::read::{parse_cycle_range, read_csv, read_nasa_with, CurrentSign, ReadOptions, RecordStart};
-use bcal_doctor::{diagnose, Cause, DiagnoseConfig, Discharge};
+use bcal_doctor::{Cause, DiagnoseConfig, Discharge};
 use clap::ValueEnum;
 use std::ops::RangeInclusive;
 use std::path::PathBuf;
@@ -37,7 +37,7 @@ pub struct DiagnoseArgs {
     /// Longest simulator step, s (the simulator also lands on every sample time). 2 s gives the same verdicts
     /// and held-out RMSEs as 1 s within 0.05 mV on the NASA cells (the overpotential lags are advanced
     /// exactly), at half the cost.
-    #[arg(long, default_value_t = 2.0, value_parser = crate::cli::positive_f64)]
+    #[arg(long, default_value_t = bcal_doctor::input::DIAGNOSE_DT_MAX_S, value_parser = crate::cli::positive_f64)]
     pub dt: f64,
     /// Fit window floor: samples under load count down to the first one below this voltage, V.
     #[arg(long, default_value_t = 2.9, value_parser = crate::cli::positive_f64)]
@@ -130,24 +130,8 @@ fn load(a: &DiagnoseArgs) -> anyhow::Result<Loaded> {
         eprintln!("{line}");
     }
     anyhow::ensure!(!all.is_empty(), "{} holds no discharge record", a.data.display());
-    let last = all.iter().map(|d| d.cycle).max().unwrap_or(1);
-    let first = all.iter().map(|d| d.cycle).min().unwrap_or(1);
-    let (train_r, held_r): (RangeInclusive<u32>, RangeInclusive<u32>) = match (cycles, holdout) {
-        (Some(c), Some(h)) => (c, h),
-        (Some(c), None) => (c.clone(), c.end() + 1..=last),
-        (None, Some(h)) => (first..=h.start().saturating_sub(1).max(first), h),
-        (None, None) => {
-            let split = first + (last - first) / 3;
-            (first..=split, split + 1..=last)
-        }
-    };
-    let pick = |r: &RangeInclusive<u32>| -> Vec<Discharge> {
-        let wanted: Vec<u32> = r.clone().step_by(a.stride as usize).collect();
-        all.iter().filter(|d| wanted.contains(&d.cycle)).cloned().collect()
-    };
-    let (train, held) = (pick(&train_r), pick(&held_r));
-    anyhow::ensure!(!train.is_empty(), "no training record in cycles {train_r:?}");
-    anyhow::ensure!(!held.is_empty(), "no held-out record in cycles {held_r:?}");
+    let (train_r, held_r) = bcal_doctor::input::cycle_ranges(&all, cycles.clone(), holdout.clone());
+    let (train, held) = bcal_doctor::input::split_cycles(&all, cycles, holdout, a.stride)?;
     Ok(Loaded { cell, starts: report.starts, all, train_r, held_r, train, held })
 }
 
@@ -171,18 +155,14 @@ pub fn run(a: DiagnoseArgs) -> anyhow::Result<()> {
     }
     eprintln!("diagnose: {} training and {} held-out records", train.len(), held.len());
     let started = std::time::Instant::now();
-    let mut diag = diagnose(&cfg, &train, &held).context("diagnosis failed")?;
+    let (diag, lifetime_skipped) =
+        diagnose_with_lifetime(&cfg, &all, &starts, (&train_r, &held_r), &train, &held, !a.no_lifetime)
+            .context("diagnosis failed")?;
     let voltage_s = started.elapsed().as_secs_f64();
-    if !a.no_lifetime {
-        // Every record of the two ranges, not only the stride's: capacity needs no fit.
-        let life_cfg = LifetimeConfig::from_diagnose(&cfg);
-        match assess(&life_cfg, &all, &starts, &train_r, &held_r, Some(&diag)) {
-            Ok(l) => {
-                eprintln!("lifetime: recovery after rest {}", l.verdict);
-                diag.lifetime = Some(l);
-            }
-            Err(e) => eprintln!("lifetime diagnosis skipped: {e}"),
-        }
+    match (&diag.lifetime, lifetime_skipped) {
+        (Some(l), _) => eprintln!("lifetime: recovery after rest {}", l.verdict),
+        (None, Some(why)) => eprintln!("lifetime diagnosis skipped: {why}"),
+        (None, None) => {}
     }
     let mut written = bcal_doctor::report::write_reports(&diag, &a.out)?;
     if !a.no_plots {

@@ -7,6 +7,7 @@ mod cli;
 mod dataset_cmd;
 mod diagnose_cmd;
 mod eval_cmd;
+mod follow;
 mod simulate;
 mod summarize_cmd;
 mod supervisor;

@@ -1,56 +1,41 @@
-//! `bcal simulate`: one discharge to EOD, printed as a summary and optionally written as CSV.
+//! `bcal simulate`: one discharge to EOD ([`bcal_common::simulate`], which the Python package's
+//! `bcal.simulate` runs too), printed as a summary and optionally written as CSV.
 
 use crate::cli::SimulateArgs;
-use anyhow::{bail, Context};
-use bcal_common::battery::{BatteryModel, BatteryParams, Degradation, Load, LoadProfile};
+use anyhow::Context;
 use bcal_common::math::idx;
+use bcal_common::simulate::{simulate, SimulateRequest};
 use std::io::{BufWriter, Write};
 
 pub fn run(a: SimulateArgs) -> anyhow::Result<()> {
-    let model = BatteryModel::new(BatteryParams::default(), a.thermal)?;
-    let d = Degradation { q_mobile_c: a.q_mobile, r_o_ohm: a.ro };
-    let (load, input_col) = match (a.load_w, a.current_a) {
-        (Some(p), None) => (Load::PowerW(p), "load_w"),
-        (None, Some(i)) => (Load::CurrentA(i), "current_a"),
-        _ => bail!("give exactly one of --load-w or --current-a"),
+    let req = SimulateRequest {
+        q_mobile: a.q_mobile,
+        r_o: a.ro,
+        load_w: a.load_w,
+        current_a: a.current_a,
+        steps: Vec::new(),
+        thermal: a.thermal,
+        dt_s: a.dt,
+        max_steps: a.max_steps,
     };
-    let mut out = match &a.out {
-        Some(path) => {
-            let f = std::fs::File::create(path).with_context(|| {
-                format!("cannot create {}: check the folder exists and is writable", path.display())
-            })?;
-            let mut w = BufWriter::new(f);
-            write!(w, "t_s,voltage_v,qpS,qpB,qnB,qnS,Vo,Vsn,Vsp,{input_col}")?;
-            if a.thermal {
-                write!(w, ",tb_k")?;
-            }
-            writeln!(w)?;
-            Some(w)
+    let tr = simulate(&req)?;
+    if let Some(path) = &a.out {
+        let f = std::fs::File::create(path)
+            .with_context(|| format!("cannot create {}: check the folder exists and is writable", path.display()))?;
+        let mut w = BufWriter::new(f);
+        let input_col = if a.load_w.is_some() { "load_w" } else { "current_a" };
+        write!(w, "t_s,voltage_v,qpS,qpB,qnB,qnS,Vo,Vsn,Vsp,{input_col}")?;
+        if a.thermal {
+            write!(w, ",tb_k")?;
         }
-        None => None,
-    };
-    let mut write_err = None;
-    let outcome = model.simulate_until_eod(
-        &model.initial_state(&d),
-        &d,
-        &LoadProfile::Constant(load),
-        a.dt,
-        a.max_steps,
-        |r| {
-            let Some(w) = out.as_mut() else { return };
-            if write_err.is_some() {
-                return;
-            }
-            let input = match r.load {
-                Load::PowerW(p) => p,
-                Load::CurrentA(i) => i,
-            };
-            let x = &r.x;
-            let mut res = write!(
+        writeln!(w)?;
+        for k in 0..tr.time_s.len() {
+            let x = &tr.state[k];
+            write!(
                 w,
                 "{},{},{},{},{},{},{},{},{},{}",
-                r.t_s,
-                r.voltage_v,
+                tr.time_s[k],
+                tr.voltage_v[k],
                 x[idx::QP_S],
                 x[idx::QP_B],
                 x[idx::QN_B],
@@ -58,32 +43,16 @@ pub fn run(a: SimulateArgs) -> anyhow::Result<()> {
                 x[idx::V_O],
                 x[idx::V_SN],
                 x[idx::V_SP],
-                input
-            );
-            if a.thermal && res.is_ok() {
-                res = write!(w, ",{}", x[idx::T_B]);
+                tr.input[k]
+            )?;
+            if a.thermal {
+                write!(w, ",{}", x[idx::T_B])?;
             }
-            if let Err(e) = res.and_then(|_| writeln!(w)) {
-                write_err = Some(e);
-            }
-        },
-    )?;
-    if let Some(e) = write_err {
-        bail!("writing the CSV failed: {e}");
-    }
-    if let Some(mut w) = out {
+            writeln!(w)?;
+        }
         w.flush().context("writing the CSV failed")?;
     }
-    match outcome.eod_s {
-        Some(t) => {
-            println!("EOD {t} s ({:.1} min), {} rows", t / 60.0, outcome.rows);
-        }
-        None => bail!(
-            "the voltage stayed above VEOD for {} steps ({} s); raise --max-steps or the load",
-            a.max_steps,
-            a.max_steps as f64 * a.dt
-        ),
-    }
+    println!("EOD {} s ({:.1} min), {} rows", tr.eod_s, tr.eod_s / 60.0, tr.time_s.len());
     if let Some(p) = &a.out {
         println!("wrote {}", p.display());
     }

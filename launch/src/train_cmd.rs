@@ -144,6 +144,22 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
         None => {
             if !(a.resume && mdp_path.exists()) {
                 let mut spec = cfg.measured.clone();
+                if let Some(p) = &spec.scenario.recorded.path {
+                    // Relative to the config file's folder; every process reads the absolute path.
+                    let base = a.config.as_ref().and_then(|c| c.parent()).unwrap_or(Path::new("."));
+                    let path = std::path::absolute(base.join(p))
+                        .with_context(|| format!("measured.scenario.recorded.path = {p}"))?;
+                    let set = bcal_common::measured::scenario::RecordedSet::load(&path).map_err(anyhow::Error::msg)?;
+                    println!(
+                        "recorded discharges of {}: {} for training (share {}), {} for validation ({})",
+                        set.cell,
+                        set.train.len(),
+                        spec.scenario.recorded.share,
+                        set.validation.len(),
+                        path.display()
+                    );
+                    spec.scenario.recorded.path = Some(path.display().to_string());
+                }
                 if spec.design == Design::UkfCorrection && spec.ukf.is_none() {
                     spec.ukf = Some(tune_base_filter(&spec)?);
                 }

@@ -344,7 +344,13 @@ pub fn run(args: &LearnerArgs) -> anyhow::Result<Outcome> {
             };
             let episodes = scenario::episode_set(&m.scenario, Split::Validation, m.scenario.validation_episodes)
                 .context("validation episodes")?;
-            ValidationSet::Measured { episodes: episodes.into_iter().take(n).collect() }
+            let mut episodes: Vec<_> = episodes.into_iter().take(n).collect();
+            // A real cell's recorded validation discharges (the last training cycles) count too.
+            if let Some(p) = &m.scenario.recorded.path {
+                let set = scenario::RecordedSet::load(std::path::Path::new(p)).map_err(anyhow::Error::msg)?;
+                episodes.extend(set.validation);
+            }
+            ValidationSet::Measured { episodes }
         }
     };
     let layout =

@@ -99,16 +99,7 @@ fn prepare_all(ds: &[Discharge], cutoff_v: f64, summary: &mut RecordSummary) -> 
 /// One record's model as the calibrators run it: the doctor's causes with the values of `ext` (shared
 /// and per-cycle), at the record's ambient.
 pub fn extension_of(causes: &[Cause], ext: &ExtParams, ambient_k: f64) -> ModelExtension {
-    ModelExtension {
-        causes: causes.iter().map(|c| c.name().to_string()).collect(),
-        xp_shift: ext.xp_shift,
-        xn_shift: ext.xn_shift,
-        kinetics_scale: ext.kinetics_scale,
-        ro_activation_k: ext.ro_activation_k,
-        kinetics_activation_k: ext.kinetics_activation_k,
-        t_diffusion_s: ext.t_diffusion_s,
-        reference_k: Some(ambient_k),
-    }
+    bcal_doctor::model_file::extension_of(causes, ext, Some(ambient_k))
 }
 
 /// The causes and shared values of `model` (the base model without one).

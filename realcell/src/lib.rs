@@ -12,6 +12,7 @@ pub mod interval;
 pub mod predict;
 pub mod prior;
 pub mod record;
+pub mod recorded;
 pub mod report;
 pub mod run;
 pub mod score;

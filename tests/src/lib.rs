@@ -423,3 +423,109 @@ impl Drop for Train {
         }
     }
 }
+
+/// A bcal process whose standard input the test writes and whose output lines it reads as they come
+/// (`bcal calibrate --follow -`): stdout lines arrive over a channel, stderr is collected whole. Killed
+/// and reaped on drop if the test did not end it.
+pub struct Piped {
+    child: Child,
+    stdin: Option<std::process::ChildStdin>,
+    lines: std::sync::mpsc::Receiver<String>,
+    stderr: std::sync::Arc<Mutex<String>>,
+    status: Option<ExitStatus>,
+}
+
+impl Piped {
+    /// Starts `bin(exe)` with `args`, every stream piped.
+    pub fn start(exe: &str, args: &[&str]) -> Self {
+        use std::io::{BufRead, Read};
+        let mut child = Command::new(bin(exe))
+            .args(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {exe}: {e}"));
+        let stdout = child.stdout.take().expect("piped stdout");
+        let (tx, lines) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stdout).lines().map_while(Result::ok) {
+                if tx.send(line).is_err() {
+                    return;
+                }
+            }
+        });
+        let stderr = std::sync::Arc::new(Mutex::new(String::new()));
+        let (mut err_pipe, sink) = (child.stderr.take().expect("piped stderr"), stderr.clone());
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 4096];
+            while let Ok(n) = err_pipe.read(&mut buf) {
+                if n == 0 {
+                    return;
+                }
+                sink.lock().unwrap_or_else(|e| e.into_inner()).push_str(&String::from_utf8_lossy(&buf[..n]));
+            }
+        });
+        let stdin = child.stdin.take();
+        Self { child, stdin, lines, stderr, status: None }
+    }
+
+    pub fn pid(&self) -> i32 {
+        self.child.id() as i32
+    }
+
+    /// Writes `line` and a newline to the process's standard input and flushes it.
+    pub fn write_line(&mut self, line: &str) {
+        use std::io::Write;
+        let stdin = self.stdin.as_mut().expect("stdin still open");
+        writeln!(stdin, "{line}").and_then(|_| stdin.flush()).expect("write to the process");
+    }
+
+    /// Closes standard input (end of input for the process).
+    pub fn close_stdin(&mut self) {
+        self.stdin = None;
+    }
+
+    /// The next stdout line, waiting up to `timeout`.
+    pub fn next_line(&self, timeout: Duration) -> Option<String> {
+        self.lines.recv_timeout(timeout).ok()
+    }
+
+    /// Everything the process wrote to stderr so far.
+    pub fn stderr(&self) -> String {
+        self.stderr.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+
+    /// Waits up to `timeout` for the exit; None if still running.
+    pub fn wait_timeout(&mut self, timeout: Duration) -> Option<ExitStatus> {
+        let start = Instant::now();
+        while self.status.is_none() && start.elapsed() < timeout {
+            self.status = self.child.try_wait().expect("try_wait");
+            if self.status.is_none() {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        }
+        self.status
+    }
+}
+
+impl Drop for Piped {
+    fn drop(&mut self) {
+        if self.status.is_none() && self.child.try_wait().ok().flatten().is_none() {
+            signal(self.pid(), libc::SIGKILL);
+            let _ = self.child.wait();
+        }
+    }
+}
+
+/// Writes a measured-only RL policy file (the default cell setting, one hidden layer of 8) with fixed,
+/// non-zero weights: a policy whose actions move the estimate, for tests of `--calibrator rl:FILE` and the
+/// Python package's `Calibrator("rl")`. `tests/examples/write_policy.rs` writes one from the command line.
+pub fn write_test_policy(path: &Path) {
+    use bcal_common::policy::{PolicyFile, PolicyLayout};
+    let task = Task::Measured(bcal_common::measured::env::MeasuredSpec::default());
+    let layout = PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: vec![8] };
+    let params = (0..layout.n_params()).map(|k| 0.3 * (k as f32 * 1.618).sin()).collect();
+    let pf = PolicyFile { params, layout, task, experiment: bcal_common::dataset::Experiment::Multi, update_step: 1 };
+    pf.save(path).expect("write the test policy");
+}

@@ -128,6 +128,44 @@ pub struct ScenarioConfig {
     pub model: super::extension::ModelExtension,
     /// What each cell carries beyond that model, drawn per episode (none by default).
     pub model_error: ModelErrorConfig,
+    /// Each simulated episode's calibrator starts from a prior drawn around the truth with these standard
+    /// deviations, fractions of the qMobile and Ro ranges (a real cell's calibrator starts from the last
+    /// discharge's fit); None (default): from the calibrator's own prior.
+    pub prior_sd_z: Option<[f64; 2]>,
+    /// Recorded discharges of a real cell that training also learns from (`bcal cell-config` writes them).
+    pub recorded: RecordedConfig,
+}
+
+/// Recorded discharges of a real cell as training episodes: their readings, the measured voltage as the
+/// cell's own future (what the predictive cost compares with), the measured end of discharge, the current as
+/// the load, and the offline fit of the discharge before each as its prior. No true parameter exists for
+/// them: the predictive cost needs none, and scores that read the truth leave them out.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RecordedConfig {
+    /// A JSON file of [`RecordedSet`] (relative to the config file's folder, or absolute); None: none.
+    pub path: Option<String>,
+    /// Share of training episodes drawn from its training discharges (the rest are simulated).
+    pub share: f64,
+}
+
+/// The recorded discharges of one cell: training and validation (the last training cycles).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct RecordedSet {
+    pub cell: String,
+    pub train: Vec<Episode>,
+    pub validation: Vec<Episode>,
+}
+
+impl RecordedSet {
+    /// Reads a set written by `bcal cell-config`.
+    pub fn load(path: &std::path::Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("cannot read the recorded discharges {}: {e}", path.display()))?;
+        serde_json::from_str(&text).map_err(|e| {
+            format!("{}: not a set of recorded discharges ({e}); write it again with bcal cell-config", path.display())
+        })
+    }
 }
 
 /// What simulated cells carry that the calibrators' model lacks, as real cells do (issue 18, item 4): the
@@ -248,6 +286,8 @@ impl Default for ScenarioConfig {
             sensor: SensorConfig::default(),
             model: super::extension::ModelExtension::default(),
             model_error: ModelErrorConfig::default(),
+            prior_sd_z: None,
+            recorded: RecordedConfig::default(),
         }
     }
 }
@@ -293,6 +333,11 @@ pub struct EpisodeSpec {
     /// Whether the readings say what load was asked for (a BMS knows; a cycler's export does not).
     #[serde(default = "yes")]
     pub request_known: bool,
+    /// The calibrator's prior for this episode (None: the calibrator's own): a recorded discharge starts
+    /// from the offline fit of the one before it, as `bcal calibrate` starts it; a simulated one, with
+    /// `ScenarioConfig::prior_sd_z`, from a draw around its truth.
+    #[serde(default)]
+    pub prior: Option<Degradation>,
 }
 
 fn yes() -> bool {
@@ -411,10 +456,30 @@ pub fn draw_spec(cfg: &ScenarioConfig, split: Split, rng: &mut SmallRng) -> Epis
     let interval_s = cfg.sample_interval_s[rng.random_range(0..cfg.sample_interval_s.len())];
     let noise_seed = rng.random();
     let request_known = !rng.random_bool(cfg.unknown_request_probability.clamp(0.0, 1.0));
-    // Drawn last, and only when asked for: exact-model episode sets stay what they were.
+    // Drawn last, and only when asked for: episode sets without them stay what they were.
     let cell_error =
         if cfg.model_error.probability > 0.0 { CellError::draw(&cfg.model_error, rng) } else { CellError::default() };
-    EpisodeSpec { truth, soc0, kind, profile, rest_s, ambient_k, interval_s, noise_seed, cell_error, request_known }
+    let prior = cfg.prior_sd_z.map(|sd| {
+        let span = [cfg.q_mobile_c[1] - cfg.q_mobile_c[0], cfg.r_o_ohm[1] - cfg.r_o_ohm[0]];
+        let n = |rng: &mut SmallRng, s: f64| Normal::new(0.0, s.max(0.0)).expect("finite sd").sample(rng);
+        Degradation {
+            q_mobile_c: (truth.q_mobile_c + n(rng, sd[0]) * span[0]).max(1.0),
+            r_o_ohm: (truth.r_o_ohm + n(rng, sd[1]) * span[1]).max(1e-4),
+        }
+    });
+    EpisodeSpec {
+        truth,
+        soc0,
+        kind,
+        profile,
+        rest_s,
+        ambient_k,
+        interval_s,
+        noise_seed,
+        cell_error,
+        request_known,
+        prior,
+    }
 }
 
 /// Simulates `spec` to the cut-off (or until the model is empty) and reads it through the sensor.
@@ -523,8 +588,9 @@ mod tests {
             // The last sample is the cut-off one, read under load.
             assert!(e.true_voltage_v[n - 1] < cfg.cutoff_v && e.samples[n - 1].t_s == eod);
             assert!(e.samples[n - 1].current_a > 0.5 && e.samples[n - 1].request != Request::Rest);
-            // Rest first: the first sample reads no load.
-            assert_eq!(e.samples[0].request, Request::Rest);
+            // Rest first: the first sample reads no load (its request is Rest, or Unknown when the episode
+            // hides its requests as a BMS without them does).
+            assert!(matches!(e.samples[0].request, Request::Rest | Request::Unknown), "{:?}", e.samples[0].request);
             assert!(e.samples[0].current_a.abs() < 0.05);
             // Intervals follow the episode's range (the last one may be shorter: the cut-off is read at once).
             for w in e.samples[..n - 1].windows(2) {

@@ -1,0 +1,437 @@
+//! One calibrator on a live stream of readings, as `bcal calibrate --follow` and the Python package's
+//! `bcal.Calibrator` both run it: [`resolve`] turns a kind, the cell's config, an RL policy's task and the
+//! doctor's model into one [`Setup`], [`build`] makes its calibrator (the one place that does, for both),
+//! and [`Stream`] checks each reading (finite numbers, a cell's voltage, time going forward) before the
+//! calibrator sees it and answers with the estimate, its 90 % interval and the end of discharge predicted
+//! from the calibrated state at the mean discharge current so far (no look-ahead: the current a BMS has
+//! seen). A refused reading leaves the calibrator as it was, so a caller can report it and go on. Reading
+//! lines, printing and Python conversion live with the callers; this never prints.
+
+use crate::adaptive::{AdaptiveRule, AdaptiveUkf};
+use crate::correction::CorrectionCalibrator;
+use crate::joint_ukf::JointUkf;
+use crate::tracker_based::{RlCalibrator, Uncalibrated, WindowFitCalibrator};
+use crate::{predict_eod_s, Calibrator, EodQuery};
+use bcal_common::battery::{Degradation, Load, LoadProfile};
+use bcal_common::math::idx;
+use bcal_common::measured::env::{Design, MeasuredSpec};
+use bcal_common::measured::extension::ModelExtension;
+use bcal_common::measured::scenario::{Request, Sample, KELVIN_0C};
+use bcal_common::measured::tracker::TrackerSpec;
+use bcal_common::policy::PolicyNet;
+use bcal_common::task::Task;
+use serde::{Deserialize, Serialize};
+
+/// A reading discharges the cell when its current exceeds this, A (the readers' and the records' threshold).
+pub const LOAD_THRESHOLD_A: f64 = 0.05;
+/// Euler step of the end-of-discharge predictions, s (the reference model's).
+pub const PREDICT_DT_S: f64 = 1.0;
+/// Longest prediction horizon, s.
+pub const PREDICT_MAX_S: f64 = 40_000.0;
+/// The voltages a Li-ion cell can read, V: outside them the column is in another unit or broken.
+pub const CELL_VOLTAGE_RANGE_V: [f64; 2] = [0.5, 5.0];
+
+/// One reading as a user gives it, in the CLI's and the Python package's names and units.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Reading {
+    pub time_s: f64,
+    /// Terminal voltage, V.
+    pub voltage_v: f64,
+    /// Current, A, positive while discharging.
+    pub current_a: f64,
+    /// Cell temperature, deg C (None: the stream's ambient).
+    #[serde(default)]
+    pub temperature_c: Option<f64>,
+}
+
+/// Why a reading was refused (the calibrator did not see it).
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ReadingError {
+    #[error("field `{field}` = {value} is not a finite number")]
+    NotFinite { field: &'static str, value: f64 },
+    #[error(
+        "voltage_v = {voltage_v} is outside a Li-ion cell's range ({}-{} V); give volts (a millivolt column divided \
+         by 1000)",
+        CELL_VOLTAGE_RANGE_V[0],
+        CELL_VOLTAGE_RANGE_V[1]
+    )]
+    VoltageOutOfRange { voltage_v: f64 },
+    #[error("time_s = {time_s} does not increase (previous reading {previous_s}); readings must come in time order")]
+    TimeNotIncreasing { time_s: f64, previous_s: f64 },
+}
+
+/// What the stream answers at each reading. Interval bounds and the prediction are None while the
+/// calibrator cannot tell (no interval yet, no loaded reading yet, or the model does not reach the cut-off
+/// within [`PREDICT_MAX_S`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Estimate {
+    pub time_s: f64,
+    /// qMobile, C, and its 90 % interval.
+    pub q_mobile: f64,
+    pub q_mobile_lo: Option<f64>,
+    pub q_mobile_hi: Option<f64>,
+    /// Ro, ohm, and its 90 % interval.
+    pub r_o: f64,
+    pub r_o_lo: Option<f64>,
+    pub r_o_hi: Option<f64>,
+    /// Predicted end of discharge (absolute time, s) at `eod_current_a` down to the spec's cut-off.
+    pub eod_s: Option<f64>,
+    /// The current the prediction assumes: the mean of the loaded readings so far, A.
+    pub eod_current_a: Option<f64>,
+}
+
+/// The calibrators a stream can run, by the names the CLI (`--calibrator`) and Python (`kind`) use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CalibratorKind {
+    /// The joint unscented Kalman filter (9 states: the model's and both parameters).
+    Ukf,
+    /// The joint UKF with its noise adapted from its innovations.
+    AdaptiveUkf,
+    /// The RL policy of a policy file (`.bcalpol`), on the window fit's features.
+    Rl,
+    /// The window fit alone (the RL policy's own least squares, no learning).
+    Fit,
+    /// The prior, never calibrated (its state from the readings): the reference.
+    Uncalibrated,
+}
+
+impl CalibratorKind {
+    pub const ALL: [CalibratorKind; 5] = [
+        CalibratorKind::Ukf,
+        CalibratorKind::AdaptiveUkf,
+        CalibratorKind::Rl,
+        CalibratorKind::Fit,
+        CalibratorKind::Uncalibrated,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            CalibratorKind::Ukf => "ukf",
+            CalibratorKind::AdaptiveUkf => "adaptive_ukf",
+            CalibratorKind::Rl => "rl",
+            CalibratorKind::Fit => "fit",
+            CalibratorKind::Uncalibrated => "uncalibrated",
+        }
+    }
+}
+
+impl std::str::FromStr for CalibratorKind {
+    type Err = StreamError;
+
+    fn from_str(s: &str) -> Result<Self, StreamError> {
+        let t = s.trim();
+        CalibratorKind::ALL
+            .into_iter()
+            .find(|k| k.name() == t || (*k == CalibratorKind::AdaptiveUkf && t == "adaptive-ukf"))
+            .ok_or_else(|| StreamError::UnknownKind(bcal_common::text::shown(s, 40)))
+    }
+}
+
+/// Why a stream's calibrator cannot be set up; the messages are the CLI's.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum StreamError {
+    #[error("unknown calibrator `{0}`: use ukf, adaptive_ukf, rl (with a policy file), fit or uncalibrated")]
+    UnknownKind(String),
+    #[error("the rl calibrator needs a policy file (a .bcalpol that bcal train wrote: --calibrator rl:FILE)")]
+    NoPolicy,
+    #[error("a policy file is only read by the rl calibrator, not by {0}")]
+    PolicyWithoutRl(&'static str),
+    #[error(
+        "the policy {path} was trained on the {observation} observation; live calibration runs measured-only          policies (retrain with --preset measured)"
+    )]
+    PolicyTask { path: String, observation: String },
+    #[error(
+        "the policy {path} was trained on the {trained} model, but this calibration runs the {model} model: train a          policy on it (bcal cell-config with the same --model, then bcal train --config)"
+    )]
+    PolicyModel { path: String, trained: String, model: String },
+}
+
+/// What a stream's calibrator is built from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Setup {
+    pub kind: CalibratorKind,
+    /// The cell's setting: `tracker` (model, ranges, prior, cut-off) for every kind, `ukf` for the filters
+    /// (the defaults when None), and the RL policy's `design` and `correction`.
+    pub spec: MeasuredSpec,
+}
+
+impl Setup {
+    /// The joint UKF's settings: the task's (a trained run's filter, tuned on validation) or the defaults.
+    pub fn ukf(&self) -> crate::JointUkfSettings {
+        self.spec.ukf.unwrap_or_default()
+    }
+}
+
+/// The calibrator's setting: the cell's config (`config`: a `bcal cell-config` file's `measured` part),
+/// else the RL policy's own task (its run's cell setting and filter), else the default (a cell of the
+/// paper's ranges, prior in the middle); on the doctor's extended model when `model` is given (then
+/// following the measured temperature exactly when the model has the doctor's `thermal`, as `bcal
+/// calibrate --model` does). `policy` is the policy file's task and where it came from; only `rl` takes
+/// one, and needs one; its design (window fit or UKF correction) always comes from it.
+pub fn resolve(
+    kind: CalibratorKind,
+    config: Option<&MeasuredSpec>,
+    policy: Option<(&Task, &str)>,
+    model: Option<&ModelExtension>,
+) -> Result<Setup, StreamError> {
+    let policy_spec = match (kind, policy) {
+        (CalibratorKind::Rl, None) => return Err(StreamError::NoPolicy),
+        (CalibratorKind::Rl, Some((task, path))) => {
+            let m = task.measured().ok_or_else(|| StreamError::PolicyTask {
+                path: path.to_string(),
+                observation: task.observation_name(),
+            })?;
+            if let Some(ext) = model {
+                if !m.tracker.model.same_kind(ext) {
+                    return Err(StreamError::PolicyModel {
+                        path: path.to_string(),
+                        trained: m.tracker.model.label(),
+                        model: ext.label(),
+                    });
+                }
+            }
+            Some(m.clone())
+        }
+        (k, Some(_)) => return Err(StreamError::PolicyWithoutRl(k.name())),
+        (_, None) => None,
+    };
+    let mut spec = match (config, &policy_spec) {
+        // The cell's config sets the cell; the policy keeps what it was trained as.
+        (Some(c), Some(p)) => {
+            MeasuredSpec { scenario: c.scenario.clone(), tracker: c.tracker.clone(), ukf: c.ukf.or(p.ukf), ..p.clone() }
+        }
+        (Some(c), None) => c.clone(),
+        (None, Some(p)) => p.clone(),
+        (None, None) => MeasuredSpec::default(),
+    };
+    if let Some(ext) = model {
+        spec.tracker.model = ext.clone();
+        spec.tracker.use_measured_temperature = ext.has("thermal");
+    }
+    Ok(Setup { kind, spec })
+}
+
+/// The calibrator of `setup` (`net`: the RL policy's network, for `rl`): the one place the live loop and
+/// the Python package make one.
+pub fn build<'a>(setup: &Setup, net: Option<&'a PolicyNet>) -> Result<Box<dyn Calibrator + Send + 'a>, StreamError> {
+    let tracker = &setup.spec.tracker;
+    Ok(match setup.kind {
+        CalibratorKind::Ukf => Box::new(JointUkf::new(setup.ukf(), tracker)),
+        CalibratorKind::AdaptiveUkf => Box::new(AdaptiveUkf::new(setup.ukf(), AdaptiveRule::default(), tracker)),
+        CalibratorKind::Fit => Box::new(WindowFitCalibrator::new(tracker)),
+        CalibratorKind::Uncalibrated => Box::new(Uncalibrated::new(tracker)),
+        CalibratorKind::Rl => {
+            let net = net.ok_or(StreamError::NoPolicy)?;
+            match setup.spec.design {
+                Design::WindowFit => Box::new(RlCalibrator::new(tracker, net)),
+                Design::UkfCorrection => Box::new(CorrectionCalibrator::new(&setup.spec, net)),
+            }
+        }
+    })
+}
+
+/// A calibrator with its stream bookkeeping.
+pub struct Stream<'a> {
+    cal: Box<dyn Calibrator + Send + 'a>,
+    spec: TrackerSpec,
+    ambient_k: f64,
+    last_t_s: Option<f64>,
+    loaded_sum_a: f64,
+    loaded_n: u64,
+    readings: u64,
+}
+
+impl<'a> Stream<'a> {
+    /// `cal` built on `spec` (its model and cut-off run the predictions); readings without a temperature
+    /// take `ambient_c` (None: the model's own 292.1 K).
+    pub fn new(cal: Box<dyn Calibrator + Send + 'a>, spec: &TrackerSpec, ambient_c: Option<f64>) -> Self {
+        let ambient_k = ambient_c.map_or_else(
+            || spec.model.model().map_or(bcal_common::battery::BatteryParams::default().tb0_k, |m| m.params.tb0_k),
+            |c| c + KELVIN_0C,
+        );
+        Self { cal, spec: spec.clone(), ambient_k, last_t_s: None, loaded_sum_a: 0.0, loaded_n: 0, readings: 0 }
+    }
+
+    /// Readings taken so far (refused ones not counted).
+    pub fn readings(&self) -> u64 {
+        self.readings
+    }
+
+    /// The calibrator's setting.
+    pub fn spec(&self) -> &TrackerSpec {
+        &self.spec
+    }
+
+    /// The calibrator (its state, for callers that need more than the estimate).
+    pub fn calibrator(&self) -> &(dyn Calibrator + Send + 'a) {
+        self.cal.as_ref()
+    }
+
+    /// Checks `r`, steps the calibrator and answers; a refused reading changes nothing.
+    pub fn step(&mut self, r: &Reading) -> Result<Estimate, ReadingError> {
+        for (field, value) in [("time_s", r.time_s), ("voltage_v", r.voltage_v), ("current_a", r.current_a)]
+            .into_iter()
+            .chain(r.temperature_c.map(|c| ("temperature_c", c)))
+        {
+            if !value.is_finite() {
+                return Err(ReadingError::NotFinite { field, value });
+            }
+        }
+        if !(CELL_VOLTAGE_RANGE_V[0]..=CELL_VOLTAGE_RANGE_V[1]).contains(&r.voltage_v) {
+            return Err(ReadingError::VoltageOutOfRange { voltage_v: r.voltage_v });
+        }
+        if let Some(previous_s) = self.last_t_s.filter(|p| r.time_s <= *p) {
+            return Err(ReadingError::TimeNotIncreasing { time_s: r.time_s, previous_s });
+        }
+        let s = Sample {
+            t_s: r.time_s,
+            voltage_v: r.voltage_v,
+            current_a: r.current_a,
+            temperature_k: r.temperature_c.map_or(self.ambient_k, |c| c + KELVIN_0C),
+            request: Request::Unknown,
+        };
+        self.cal.step(&s);
+        self.last_t_s = Some(r.time_s);
+        self.readings += 1;
+        if r.current_a > LOAD_THRESHOLD_A {
+            self.loaded_sum_a += r.current_a;
+            self.loaded_n += 1;
+        }
+        let eod_current_a = (self.loaded_n > 0).then(|| self.loaded_sum_a / self.loaded_n as f64);
+        let d = self.cal.estimate();
+        let iv = self.cal.interval();
+        Ok(Estimate {
+            time_s: r.time_s,
+            q_mobile: d.q_mobile_c,
+            q_mobile_lo: iv.map(|iv| iv.q_mobile_c[0]),
+            q_mobile_hi: iv.map(|iv| iv.q_mobile_c[1]),
+            r_o: d.r_o_ohm,
+            r_o_lo: iv.map(|iv| iv.r_o_ohm[0]),
+            r_o_hi: iv.map(|iv| iv.r_o_ohm[1]),
+            eod_s: eod_current_a.and_then(|i| self.predict_eod_s(i)),
+            eod_current_a,
+        })
+    }
+
+    /// The end of discharge (absolute time, s) if the cell now draws `current_a` until the cut-off, from the
+    /// calibrated state under the current estimate; the model runs at the cell's temperature now (with the
+    /// doctor's Arrhenius factors when the model has them). None before the first reading, or when the model
+    /// does not reach the cut-off within [`PREDICT_MAX_S`].
+    pub fn predict_eod_s(&self, current_a: f64) -> Option<f64> {
+        let (x, t_now_s) = (self.cal.state()?, self.last_t_s?);
+        let d = self.cal.estimate();
+        let t_k = x[idx::T_B];
+        let ext = &self.spec.model;
+        let (model, ro_factor) = ext.model_at(t_k, ext.reference_k.unwrap_or(t_k)).ok()?;
+        // The calibrated state already holds Ro's temperature factor in its ohmic lag; the dynamics apply it.
+        let dynamics = Degradation { r_o_ohm: d.r_o_ohm * ro_factor, ..d };
+        let profile = LoadProfile::Constant(Load::CurrentA(current_a));
+        let q = EodQuery { profile: &profile, cutoff_v: self.spec.cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
+        predict_eod_s(&model, &x, &dynamics, t_now_s, &q)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bcal_common::measured::scenario::{draw_spec, simulate, ScenarioConfig};
+    use rand::SeedableRng;
+
+    fn episode() -> Vec<Reading> {
+        let cfg = ScenarioConfig::default();
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(4);
+        let spec = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
+        let ep = simulate(&cfg, &spec).unwrap();
+        ep.samples
+            .iter()
+            .map(|s| Reading {
+                time_s: s.t_s,
+                voltage_v: s.voltage_v,
+                current_a: s.current_a,
+                temperature_c: Some(s.temperature_k - KELVIN_0C),
+            })
+            .collect()
+    }
+
+    /// The stream gives what the calibrator alone gives, reading by reading, and refuses a bad reading
+    /// without stepping the calibrator (the run after it is the run without it).
+    #[test]
+    fn stream_matches_the_bare_calibrator_and_skips_bad_readings() {
+        let spec = TrackerSpec::default();
+        let readings = episode();
+        let mut bare = WindowFitCalibrator::new(&spec);
+        let mut stream = Stream::new(Box::new(WindowFitCalibrator::new(&spec)), &spec, None);
+        for (k, r) in readings.iter().enumerate() {
+            if k == 5 {
+                let bad = Reading { voltage_v: f64::NAN, ..*r };
+                let e = stream.step(&bad).unwrap_err();
+                assert_eq!(e.to_string(), "field `voltage_v` = NaN is not a finite number");
+                let back = Reading { time_s: r.time_s - 100.0, ..*r };
+                assert!(matches!(stream.step(&back), Err(ReadingError::TimeNotIncreasing { .. })));
+                let mv = Reading { voltage_v: r.voltage_v * 1000.0, ..*r };
+                assert!(matches!(stream.step(&mv), Err(ReadingError::VoltageOutOfRange { .. })));
+            }
+            let s = Sample {
+                t_s: r.time_s,
+                voltage_v: r.voltage_v,
+                current_a: r.current_a,
+                temperature_k: r.temperature_c.unwrap() + KELVIN_0C,
+                request: Request::Unknown,
+            };
+            bare.step(&s);
+            let e = stream.step(r).unwrap();
+            assert_eq!(e.q_mobile, bare.estimate().q_mobile_c, "reading {k}");
+            assert_eq!(e.r_o, bare.estimate().r_o_ohm, "reading {k}");
+            assert_eq!(e.q_mobile_lo, bare.interval().map(|iv| iv.q_mobile_c[0]));
+        }
+        assert_eq!(stream.readings(), readings.len() as u64);
+    }
+
+    /// The setting: default, the config's, the policy's (its design and filter kept under a config), the
+    /// doctor's model on top; and the refusals.
+    #[test]
+    fn resolve_takes_config_then_policy_then_default() {
+        let d = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        assert_eq!(d.spec, MeasuredSpec::default());
+        let mut trained = MeasuredSpec { design: Design::WindowFit, ..MeasuredSpec::default() };
+        trained.tracker.prior = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.12 };
+        trained.ukf = Some(crate::JointUkfSettings { meas_std_v: 0.01, ..Default::default() });
+        let task = Task::Measured(trained.clone());
+        let rl = resolve(CalibratorKind::Rl, None, Some((&task, "p.bcalpol")), None).unwrap();
+        assert_eq!(rl.spec, trained);
+        let mut cell = MeasuredSpec::default();
+        cell.tracker.cutoff_v = 2.7;
+        let both = resolve(CalibratorKind::Rl, Some(&cell), Some((&task, "p.bcalpol")), None).unwrap();
+        assert_eq!((both.spec.tracker.cutoff_v, both.spec.design), (2.7, Design::WindowFit));
+        assert_eq!(both.ukf().meas_std_v, 0.01);
+        let ext = ModelExtension { causes: vec!["thermal".into()], ..Default::default() };
+        let on = resolve(CalibratorKind::Fit, Some(&cell), None, Some(&ext)).unwrap();
+        assert!(on.spec.tracker.use_measured_temperature && on.spec.tracker.model.has("thermal"));
+        assert_eq!(resolve(CalibratorKind::Rl, None, None, None).unwrap_err(), StreamError::NoPolicy);
+        assert_eq!(
+            resolve(CalibratorKind::Fit, None, Some((&task, "p")), None).unwrap_err(),
+            StreamError::PolicyWithoutRl("fit")
+        );
+        let e = resolve(CalibratorKind::Rl, None, Some((&task, "p")), Some(&ext)).unwrap_err();
+        assert!(e.to_string().contains("trained on the base model"), "{e}");
+        assert_eq!("adaptive-ukf".parse::<CalibratorKind>().unwrap(), CalibratorKind::AdaptiveUkf);
+        assert!("kalman".parse::<CalibratorKind>().is_err());
+    }
+
+    /// The prediction comes after the first loaded reading, lies ahead of it, and moves earlier with a
+    /// larger current.
+    #[test]
+    fn eod_prediction_is_ahead_and_falls_with_current() {
+        let spec = TrackerSpec::default();
+        let mut stream = Stream::new(Box::new(Uncalibrated::new(&spec)), &spec, Some(20.0));
+        let rest = stream.step(&Reading { time_s: 0.0, voltage_v: 4.1, current_a: 0.0, temperature_c: None }).unwrap();
+        assert_eq!((rest.eod_s, rest.eod_current_a), (None, None));
+        let e = stream.step(&Reading { time_s: 10.0, voltage_v: 3.95, current_a: 2.0, temperature_c: None }).unwrap();
+        assert_eq!(e.eod_current_a, Some(2.0));
+        let at_2a = e.eod_s.expect("a prediction once loaded");
+        assert!(at_2a > 10.0, "{at_2a}");
+        let at_4a = stream.predict_eod_s(4.0).unwrap();
+        assert!(at_4a < at_2a, "{at_4a} vs {at_2a}");
+    }
+}

@@ -1,0 +1,462 @@
+//! `bcal calibrate --follow -|FILE`: one calibrator on readings as they arrive, from standard input or from
+//! a file another process is still writing. Each line (CSV rows under a `time_s,voltage_v,current_a
+//! [,temperature_c]` header, or JSON lines with those keys) goes through the stream the Python package
+//! runs too (`bcal_calib::stream`, which also builds the calibrator), and its estimate, interval and EOD
+//! prediction leave as
+//! one JSON line on standard output as soon as they are computed. A bad line is reported on standard
+//! error with its line number and skipped; end of input, `--idle-s` without a new line, or Ctrl-C
+//! (SIGINT, SIGTERM) ends the loop with a summary on standard error.
+//!
+//! A reader thread hands complete lines to the loop over a channel, so the loop can stop on a signal
+//! while the reader is blocked in a read.
+
+use anyhow::{bail, Context};
+use bcal_calib::stream::{build, resolve, CalibratorKind, Estimate, Reading, Stream};
+use bcal_common::config::{Preset, TrainConfig};
+use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::policy::PolicyFile;
+use bcal_doctor::read::CurrentSign;
+use std::io::{BufRead, Read, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// How often a followed file is polled for new lines, and the loop checks for a stop.
+const POLL: Duration = Duration::from_millis(20);
+
+/// What `--follow` needs from `bcal calibrate`'s arguments.
+pub struct FollowArgs {
+    /// `-` (standard input) or a file.
+    pub source: String,
+    /// The calibrator: ukf, adaptive_ukf, fit, uncalibrated or rl:FILE.
+    pub calibrator: String,
+    pub model: Option<PathBuf>,
+    pub config: Option<PathBuf>,
+    pub cutoff_v: Option<f64>,
+    pub ambient_c: Option<f64>,
+    pub current_sign: CurrentSign,
+    pub idle_s: Option<f64>,
+}
+
+/// Events from the reader thread.
+enum Event {
+    /// A complete line and its number (1-based).
+    Line(u64, String),
+    /// End of input (a pipe or standard input closed).
+    End,
+    /// The source failed.
+    Failed(String),
+}
+
+/// Reads `source` line by line into `tx`: standard input until it closes; a file from its start, then
+/// every line appended to it, polling at [`POLL`] (only complete lines: a line still being written waits
+/// for its newline).
+fn reader(source: String, tx: Sender<Event>) {
+    let send_lines = |buf: &mut Vec<u8>, line_no: &mut u64| -> bool {
+        while let Some(nl) = buf.iter().position(|b| *b == b'\n') {
+            let line: Vec<u8> = buf.drain(..=nl).collect();
+            *line_no += 1;
+            let text = String::from_utf8_lossy(&line).trim_end_matches(['\n', '\r']).to_string();
+            if tx.send(Event::Line(*line_no, text)).is_err() {
+                return false;
+            }
+        }
+        true
+    };
+    let mut line_no = 0u64;
+    let mut buf = Vec::new();
+    if source == "-" {
+        let stdin = std::io::stdin();
+        let mut lock = stdin.lock();
+        loop {
+            match lock.read_until(b'\n', &mut buf) {
+                Ok(0) => {
+                    if !buf.is_empty() {
+                        buf.push(b'\n');
+                        send_lines(&mut buf, &mut line_no);
+                    }
+                    let _ = tx.send(Event::End);
+                    return;
+                }
+                Ok(_) => {
+                    if !send_lines(&mut buf, &mut line_no) {
+                        return;
+                    }
+                }
+                Err(e) => {
+                    let _ = tx.send(Event::Failed(format!("reading standard input: {e}")));
+                    return;
+                }
+            }
+        }
+    }
+    let path = PathBuf::from(&source);
+    let mut file = match std::fs::File::open(&path) {
+        Ok(f) => f,
+        Err(e) => {
+            let _ = tx.send(Event::Failed(format!("cannot open {}: {e}", path.display())));
+            return;
+        }
+    };
+    let mut read_so_far = 0u64;
+    let mut chunk = [0u8; 64 * 1024];
+    loop {
+        match file.read(&mut chunk) {
+            Ok(0) => {
+                // Nothing new: a file that shrank was replaced or truncated, and following it would mix
+                // two streams.
+                if let Ok(meta) = std::fs::metadata(&path) {
+                    if meta.len() < read_so_far {
+                        let _ = tx.send(Event::Failed(format!(
+                            "{} shrank from {read_so_far} to {} bytes while followed (truncated or replaced); \
+                             start the follow again on the new file",
+                            path.display(),
+                            meta.len()
+                        )));
+                        return;
+                    }
+                }
+                std::thread::sleep(POLL);
+            }
+            Ok(n) => {
+                read_so_far += n as u64;
+                buf.extend_from_slice(&chunk[..n]);
+                if !send_lines(&mut buf, &mut line_no) {
+                    return;
+                }
+            }
+            Err(e) => {
+                let _ = tx.send(Event::Failed(format!("reading {}: {e}", path.display())));
+                return;
+            }
+        }
+    }
+}
+
+/// The layout of the lines, decided by the first one that is not empty or a `#` comment.
+enum Layout {
+    /// CSV under a header: the positions of time_s, voltage_v, current_a and temperature_c.
+    Csv { time: usize, voltage: usize, current: usize, temperature: Option<usize>, width: usize },
+    /// One JSON object per line.
+    Json,
+}
+
+const HEADER_HINT: &str = "give a CSV header time_s,voltage_v,current_a[,temperature_c] first, or JSON lines \
+                           like {\"time_s\": 0, \"voltage_v\": 4.1, \"current_a\": 2.0, \"temperature_c\": 24}";
+
+fn csv_fields(line: &str) -> Result<Vec<String>, String> {
+    let mut rdr = csv::ReaderBuilder::new().has_headers(false).flexible(true).from_reader(line.as_bytes());
+    match rdr.records().next() {
+        Some(Ok(r)) => Ok(r.iter().map(|f| f.trim().to_string()).collect()),
+        Some(Err(e)) => Err(format!("not a CSV row ({e})")),
+        None => Ok(Vec::new()),
+    }
+}
+
+impl Layout {
+    /// The layout a first line sets; an error names what the header lacks.
+    fn from_first(line: &str) -> Result<Self, String> {
+        if line.trim_start().starts_with('{') {
+            return Ok(Layout::Json);
+        }
+        let names = csv_fields(line)?;
+        let at = |name: &str| names.iter().position(|n| n == name);
+        let missing: Vec<&str> = ["time_s", "voltage_v", "current_a"].into_iter().filter(|n| at(n).is_none()).collect();
+        if !missing.is_empty() {
+            return Err(format!(
+                "the header `{}` has no column {}; {HEADER_HINT}",
+                bcal_common::text::shown(line, 80),
+                missing.iter().map(|m| format!("`{m}`")).collect::<Vec<_>>().join(", ")
+            ));
+        }
+        Ok(Layout::Csv {
+            time: at("time_s").unwrap_or_default(),
+            voltage: at("voltage_v").unwrap_or_default(),
+            current: at("current_a").unwrap_or_default(),
+            temperature: at("temperature_c"),
+            width: names.len(),
+        })
+    }
+
+    /// One reading from a data line, current as written (the sign is applied by the caller).
+    fn parse(&self, line: &str) -> Result<Reading, String> {
+        let number = |field: &str, text: &str| -> Result<f64, String> {
+            text.trim()
+                .parse::<f64>()
+                .map_err(|_| format!("field `{field}` = `{}` is not a number", bcal_common::text::shown(text, 40)))
+        };
+        match self {
+            Layout::Csv { time, voltage, current, temperature, width } => {
+                let f = csv_fields(line)?;
+                if f.len() != *width {
+                    return Err(format!("{} fields where the header has {width}", f.len()));
+                }
+                Ok(Reading {
+                    time_s: number("time_s", &f[*time])?,
+                    voltage_v: number("voltage_v", &f[*voltage])?,
+                    current_a: number("current_a", &f[*current])?,
+                    temperature_c: match temperature.map(|k| f[k].as_str()) {
+                        None | Some("") => None,
+                        Some(t) => Some(number("temperature_c", t)?),
+                    },
+                })
+            }
+            Layout::Json => {
+                let v: serde_json::Value =
+                    serde_json::from_str(line).map_err(|e| format!("not a JSON object ({e})"))?;
+                let get = |field: &str, required: bool| -> Result<Option<f64>, String> {
+                    match v.get(field) {
+                        None | Some(serde_json::Value::Null) if !required => Ok(None),
+                        None => Err(format!("no key `{field}`")),
+                        Some(x) => x.as_f64().map(Some).ok_or_else(|| format!("key `{field}` = {x} is not a number")),
+                    }
+                };
+                Ok(Reading {
+                    time_s: get("time_s", true)?.unwrap_or_default(),
+                    voltage_v: get("voltage_v", true)?.unwrap_or_default(),
+                    current_a: get("current_a", true)?.unwrap_or_default(),
+                    temperature_c: get("temperature_c", false)?,
+                })
+            }
+        }
+    }
+}
+
+/// Sets `flag` on SIGINT or SIGTERM (registered before this returns, so no signal is missed).
+fn stop_on_signals(flag: Arc<AtomicBool>) -> anyhow::Result<()> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    let (mut int, mut term) = {
+        let _guard = rt.enter();
+        (signal(SignalKind::interrupt())?, signal(SignalKind::terminate())?)
+    };
+    std::thread::spawn(move || {
+        rt.block_on(async {
+            tokio::select! {
+                _ = int.recv() => {}
+                _ = term.recv() => {}
+            }
+        });
+        flag.store(true, Ordering::SeqCst);
+    });
+    Ok(())
+}
+
+/// Why the loop ended.
+#[derive(Debug, PartialEq)]
+enum Ended {
+    EndOfInput,
+    Signal,
+    Idle(f64),
+    OutputClosed,
+}
+
+/// Runs the follow loop; errors before the first reading (bad options, files, a header without the
+/// columns) end it at once.
+pub fn run(a: FollowArgs) -> anyhow::Result<()> {
+    // The calibrator: kind, its policy, the cell's config and model.
+    let (kind, policy_path) = match a.calibrator.trim().split_once(':') {
+        Some(("rl", p)) => (CalibratorKind::Rl, Some(PathBuf::from(p))),
+        _ => (a.calibrator.parse::<CalibratorKind>()?, None),
+    };
+    if kind == CalibratorKind::Rl && policy_path.is_none() {
+        bail!("--calibrator rl needs its policy file: --calibrator rl:FILE.bcalpol");
+    }
+    let policy = policy_path
+        .as_deref()
+        .map(|p| PolicyFile::load(p).with_context(|| format!("the RL policy {}", p.display())))
+        .transpose()?;
+    let net = policy.as_ref().map(|p| p.net()).transpose()?;
+    let config = a
+        .config
+        .as_deref()
+        .map(|p| -> anyhow::Result<MeasuredSpec> {
+            let c = TrainConfig::from_file_over(p, Preset::Measured)?;
+            c.validate().with_context(|| format!("config {}", p.display()))?;
+            Ok(c.measured)
+        })
+        .transpose()?;
+    let reference_k = a.ambient_c.map(|c| c + bcal_common::measured::scenario::KELVIN_0C);
+    let model =
+        a.model.as_deref().map(bcal_doctor::model_file::load_model).transpose()?.map(|m| m.extension(reference_k));
+    let policy_name = policy_path.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
+    let mut setup =
+        resolve(kind, config.as_ref(), policy.as_ref().map(|p| (&p.task, policy_name.as_str())), model.as_ref())?;
+    if let Some(v) = a.cutoff_v {
+        setup.spec.tracker.cutoff_v = v;
+    }
+    let spec = setup.spec.tracker.clone();
+    let mut stream = Stream::new(build(&setup, net.as_ref())?, &spec, a.ambient_c);
+    // The current's sign: positive discharges unless told otherwise (a stream cannot be read ahead to
+    // decide, so `auto` takes the documented convention).
+    let sign = if a.current_sign == CurrentSign::DischargeNegative { -1.0 } else { 1.0 };
+
+    let stop = Arc::new(AtomicBool::new(false));
+    stop_on_signals(stop.clone())?;
+    if a.source != "-" && !Path::new(&a.source).is_file() {
+        bail!("--follow {}: no such file (give a file another process writes, or - for standard input)", a.source);
+    }
+    let (tx, rx): (Sender<Event>, Receiver<Event>) = mpsc::channel();
+    let source = a.source.clone();
+    std::thread::spawn(move || reader(source, tx));
+    eprintln!(
+        "follow: {} on {} (model {}, cut-off {} V, prior q_mobile {} C, r_o {} ohm); one JSON line per reading",
+        kind.name(),
+        if a.source == "-" { "standard input".to_string() } else { a.source.clone() },
+        spec.model.label(),
+        spec.cutoff_v,
+        spec.prior.q_mobile_c,
+        spec.prior.r_o_ohm
+    );
+
+    let stdout = std::io::stdout();
+    let mut out = stdout.lock();
+    let mut layout: Option<Layout> = None;
+    let mut skipped: Vec<u64> = Vec::new();
+    let mut last = None;
+    let mut step_us: Vec<f64> = Vec::new();
+    let mut last_line_at = Instant::now();
+    let ended = loop {
+        if stop.load(Ordering::SeqCst) {
+            break Ended::Signal;
+        }
+        if let Some(idle) = a.idle_s.filter(|s| last_line_at.elapsed().as_secs_f64() > *s) {
+            break Ended::Idle(idle);
+        }
+        let (line_no, line) = match rx.recv_timeout(POLL) {
+            Ok(Event::Line(n, l)) => (n, l),
+            Ok(Event::End) | Err(RecvTimeoutError::Disconnected) => break Ended::EndOfInput,
+            Ok(Event::Failed(why)) => bail!("{why}"),
+            Err(RecvTimeoutError::Timeout) => continue,
+        };
+        last_line_at = Instant::now();
+        if line.trim().is_empty() || line.trim_start().starts_with('#') {
+            continue;
+        }
+        let Some(lay) = &layout else {
+            layout = Some(Layout::from_first(&line).map_err(|why| anyhow::anyhow!("line {line_no}: {why}"))?);
+            if matches!(layout, Some(Layout::Csv { .. })) {
+                continue;
+            }
+            // A JSON first line is a reading too: take it below.
+            let lay = layout.as_ref().expect("set above");
+            if let Some(e) = take(lay, &line, line_no, sign, &mut stream, &mut step_us, &mut skipped) {
+                if emit(&mut out, line_no, &e).is_err() {
+                    break Ended::OutputClosed;
+                }
+                last = Some(e);
+            }
+            continue;
+        };
+        if let Some(e) = take(lay, &line, line_no, sign, &mut stream, &mut step_us, &mut skipped) {
+            if emit(&mut out, line_no, &e).is_err() {
+                break Ended::OutputClosed;
+            }
+            last = Some(e);
+        }
+    };
+    drop(out);
+    eprintln!("{}", summary(&ended, stream.readings(), &skipped, last.as_ref(), &step_us));
+    Ok(())
+}
+
+/// Parses and steps one data line: the estimate, or None (reported on standard error, counted in
+/// `skipped`) for a bad line.
+fn take(
+    layout: &Layout,
+    line: &str,
+    line_no: u64,
+    sign: f64,
+    stream: &mut Stream,
+    step_us: &mut Vec<f64>,
+    skipped: &mut Vec<u64>,
+) -> Option<Estimate> {
+    let started = Instant::now();
+    let result = layout.parse(line).and_then(|r| {
+        let r = Reading { current_a: sign * r.current_a, ..r };
+        stream.step(&r).map_err(|e| e.to_string())
+    });
+    match result {
+        Ok(e) => {
+            step_us.push(started.elapsed().as_secs_f64() * 1e6);
+            Some(e)
+        }
+        Err(why) => {
+            eprintln!("line {line_no}: {why}; skipped");
+            skipped.push(line_no);
+            None
+        }
+    }
+}
+
+/// Writes one estimate as a JSON line and flushes it.
+fn emit(out: &mut impl Write, line_no: u64, e: &Estimate) -> std::io::Result<()> {
+    let mut v = serde_json::to_value(e).map_err(std::io::Error::other)?;
+    v["line"] = serde_json::json!(line_no);
+    writeln!(out, "{v}")?;
+    out.flush()
+}
+
+fn summary(ended: &Ended, readings: u64, skipped: &[u64], last: Option<&Estimate>, step_us: &[f64]) -> String {
+    let why = match ended {
+        Ended::EndOfInput => "end of input".to_string(),
+        Ended::Signal => "stopped (Ctrl-C / SIGTERM)".to_string(),
+        Ended::Idle(s) => format!("no new line for {s} s (--idle-s)"),
+        Ended::OutputClosed => "standard output closed".to_string(),
+    };
+    let mut s = format!(
+        "follow: {why}: {readings} readings taken, {} bad line{} skipped",
+        skipped.len(),
+        if skipped.len() == 1 { "" } else { "s" }
+    );
+    if !skipped.is_empty() {
+        let shown: Vec<String> = skipped.iter().take(20).map(u64::to_string).collect();
+        s.push_str(&format!(" (lines {}{})", shown.join(", "), if skipped.len() > 20 { ", ..." } else { "" }));
+    }
+    if let Some(e) = last {
+        s.push_str(&format!(
+            "; last estimate at {} s: q_mobile {:.1} C, r_o {:.5} ohm, EOD {}",
+            e.time_s,
+            e.q_mobile,
+            e.r_o,
+            e.eod_s.map_or("-".to_string(), |t| format!("{t:.0} s"))
+        ));
+    }
+    if !step_us.is_empty() {
+        let mut v = step_us.to_vec();
+        v.sort_by(f64::total_cmp);
+        s.push_str(&format!(
+            "; parse + step + predict per reading: median {:.0} us, max {:.0} us",
+            v[v.len() / 2],
+            v[v.len() - 1]
+        ));
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn csv_header_finds_columns_in_any_order_and_names_what_is_missing() {
+        let l = Layout::from_first("current_a, time_s,voltage_v").unwrap();
+        let r = l.parse("2.0,10,3.9").unwrap();
+        assert_eq!(r, Reading { time_s: 10.0, voltage_v: 3.9, current_a: 2.0, temperature_c: None });
+        assert!(l.parse("2.0,abc,3.9").unwrap_err().contains("field `time_s` = `abc` is not a number"));
+        assert!(l.parse("2.0,10").unwrap_err().contains("2 fields where the header has 3"));
+        let e = Layout::from_first("time_s,volts,current_a").err().unwrap();
+        assert!(e.contains("no column `voltage_v`"), "{e}");
+    }
+
+    #[test]
+    fn json_lines_take_optional_temperature() {
+        let l = Layout::from_first("{\"time_s\": 1}").unwrap();
+        let r = l.parse("{\"time_s\": 1, \"voltage_v\": 4.0, \"current_a\": 0.5, \"temperature_c\": 25}").unwrap();
+        assert_eq!(r.temperature_c, Some(25.0));
+        assert!(l.parse("{\"time_s\": 1, \"current_a\": 0.5}").unwrap_err().contains("no key `voltage_v`"));
+        assert!(l.parse("time_s,1").unwrap_err().contains("not a JSON object"));
+    }
+}

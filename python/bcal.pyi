@@ -1,0 +1,160 @@
+"""bcal: keep the NASA Li-ion electrochemistry model (Daigle & Kulkarni 2013; progpy's
+BatteryElectroChemEOD) true to its cell.
+
+simulate() runs the model, Calibrator calibrates it one reading at a time, diagnose() finds what the
+model gets wrong on measured data. Names carry units: time_s, voltage_v, current_a (positive while
+discharging), temperature_c; q_mobile in C, r_o in ohm.
+"""
+
+import os
+from typing import Any, Literal, Optional, TypedDict, Union
+
+import numpy as np
+import numpy.typing as npt
+import pandas as pd
+
+__version__: str
+VEOD_V: float
+"""End-of-discharge voltage of the model, V (3.0, progpy's VEOD)."""
+
+PathLike = Union[str, "os.PathLike[str]"]
+Kind = Literal["ukf", "adaptive_ukf", "rl", "fit", "uncalibrated"]
+FloatArray = npt.NDArray[np.float64]
+
+class SimState(TypedDict):
+    """Model state per row under progpy's names: charges in C, overpotentials in V, tb in K."""
+
+    qpS: FloatArray
+    qpB: FloatArray
+    qnB: FloatArray
+    qnS: FloatArray
+    Vo: FloatArray
+    Vsn: FloatArray
+    Vsp: FloatArray
+    tb: FloatArray
+
+class Simulation(TypedDict):
+    time_s: FloatArray
+    voltage_v: FloatArray
+    current_a: FloatArray
+    """Current drawn over the step that starts at each row, A (0 on the EOD row)."""
+    temperature_c: FloatArray
+    state: SimState
+    eod_s: float
+    """Time of the first row below VEOD, s."""
+
+class Estimate(TypedDict):
+    time_s: float
+    q_mobile: float
+    q_mobile_lo: Optional[float]
+    q_mobile_hi: Optional[float]
+    r_o: float
+    r_o_lo: Optional[float]
+    r_o_hi: Optional[float]
+    eod_s: Optional[float]
+    """Predicted end of discharge, absolute time, s, at eod_current_a."""
+    eod_current_a: Optional[float]
+    """Mean discharge current of the readings so far, A."""
+
+def simulate(
+    load_w: Optional[float] = None,
+    current_a: Optional[float] = None,
+    q_mobile: float = 7600.0,
+    ro: float = 0.117215,
+    dt_s: float = 1.0,
+    thermal: bool = False,
+    max_steps: int = 200_000,
+    steps: Optional[list[tuple[float, float]]] = None,
+) -> Simulation:
+    """One discharge of the model from a new cell's state until the first step below VEOD (3.0 V),
+    stepped by explicit Euler: what `bcal simulate` runs.
+
+    Give exactly one of `load_w` (constant power, W; the current is P / V at the start of each step)
+    and `current_a` (constant current, A). `q_mobile` (C) and `ro` (ohm) are the degradation
+    parameters (new cell: 7600 C, 0.117215 ohm). `thermal` turns on the bulk temperature's heat
+    balance (progpy always runs it; off, the cell stays at 292.1 K). `steps`: later load steps as
+    (start_s, value) pairs in the first load's unit (8 W, then 16 W from 1000 s:
+    `load_w=8.0, steps=[(1000.0, 16.0)]`).
+
+    Raises ValueError with the CLI's message for a bad argument or when VEOD is not reached within
+    `max_steps`.
+
+    >>> bcal.simulate(load_w=8.0)["eod_s"]
+    3102.0
+    """
+
+def diagnose(
+    data: PathLike,
+    cell: Optional[str] = None,
+    cycles: Optional[str] = None,
+    holdout: Optional[str] = None,
+    stride: int = 1,
+    cutoff_v: Optional[float] = None,
+    current_sign: Literal["auto", "discharge-positive", "discharge-negative"] = "auto",
+    ambient_c: Optional[float] = None,
+) -> dict[str, Any]:
+    """Diagnose measured discharges as `bcal diagnose` does (without writing files): fit the model per
+    cycle, find what it gets wrong, name the cause, extend the model, judged on held-out cycles.
+
+    `data`: a NASA PCoE folder (`cell` required, e.g. "B0005") or a CSV
+    (time_s,voltage_v,current_a[,temperature_c][,cycle]). `cycles`, `holdout`: "A..B" (1-based,
+    inclusive; default the first third against the rest).
+
+    Returns diagnosis.json's content (cause, ranking, base and extended models, per-cycle fits,
+    residual structure) plus `read_notes` and `cutoff_source`. Raises FileNotFoundError / OSError for
+    unreadable data, ValueError with the CLI's message for anything else.
+    """
+
+class Calibrator:
+    """A calibrator fed one reading at a time, no look-ahead: estimates of qMobile (C) and Ro (ohm)
+    with 90 % intervals, and the end of discharge predicted from the calibrated state. The same code
+    as `bcal calibrate --follow`: the same readings give the same estimates.
+
+    `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy; `policy` is
+    its .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior).
+    `model`: the doctor's extended model (diagnosis.json, or its folder). `config`: a bcal config TOML
+    (`bcal cell-config` writes one per cell). `ambient_c`: temperature of readings that give none.
+    `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0).
+
+    Raises ValueError for a bad kind or file content, FileNotFoundError / OSError for unreadable
+    files.
+    """
+
+    def __init__(
+        self,
+        kind: Kind,
+        policy: Optional[PathLike] = None,
+        model: Optional[PathLike] = None,
+        config: Optional[PathLike] = None,
+        ambient_c: Optional[float] = None,
+        cutoff_v: Optional[float] = None,
+    ) -> None: ...
+    @property
+    def kind(self) -> str:
+        """The calibrator's kind."""
+    @property
+    def readings(self) -> int:
+        """Readings taken so far (refused ones not counted)."""
+    @property
+    def spec(self) -> dict[str, Any]:
+        """The calibrator's setting (ranges, prior, cut-off, model) as bcal's config writes it."""
+    def step(
+        self,
+        time_s: float,
+        voltage_v: float,
+        current_a: float,
+        temperature_c: Optional[float] = None,
+    ) -> Estimate:
+        """Takes the next reading (time order; current positive while discharging) and returns the
+        estimate. A reading that is not finite, not a cell's voltage or not later than the last raises
+        ValueError and leaves the calibrator as it was."""
+    def predict_eod_s(self, current_a: float) -> Optional[float]:
+        """End of discharge (absolute time, s) if the cell now draws `current_a` (A) to the cut-off;
+        None before the first reading or beyond the 40 000 s horizon."""
+    def state(self) -> Optional[dict[str, float]]:
+        """The calibrated model state under progpy's names (qpS, qpB, qnB, qnS in C; Vo, Vsn, Vsp in V;
+        tb in K), or None before the first reading."""
+    def run(self, df: pd.DataFrame) -> pd.DataFrame:
+        """Feeds every row of `df` (columns time_s, voltage_v, current_a, optionally temperature_c) and
+        returns one row per reading: the keys of `step` (NaN for None) and `row`, the reading's
+        position. A bad row raises ValueError naming its position."""

@@ -1,0 +1,278 @@
+//! `bcal.Calibrator`: one calibrator fed one reading at a time through the stream `bcal calibrate
+//! --follow` runs (`bcal_calib::stream`: the same setup, the same calibrator built by the same function),
+//! so a reading gives the same estimate here as there. Every use of calibrator types in the Python package
+//! sits in this module.
+
+use crate::convert::{dict, from_serde};
+use crate::errors::{doctor_error, value_error};
+use bcal_calib::stream::{build, resolve, CalibratorKind, Estimate, Reading, Stream, StreamError};
+use bcal_common::config::{Preset, TrainConfig};
+use bcal_common::math::idx;
+use bcal_common::measured::env::MeasuredSpec;
+use bcal_common::policy::{PolicyFile, PolicyNet};
+use pyo3::exceptions::PyOSError;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+type StreamOf<'a> = Stream<'a>;
+
+self_cell::self_cell!(
+    /// The RL policy's network (None for other kinds) and the stream whose calibrator borrows it.
+    struct Owned {
+        owner: Option<PolicyNet>,
+        #[not_covariant]
+        dependent: StreamOf,
+    }
+);
+
+/// A calibrator of the NASA Li-ion model fed one reading at a time, with no look-ahead: the estimate of
+/// qMobile (C) and Ro (ohm) with their 90 % intervals, and the end of discharge predicted from the
+/// calibrated state. The same code as `bcal calibrate --follow`: the same readings give the same estimates.
+///
+/// `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy: `policy` is its
+/// .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior, never moved).
+/// `model`: the doctor's extended model (diagnosis.json of `bcal diagnose`, or its folder). `config`: a
+/// bcal config TOML (`bcal cell-config` writes one per cell) whose `measured.tracker` sets ranges, prior
+/// and cut-off. `ambient_c`: the temperature of readings that give none, deg C (default the model's
+/// 18.95 C). `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0). The
+/// joint UKF's settings are the config's or the RL run's (tuned on validation by `bcal train`), else the
+/// defaults; an RL policy runs as it was trained (on the window fit or as a correction of the joint UKF).
+/// Raises ValueError (bad kind or files) and FileNotFoundError / OSError (unreadable files).
+#[pyclass(module = "bcal")]
+pub struct Calibrator {
+    kind: CalibratorKind,
+    stream: Mutex<Owned>,
+}
+
+fn load_policy(path: &Path) -> PyResult<PolicyFile> {
+    PolicyFile::load(path).map_err(|e| {
+        let msg = format!("the RL policy {}: {e}", path.display());
+        if path.exists() {
+            value_error(msg)
+        } else {
+            pyo3::exceptions::PyFileNotFoundError::new_err(msg)
+        }
+    })
+}
+
+fn load_config(path: &Path) -> PyResult<MeasuredSpec> {
+    let c = TrainConfig::from_file_over(path, Preset::Measured).map_err(|e| match e {
+        bcal_common::config::ConfigError::Read { .. } => PyOSError::new_err(e.to_string()),
+        e => value_error(e),
+    })?;
+    c.validate().map_err(|e| value_error(format!("config {}: {e}", path.display())))?;
+    Ok(c.measured)
+}
+
+/// The estimate as the dict `step` returns (None where the calibrator cannot tell yet).
+fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDict>> {
+    let d = dict(py);
+    d.set_item("time_s", e.time_s)?;
+    d.set_item("q_mobile", e.q_mobile)?;
+    d.set_item("q_mobile_lo", e.q_mobile_lo)?;
+    d.set_item("q_mobile_hi", e.q_mobile_hi)?;
+    d.set_item("r_o", e.r_o)?;
+    d.set_item("r_o_lo", e.r_o_lo)?;
+    d.set_item("r_o_hi", e.r_o_hi)?;
+    d.set_item("eod_s", e.eod_s)?;
+    d.set_item("eod_current_a", e.eod_current_a)?;
+    Ok(d)
+}
+
+/// The columns `run` returns, in order.
+const RUN_COLUMNS: [&str; 10] =
+    ["time_s", "q_mobile", "q_mobile_lo", "q_mobile_hi", "r_o", "r_o_lo", "r_o_hi", "eod_s", "eod_current_a", "row"];
+
+impl Calibrator {
+    fn with_stream<T>(&self, f: impl FnOnce(&mut Stream<'_>) -> T) -> T {
+        let mut s = self.stream.lock().unwrap_or_else(|e| e.into_inner());
+        s.with_dependent_mut(|_, stream| f(stream))
+    }
+}
+
+#[pymethods]
+impl Calibrator {
+    #[new]
+    #[pyo3(signature = (kind, policy=None, model=None, config=None, ambient_c=None, cutoff_v=None))]
+    fn new(
+        kind: &str,
+        policy: Option<PathBuf>,
+        model: Option<PathBuf>,
+        config: Option<PathBuf>,
+        ambient_c: Option<f64>,
+        cutoff_v: Option<f64>,
+    ) -> PyResult<Self> {
+        let kind: CalibratorKind = kind.parse().map_err(value_error)?;
+        if let Some(c) = ambient_c.filter(|c| !c.is_finite()) {
+            return Err(value_error(format!("ambient_c = {c} is not a finite number")));
+        }
+        if policy.is_some() && kind != CalibratorKind::Rl {
+            return Err(value_error(StreamError::PolicyWithoutRl(kind.name())));
+        }
+        let policy_file = policy.as_deref().map(load_policy).transpose()?;
+        let config_spec = config.as_deref().map(load_config).transpose()?;
+        let reference_k = ambient_c.map(|c| c + bcal_common::measured::scenario::KELVIN_0C);
+        let ext = model
+            .as_deref()
+            .map(bcal_doctor::model_file::load_model)
+            .transpose()
+            .map_err(doctor_error)?
+            .map(|m| m.extension(reference_k));
+        let policy_name = policy.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
+        let mut setup = resolve(
+            kind,
+            config_spec.as_ref(),
+            policy_file.as_ref().map(|p| (&p.task, policy_name.as_str())),
+            ext.as_ref(),
+        )
+        .map_err(value_error)?;
+        if let Some(v) = cutoff_v {
+            setup.spec.tracker.cutoff_v =
+                bcal_common::simulate::positive(v).map_err(|why| value_error(format!("cutoff_v: {why}")))?;
+        }
+        let net = policy_file.as_ref().map(|p| p.net()).transpose().map_err(value_error)?;
+        let owned = Owned::try_new(net, |net| {
+            build(&setup, net.as_ref()).map(|cal| Stream::new(cal, &setup.spec.tracker, ambient_c))
+        })
+        .map_err(value_error)?;
+        Ok(Self { kind, stream: Mutex::new(owned) })
+    }
+
+    /// The calibrator's kind ("ukf", "adaptive_ukf", "rl", "fit", "uncalibrated").
+    #[getter]
+    fn kind(&self) -> &'static str {
+        self.kind.name()
+    }
+
+    /// Readings taken so far (refused ones not counted).
+    #[getter]
+    fn readings(&self) -> u64 {
+        self.with_stream(|s| s.readings())
+    }
+
+    /// The calibrator's setting (ranges, prior, cut-off, model) as a dict, as bcal's config writes it.
+    #[getter]
+    fn spec<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let spec = self.with_stream(|s| s.spec().clone());
+        from_serde(py, &spec)
+    }
+
+    /// Takes the next reading (time order; current positive while discharging) and returns the estimate:
+    /// a dict of `time_s`, `q_mobile` (C), `q_mobile_lo`, `q_mobile_hi` (its 90 % interval), `r_o` (ohm),
+    /// `r_o_lo`, `r_o_hi`, `eod_s` (predicted end of discharge, absolute time, s, at `eod_current_a`: the
+    /// mean discharge current so far). Interval and prediction are None while the calibrator cannot tell.
+    /// A reading that is not finite, not a cell's voltage or not later than the last raises ValueError and
+    /// leaves the calibrator as it was.
+    #[pyo3(signature = (time_s, voltage_v, current_a, temperature_c=None))]
+    fn step<'py>(
+        &self,
+        py: Python<'py>,
+        time_s: f64,
+        voltage_v: f64,
+        current_a: f64,
+        temperature_c: Option<f64>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let r = Reading { time_s, voltage_v, current_a, temperature_c };
+        let e = self.with_stream(|s| s.step(&r)).map_err(value_error)?;
+        estimate_dict(py, &e)
+    }
+
+    /// The end of discharge (absolute time, s) if the cell now draws `current_a` (A) until the cut-off,
+    /// from the calibrated state; None before the first reading or beyond the 40 000 s horizon.
+    fn predict_eod_s(&self, current_a: f64) -> PyResult<Option<f64>> {
+        bcal_common::simulate::positive(current_a).map_err(|why| value_error(format!("current_a: {why}")))?;
+        Ok(self.with_stream(|s| s.predict_eod_s(current_a)))
+    }
+
+    /// The calibrated model state now under progpy's state names (qpS, qpB, qnB, qnS in C; Vo, Vsn, Vsp in
+    /// V; tb in K), or None before the first reading.
+    fn state<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let Some(x) = self.with_stream(|s| s.calibrator().state()) else { return Ok(None) };
+        let d = dict(py);
+        for (name, k) in [
+            ("qpS", idx::QP_S),
+            ("qpB", idx::QP_B),
+            ("qnB", idx::QN_B),
+            ("qnS", idx::QN_S),
+            ("Vo", idx::V_O),
+            ("Vsn", idx::V_SN),
+            ("Vsp", idx::V_SP),
+            ("tb", idx::T_B),
+        ] {
+            d.set_item(name, x[k])?;
+        }
+        Ok(Some(d))
+    }
+
+    /// Feeds every row of a pandas DataFrame with columns `time_s`, `voltage_v`, `current_a` (and optionally
+    /// `temperature_c`) in order, and returns a DataFrame with one row per reading: the columns of `step`
+    /// (NaN where `step` gives None) and `row`, the reading's position in `df`. A bad row raises
+    /// ValueError naming its position; the readings before it have been taken.
+    fn run<'py>(&self, py: Python<'py>, df: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
+        let columns: Vec<String> = df.getattr("columns")?.call_method0("tolist")?.extract()?;
+        let column = |name: &str| -> PyResult<Option<Vec<f64>>> {
+            if !columns.iter().any(|c| c == name) {
+                return Ok(None);
+            }
+            let kwargs = PyDict::new(py);
+            kwargs.set_item("dtype", "float64")?;
+            let values = df.get_item(name)?.call_method("to_numpy", (), Some(&kwargs))?.call_method0("tolist")?;
+            Ok(Some(values.extract()?))
+        };
+        let need = |name: &str| -> PyResult<Vec<f64>> {
+            column(name)?.ok_or_else(|| {
+                value_error(format!(
+                    "the DataFrame has no column `{name}` (columns: {}); it needs time_s, voltage_v, current_a and \
+                     optionally temperature_c",
+                    columns.join(", ")
+                ))
+            })
+        };
+        let (time_s, voltage_v, current_a) = (need("time_s")?, need("voltage_v")?, need("current_a")?);
+        let temperature_c = column("temperature_c")?;
+        let mut out: Vec<Vec<f64>> = vec![Vec::with_capacity(time_s.len()); RUN_COLUMNS.len()];
+        let opt = |v: Option<f64>| v.unwrap_or(f64::NAN);
+        let result = self.with_stream(|s| -> Result<(), String> {
+            for k in 0..time_s.len() {
+                let r = Reading {
+                    time_s: time_s[k],
+                    voltage_v: voltage_v[k],
+                    current_a: current_a[k],
+                    temperature_c: temperature_c.as_ref().map(|t| t[k]),
+                };
+                let e = s.step(&r).map_err(|e| format!("row {k}: {e}"))?;
+                let row = [
+                    e.time_s,
+                    e.q_mobile,
+                    opt(e.q_mobile_lo),
+                    opt(e.q_mobile_hi),
+                    e.r_o,
+                    opt(e.r_o_lo),
+                    opt(e.r_o_hi),
+                    opt(e.eod_s),
+                    opt(e.eod_current_a),
+                    k as f64,
+                ];
+                for (col, v) in out.iter_mut().zip(row) {
+                    col.push(v);
+                }
+            }
+            Ok(())
+        });
+        result.map_err(value_error)?;
+        let data = PyDict::new(py);
+        for (name, values) in RUN_COLUMNS.iter().zip(out) {
+            data.set_item(*name, crate::convert::array(py, &values)?)?;
+        }
+        let frame = py.import("pandas")?.call_method1("DataFrame", (data,))?;
+        let rows = frame.get_item("row")?.call_method1("astype", ("int64",))?;
+        frame.set_item("row", rows)?;
+        Ok(frame)
+    }
+
+    fn __repr__(&self) -> String {
+        format!("Calibrator('{}', readings={})", self.kind.name(), self.readings())
+    }
+}

@@ -1,0 +1,147 @@
+"""bcal.Calibrator against `bcal calibrate --follow`: a generated discharge fed one reading at a time gives
+the same estimates, intervals and EOD predictions, float for float, as the CLI gives on the same
+readings; DataFrames, errors and the model state."""
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import bcal
+from conftest import generated_discharge, run_cli
+
+KINDS = ["ukf", "adaptive_ukf", "fit", "uncalibrated"]
+FIELDS = ["time_s", "q_mobile", "q_mobile_lo", "q_mobile_hi", "r_o", "r_o_lo", "r_o_hi", "eod_s", "eod_current_a"]
+
+
+def make(kind: str, **kw) -> bcal.Calibrator:
+    return bcal.Calibrator(kind, **kw)
+
+
+@pytest.fixture(scope="module")
+def discharge() -> pd.DataFrame:
+    return generated_discharge()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_step_by_step_equals_the_cli_follow(bcal_cli, discharge, kind):
+    cal = make(kind)
+    ours = [cal.step(r.time_s, r.voltage_v, r.current_a, r.temperature_c) for r in discharge.itertuples()]
+    out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", kind,
+                  stdin=discharge.to_csv(index=False, float_format="%.17g"))
+    assert out.returncode == 0, out.stderr
+    theirs = [json.loads(line) for line in out.stdout.splitlines()]
+    assert len(theirs) == len(ours) == len(discharge)
+    for k, (a, b) in enumerate(zip(ours, theirs)):
+        assert b["line"] == k + 2  # the header is line 1
+        for f in FIELDS:
+            assert a[f] == b[f], f"{kind}, reading {k}, {f}: python {a[f]!r}, cli {b[f]!r}"
+    assert f"end of input: {len(discharge)} readings taken, 0 bad lines skipped" in out.stderr
+    if kind != "uncalibrated":
+        # It calibrates: by the end the estimate has left the prior (5500 C, 0.15 ohm) towards the truth.
+        q_end, r_end = ours[-1]["q_mobile"], ours[-1]["r_o"]
+        assert abs(q_end - 6000.0) < abs(5500.0 - 6000.0), q_end
+        assert abs(r_end - 0.14) < abs(0.15 - 0.14), r_end
+
+
+def test_an_rl_policy_file_gives_the_cli_s_estimates(bcal_cli, discharge, rl_policy):
+    cal = make("rl", policy=rl_policy)
+    ours = [cal.step(r.time_s, r.voltage_v, r.current_a, r.temperature_c) for r in discharge.itertuples()]
+    out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", f"rl:{rl_policy}",
+                  stdin=discharge.to_csv(index=False, float_format="%.17g"))
+    assert out.returncode == 0, out.stderr
+    theirs = [json.loads(line) for line in out.stdout.splitlines()]
+    assert [[a[f] for f in FIELDS] for a in ours] == [[b[f] for f in FIELDS] for b in theirs]
+    assert any(abs(a["q_mobile"] - 5500.0) > 1.0 for a in ours), "the policy moves the estimate"
+
+
+def test_run_on_a_dataframe_equals_stepping(discharge):
+    frame = make("fit").run(discharge)
+    assert list(frame.columns) == FIELDS + ["row"]
+    assert frame["row"].tolist() == list(range(len(discharge)))
+    cal = make("fit")
+    for r, row in zip(discharge.itertuples(), frame.itertuples()):
+        e = cal.step(r.time_s, r.voltage_v, r.current_a, r.temperature_c)
+        for f in FIELDS:
+            want = math.nan if e[f] is None else e[f]
+            got = getattr(row, f)
+            assert got == want or (math.isnan(got) and math.isnan(want)), (f, got, want)
+
+
+def test_run_names_a_missing_column_and_a_bad_row(discharge):
+    with pytest.raises(ValueError, match="the DataFrame has no column `voltage_v`"):
+        make("fit").run(discharge.drop(columns=["voltage_v"]))
+    bad = discharge.copy()
+    bad.loc[7, "time_s"] = bad.loc[5, "time_s"]
+    cal = make("fit")
+    with pytest.raises(ValueError, match=r"row 7: time_s = 50 does not increase \(previous reading 60\)"):
+        cal.run(bad)
+    assert cal.readings == 7
+
+
+def test_a_bad_reading_is_a_value_error_with_the_cli_s_message_and_changes_nothing(bcal_cli, discharge):
+    cal = make("fit")
+    rows = list(discharge.itertuples())
+    for r in rows[:5]:
+        cal.step(r.time_s, r.voltage_v, r.current_a, r.temperature_c)
+    with pytest.raises(ValueError) as e:
+        cal.step(rows[2].time_s, rows[2].voltage_v, rows[2].current_a)
+    message = str(e.value)
+    assert message == "time_s = 20 does not increase (previous reading 40); readings must come in time order"
+    with pytest.raises(ValueError, match="field `voltage_v` = NaN is not a finite number"):
+        cal.step(100.0, float("nan"), 2.0)
+    with pytest.raises(ValueError, match="outside a Li-ion cell's range"):
+        cal.step(100.0, 3900.0, 2.0)
+    assert cal.readings == 5
+    # The CLI skips the same reading with the same words, naming its line.
+    text = "time_s,voltage_v,current_a\n" + "".join(f"{r.time_s},{r.voltage_v},{r.current_a}\n" for r in rows[:5])
+    text += f"{rows[2].time_s},{rows[2].voltage_v},{rows[2].current_a}\n"
+    out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", "fit", stdin=text)
+    assert out.returncode == 0, out.stderr
+    assert f"line 7: {message}; skipped" in out.stderr, out.stderr
+
+
+def test_unknown_kind_and_missing_policy_are_refused_as_the_cli_refuses_them(bcal_cli, tmp_path):
+    with pytest.raises(ValueError) as e:
+        make("kalman")
+    assert str(e.value) == "unknown calibrator `kalman`: use ukf, adaptive_ukf, rl (with a policy file), fit or uncalibrated"
+    out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", "kalman", stdin="")
+    assert out.returncode != 0 and str(e.value) in out.stderr, out.stderr
+    with pytest.raises(ValueError, match="the rl calibrator needs a policy file"):
+        make("rl")
+    with pytest.raises(ValueError, match="a policy file is only read by the rl calibrator, not by fit"):
+        make("fit", policy=tmp_path / "p.bcalpol")
+    with pytest.raises(FileNotFoundError, match="p.bcalpol"):
+        make("rl", policy=tmp_path / "p.bcalpol")
+    with pytest.raises(FileNotFoundError, match="diagnosis.json"):
+        make("fit", model=tmp_path)
+
+
+def test_prediction_state_and_spec(discharge):
+    cal = make("fit")
+    assert cal.state() is None and cal.predict_eod_s(2.0) is None
+    half = len(discharge) // 2
+    for r in discharge.iloc[:half].itertuples():
+        e = cal.step(r.time_s, r.voltage_v, r.current_a, r.temperature_c)
+    assert e["eod_current_a"] == pytest.approx(2.0)
+    assert e["eod_s"] == cal.predict_eod_s(e["eod_current_a"])
+    assert e["time_s"] < cal.predict_eod_s(4.0) < e["eod_s"]
+    # Halfway through, the predicted end is within 10 % of where the readings end (the cell reaches 3.0 V).
+    assert abs(e["eod_s"] - discharge["time_s"].iloc[-1]) < 0.1 * discharge["time_s"].iloc[-1]
+    x = cal.state()
+    assert set(x) == {"qpS", "qpB", "qnB", "qnS", "Vo", "Vsn", "Vsp", "tb"}
+    assert x["tb"] == pytest.approx(292.1)
+    spec = cal.spec
+    assert spec["cutoff_v"] == 3.0 and spec["prior"] == {"q_mobile_c": 5500.0, "r_o_ohm": 0.15}
+    assert repr(cal) == f"Calibrator('fit', readings={half})"
+    with pytest.raises(ValueError, match="current_a: -1 must be greater than 0"):
+        cal.predict_eod_s(-1.0)
+    # A higher cut-off ends sooner; the same readings otherwise.
+    high = make("fit", cutoff_v=3.3)
+    for r in discharge.iloc[:half].itertuples():
+        h = high.step(r.time_s, r.voltage_v, r.current_a, r.temperature_c)
+    assert h["q_mobile"] == e["q_mobile"] and h["eod_s"] < e["eod_s"]
+    with pytest.raises(ValueError, match="cutoff_v: 0 must be greater than 0"):
+        make("fit", cutoff_v=0.0)
