@@ -215,7 +215,12 @@ pub fn cell_name(given: &Option<String>, data: &Path) -> anyhow::Result<String> 
 
 /// The doctor's model from `--model`, if given.
 fn load_model(path: &Option<PathBuf>) -> anyhow::Result<Option<bcal_doctor::model_file::DiagnosedModel>> {
-    path.as_deref().map(bcal_doctor::model_file::load_model).transpose().map_err(anyhow::Error::from)
+    let m = path.as_deref().map(bcal_doctor::model_file::load_model).transpose()?;
+    // A cause the calibrators cannot carry is left out, not refused: the user is told which.
+    if let Some(note) = m.as_ref().and_then(|m| m.carrying_note()) {
+        eprintln!("--model {}: {note}", m.as_ref().map_or_else(String::new, |m| m.path.display().to_string()));
+    }
+    Ok(m)
 }
 
 pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {

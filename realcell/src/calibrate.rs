@@ -239,7 +239,13 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         });
     }
     let model_label = match &input.model {
-        Some(m) => format!("{} (bcal diagnose of {}: {})", neutral.label(), m.cell, m.path.display()),
+        Some(m) => format!(
+            "{} (bcal diagnose of {}: {}){}",
+            neutral.label(),
+            m.cell,
+            m.path.display(),
+            m.carrying_note().map_or_else(String::new, |n| format!("; {n}"))
+        ),
         None => "base (the NASA electrochemistry model; qMobile and Ro calibrated)".into(),
     };
     progress(&format!("model: {model_label}"));

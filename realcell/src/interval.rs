@@ -203,4 +203,90 @@ mod tests {
         // Nothing learned yet: the calibrator's own interval.
         assert_eq!(Widening::learn(&[], 0), Widening { own: 1.0, model: 0.0, learned_on: 0 });
     }
+
+    /// A synthetic sequence: every discharge predicts 1.0 Ah with an own interval of +-1 mAh (far too
+    /// narrow), and the cell delivers 1.0 Ah plus an error spread evenly over +-50 mAh.
+    fn sequence(n: usize, seed: u64) -> (Vec<CellRecord>, Vec<CycleRun>) {
+        let mut x = seed;
+        let mut records = Vec::new();
+        let mut runs = Vec::new();
+        for k in 0..n {
+            // A small LCG: deterministic, no dependency.
+            x = x.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            let u = (x >> 11) as f64 / (1u64 << 53) as f64;
+            let samples: Vec<bcal_common::measured::scenario::Sample> = (0..=100)
+                .map(|t| bcal_common::measured::scenario::Sample {
+                    t_s: f64::from(t),
+                    voltage_v: 4.0,
+                    current_a: 2.0,
+                    temperature_k: 297.0,
+                    request: bcal_common::measured::scenario::Request::Unknown,
+                })
+                .collect();
+            let steps = samples
+                .iter()
+                .map(|s| crate::run::Step {
+                    t_s: s.t_s,
+                    estimate: bcal_common::battery::Degradation::default(),
+                    interval: None,
+                    eod: Predicted { value: None, lo: None, hi: None },
+                    capacity: Predicted { value: Some(1.0), lo: Some(0.999), hi: Some(1.001) },
+                })
+                .collect();
+            records.push(CellRecord {
+                cell: "T".into(),
+                cycle: k as u32 + 1,
+                source: "t".into(),
+                load_on_s: 0.0,
+                eod_s: Some(100.0),
+                current_a: 2.0,
+                data_capacity_ah: Some(1.0 + 0.1 * (u - 0.5)),
+                stated_capacity_ah: None,
+                ambient_k: 297.0,
+                rest_before_s: None,
+                samples,
+            });
+            runs.push(CycleRun { cycle: k as u32 + 1, steps });
+        }
+        (records, runs)
+    }
+
+    fn covered_at_half(r: &CellRecord, run: &CycleRun) -> bool {
+        let p = run.steps[r.reading_at_fraction(0.5).unwrap()].capacity;
+        let m = r.data_capacity_ah.unwrap();
+        p.lo.unwrap() <= m && m <= p.hi.unwrap()
+    }
+
+    #[test]
+    fn intervals_learned_on_the_discharges_before_cover_about_ninety_percent_of_a_sequence() {
+        let (hist_r, hist_runs) = sequence(10, 1);
+        let hist: Vec<(&CellRecord, &CycleRun)> = hist_r.iter().zip(&hist_runs).collect();
+        let (records, mut runs) = sequence(200, 2);
+        let own_cover = records.iter().zip(&runs).filter(|(r, u)| covered_at_half(r, u)).count();
+        assert!(own_cover < 10, "the own intervals are too narrow to start with: {own_cover}");
+        let w = calibrate_intervals(&hist, &records, &mut runs);
+        let cover = records.iter().zip(&runs).filter(|(r, u)| covered_at_half(r, u)).count() as f64 / 2.0;
+        assert!((82.0..=97.0).contains(&cover), "coverage {cover} %");
+        assert!(w.iter().all(|d| d.capacity.learned_on == WINDOW), "{:?}", &w[..2]);
+    }
+
+    #[test]
+    fn a_discharge_s_own_outcome_never_sets_its_interval() {
+        let (hist_r, hist_runs) = sequence(10, 3);
+        let hist: Vec<(&CellRecord, &CycleRun)> = hist_r.iter().zip(&hist_runs).collect();
+        let (records, runs) = sequence(20, 4);
+        let mut a = runs.clone();
+        calibrate_intervals(&hist, &records, &mut a);
+        // Discharge 12 turns out far off: its own interval and every one before it stay as they were; the
+        // next one learns from it.
+        let mut changed = records.clone();
+        changed[12].data_capacity_ah = Some(5.0);
+        let mut b = runs.clone();
+        calibrate_intervals(&hist, &changed, &mut b);
+        let half = |r: &CellRecord, u: &CycleRun| u.steps[r.reading_at_fraction(0.5).unwrap()].capacity;
+        for k in 0..=12 {
+            assert_eq!(half(&records[k], &a[k]), half(&changed[k], &b[k]), "discharge {k}");
+        }
+        assert!(half(&changed[13], &b[13]).hi.unwrap() > half(&records[13], &a[13]).hi.unwrap());
+    }
 }

@@ -262,6 +262,65 @@ mod tests {
         assert!(!RestWidth::fit(&res[..3], 3600.0, 0).fitted());
     }
 
+    fn record(cycle: u32, rest_s: Option<f64>, capacity_ah: f64) -> CellRecord {
+        CellRecord {
+            cell: "T".into(),
+            cycle,
+            source: "t".into(),
+            load_on_s: 10.0,
+            eod_s: Some(3000.0),
+            current_a: 2.0,
+            data_capacity_ah: Some(capacity_ah),
+            stated_capacity_ah: None,
+            ambient_k: 297.15,
+            rest_before_s: rest_s,
+            samples: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn the_prior_mean_follows_the_recovery_after_a_long_rest_and_its_width_grows_with_it() {
+        use bcal_doctor::lifetime::Quantity;
+        // A cell that fades 3 mAh per discharge and regains up to 65 mAh over a rest of about 15 h.
+        let life = LifetimeModel {
+            quantity: Quantity::CapacityAh,
+            intercept: 1.8,
+            per_cycle: -0.003,
+            reference_cycle: 20.0,
+            per_kelvin: 0.0,
+            per_ampere: 0.0,
+            reference: Condition { ambient_c: 24.0, current_a: 2.0 },
+            amplitude: 0.065,
+            tau_rest_s: 54_720.0,
+            decay_discharges: 5.0,
+            usual_rest_s: 3_600.0,
+            residual_sd: 0.004,
+            jump_sd_fraction: 0.5,
+        };
+        let spec = TrackerSpec::default();
+        let width = RestWidth { a_z2: [1e-4; 2], b_z2: [4e-4, 0.0], usual_rest_s: 3_600.0, pairs: 20, long_rest_pairs: 2 };
+        let mut walk = PriorWalk::new(&spec, Some(&life), width);
+        let fit = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.12 };
+        for c in 1..=10 {
+            walk.observe(&record(c, Some(3_600.0), 1.8 - 0.003 * f64::from(c)), Some(3_600.0), &fit);
+        }
+        let usual = walk.prior(&record(11, Some(3_600.0), 0.0), Some(3_600.0), &fit);
+        let long = walk.prior(&record(11, Some(3.0 * LONG_REST_S), 0.0), Some(3.0 * LONG_REST_S), &fit);
+        // After the usual rest the prior fades from the last fit; after three days it regains capacity, and
+        // qMobile follows the capacity's relative change. Ro is carried.
+        assert!(usual.mean.q_mobile_c < fit.q_mobile_c, "{usual:?}");
+        assert!(long.mean.q_mobile_c > fit.q_mobile_c * 1.02, "{long:?}");
+        assert!((long.mean.q_mobile_c / fit.q_mobile_c - 1.0 - long.expected_capacity_change).abs() < 1e-12);
+        assert_eq!((long.previous, long.mean.r_o_ohm), (fit, fit.r_o_ohm));
+        // The width grows with the rest (the learned term and the jump's own uncertainty), in qMobile only.
+        let (su, sl) = (usual.sd_z.unwrap(), long.sd_z.unwrap());
+        assert!(sl[0] > 2.0 * su[0] && (sl[1] - su[1]).abs() < 1e-12, "{su:?} {sl:?}");
+        // Without a lifetime model the previous fit is carried as it is.
+        let mut plain = PriorWalk::new(&spec, None, width);
+        plain.observe(&record(10, None, 1.77), None, &fit);
+        assert_eq!(plain.prior(&record(11, Some(3.0 * LONG_REST_S), 0.0), Some(3.0 * LONG_REST_S), &fit).mean, fit);
+    }
+
     #[test]
     fn rests_come_from_the_end_of_the_record_before() {
         let d = |cycle: u32| Discharge {
