@@ -238,7 +238,10 @@ mod tests {
         )
         .unwrap();
         let m = load_model(&p).unwrap();
-        assert_eq!((m.causes.clone(), m.dropped.clone()), (vec![Cause::Diffusion], vec![Cause::Ocv, Cause::VoltageOffset]));
+        assert_eq!(
+            (m.causes.clone(), m.dropped.clone()),
+            (vec![Cause::Diffusion], vec![Cause::Ocv, Cause::VoltageOffset])
+        );
         assert_eq!((m.shared.t_diffusion_s, m.shared.ocv_legendre_v, m.shared.voltage_offset_v), (3e6, [0.0; 3], 0.0));
         let note = m.carrying_note().unwrap();
         assert!(note.contains("ocv + voltage_offset") && note.contains("base + diffusion"), "{note}");

@@ -420,7 +420,11 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                             format!("{path} (update {}), prior width factor {f:?}", pf.update_step),
                             Streaming::Rl { spec: unit.clone(), net, prior_factor: *f },
                         ));
-                        meta.push((path.clone(), pf.update_step, serde_json::json!({"tracker": unit, "prior_factor": f})));
+                        meta.push((
+                            path.clone(),
+                            pf.update_step,
+                            serde_json::json!({"tracker": unit, "prior_factor": f}),
+                        ));
                     }
                 }
                 Design::UkfCorrection => {
@@ -457,7 +461,10 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let choice =
             tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
         let (path, update, setting) = &meta[choice.index];
-        progress(&format!("RL-LAC: {}; validation EOD error {:.2} %", choice.chosen, choice.candidates[0].eod_error_pct));
+        progress(&format!(
+            "RL-LAC: {}; validation EOD error {:.2} %",
+            choice.chosen, choice.candidates[0].eod_error_pct
+        ));
         let t0 = Instant::now();
         let mut r = run_sequence(&cands[choice.index].1, &judged, &judged_before, cut, &[1.0], false).remove(0);
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&choice.runs).collect();

@@ -192,7 +192,8 @@ mod tests {
     #[test]
     fn the_learned_widening_covers_the_conformal_share_and_no_more() {
         // Errors of 1..=20 % of the size, own half-widths of 0.5: 19 of 20 need covering ((20 + 1) 0.9).
-        let o: Vec<Outcome> = (1..=20).map(|k| outcome(f64::from(k) * if k % 2 == 0 { 1.0 } else { -1.0 }, 0.5)).collect();
+        let o: Vec<Outcome> =
+            (1..=20).map(|k| outcome(f64::from(k) * if k % 2 == 0 { 1.0 } else { -1.0 }, 0.5)).collect();
         let w = Widening::learn(&o, 10);
         let covered = o.iter().filter(|x| w.covers(x)).count();
         assert_eq!(covered, 19, "{w:?}");

@@ -47,7 +47,8 @@ pub fn rests_before(records: &[&Discharge], starts: &[RecordStart]) -> BTreeMap<
         .collect();
     let mut out = BTreeMap::new();
     for d in records {
-        let (Some(start), Some(prev_end)) = (start_of.get(&d.cycle), d.cycle.checked_sub(1).and_then(|c| end_of.get(&c)))
+        let (Some(start), Some(prev_end)) =
+            (start_of.get(&d.cycle), d.cycle.checked_sub(1).and_then(|c| end_of.get(&c)))
         else {
             continue;
         };
@@ -246,7 +247,8 @@ mod tests {
     #[test]
     fn the_width_grows_with_the_rest_when_long_rests_spread_the_fits() {
         // Residuals of 0.01 z after usual rests, 0.05 z after rests e^2 times the usual one.
-        let mut res: Vec<(f64, [f64; 2])> = (0..20).map(|k| (0.0, [0.01 * if k % 2 == 0 { 1.0 } else { -1.0 }; 2])).collect();
+        let mut res: Vec<(f64, [f64; 2])> =
+            (0..20).map(|k| (0.0, [0.01 * if k % 2 == 0 { 1.0 } else { -1.0 }; 2])).collect();
         res.extend((0..4).map(|k| (2.0, [0.05 * if k % 2 == 0 { 1.0 } else { -1.0 }, 0.01])));
         let w = RestWidth::fit(&res, 3600.0, 4);
         assert!(w.fitted());
@@ -298,7 +300,8 @@ mod tests {
             jump_sd_fraction: 0.5,
         };
         let spec = TrackerSpec::default();
-        let width = RestWidth { a_z2: [1e-4; 2], b_z2: [4e-4, 0.0], usual_rest_s: 3_600.0, pairs: 20, long_rest_pairs: 2 };
+        let width =
+            RestWidth { a_z2: [1e-4; 2], b_z2: [4e-4, 0.0], usual_rest_s: 3_600.0, pairs: 20, long_rest_pairs: 2 };
         let mut walk = PriorWalk::new(&spec, Some(&life), width);
         let fit = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.12 };
         for c in 1..=10 {

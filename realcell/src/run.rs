@@ -56,31 +56,16 @@ pub struct CycleRun {
 /// A streaming calibrator to build per discharge.
 pub enum Streaming<'a> {
     /// The RL policy of the window-fit design (issue 12).
-    Rl {
-        spec: TrackerSpec,
-        net: &'a PolicyNet,
-        prior_factor: Option<f64>,
-    },
+    Rl { spec: TrackerSpec, net: &'a PolicyNet, prior_factor: Option<f64> },
     /// The RL correction of the joint UKF (issue 18): the task holds the filter it corrects.
-    Correction {
-        task: Box<MeasuredSpec>,
-        net: &'a PolicyNet,
-        prior_factor: Option<f64>,
-    },
+    Correction { task: Box<MeasuredSpec>, net: &'a PolicyNet, prior_factor: Option<f64> },
     /// The joint UKF. `prior_factor`: each discharge's prior width is this factor times the width learned
     /// from the cell's history ([`Before::prior_sd_z`]); None, or a discharge without a learned width: the
     /// settings' own `prior_std_z`.
-    Ukf {
-        spec: TrackerSpec,
-        settings: JointUkfSettings,
-        prior_factor: Option<f64>,
-    },
+    Ukf { spec: TrackerSpec, settings: JointUkfSettings, prior_factor: Option<f64> },
     /// Parameters fixed for the whole discharge (fit, previous cycle, uncalibrated), its state from the
     /// readings as the RL calibrator's model keeps it.
-    Pinned {
-        spec: TrackerSpec,
-        d: Degradation,
-    },
+    Pinned { spec: TrackerSpec, d: Degradation },
 }
 
 impl<'a> Streaming<'a> {

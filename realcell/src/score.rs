@@ -103,7 +103,11 @@ pub struct AfterRest {
 /// The condition a discharge ran under, as the reports group them: its mean current to the nearest
 /// quarter ampere and its ambient to the nearest degree.
 pub fn condition_key(r: &CellRecord) -> String {
-    format!("{:.2} A, {:.0} C", (r.current_a * 4.0).round() / 4.0, r.ambient_k - bcal_common::measured::scenario::KELVIN_0C)
+    format!(
+        "{:.2} A, {:.0} C",
+        (r.current_a * 4.0).round() / 4.0,
+        r.ambient_k - bcal_common::measured::scenario::KELVIN_0C
+    )
 }
 
 /// Scores one method's runs (`runs[k]` along `records[k]`), per condition too when there are several.
