@@ -161,11 +161,10 @@ pub fn calibrate_intervals(
     let mut out = Vec::with_capacity(records.len());
     for (r, run) in records.iter().zip(runs.iter_mut()) {
         let recent = &past[past.len().saturating_sub(WINDOW)..];
-        let flat = |pick: fn(&(Vec<Outcome>, Vec<Outcome>)) -> &Vec<Outcome>| -> Vec<Outcome> {
-            recent.iter().flat_map(|p| pick(p).iter().copied()).collect()
-        };
-        let eod = Widening::learn(&flat(|p| &p.0), recent.len());
-        let cap = Widening::learn(&flat(|p| &p.1), recent.len());
+        let eod_past: Vec<Outcome> = recent.iter().flat_map(|p| p.0.iter().copied()).collect();
+        let cap_past: Vec<Outcome> = recent.iter().flat_map(|p| p.1.iter().copied()).collect();
+        let eod = Widening::learn(&eod_past, recent.len());
+        let cap = Widening::learn(&cap_past, recent.len());
         // The outcome is taken with the calibrator's own bounds, before this widening.
         let own = outcomes(r, run);
         for s in &mut run.steps {
