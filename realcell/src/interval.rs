@@ -11,7 +11,9 @@
 //! predicted capacity for a capacity), and `(s, a)` chosen on the [`WINDOW`] discharges before it that have
 //! ended (the validation cycles at first, then each judged discharge once the cycler has measured it, as a
 //! BMS learns its own error): the pair that covers [`COVER`] of their scored predictions (with the
-//! finite-sample rank of split conformal prediction) with the narrowest intervals. No look-ahead: a
+//! finite-sample rank of split conformal prediction) with the narrowest intervals. The end of discharge has
+//! one pair per share of the discharge the scores read (10, 50, 90 %), each reading taking the one nearest
+//! the share it predicts has passed. No look-ahead: a
 //! discharge's own outcome never sets its interval. Methods without an interval of their own get the
 //! model-error term alone.
 
@@ -37,6 +39,8 @@ struct Outcome {
     above: f64,
     size: f64,
     measured: f64,
+    /// The share of the discharge it was scored at, % (one of the scores' fractions).
+    fraction: u32,
 }
 
 /// The widening of one prediction kind: own half-width times `own`, model error `model` times the size.
@@ -107,7 +111,9 @@ impl Widening {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct DischargeWidening {
     pub cycle: u32,
-    pub eod: Widening,
+    /// For the end of discharge, one per share of the discharge the scores read ([`EOD_FRACTIONS_PCT`]): a
+    /// reading takes the one nearest the share of the discharge it predicts has passed.
+    pub eod: [Widening; 3],
     pub capacity: Widening,
 }
 
@@ -127,14 +133,21 @@ fn outcomes(r: &CellRecord, run: &CycleRun) -> (Vec<Outcome>, Vec<Outcome>) {
     if let Some(m) = r.eod_s {
         for f in EOD_FRACTIONS_PCT {
             if let Some((value, below, above)) = step(f).and_then(|s| own_halves(&s.eod)) {
-                eod.push(Outcome { value, below, above, size: (value - r.load_on_s).max(1.0), measured: m });
+                eod.push(Outcome {
+                    value,
+                    below,
+                    above,
+                    size: (value - r.load_on_s).max(1.0),
+                    measured: m,
+                    fraction: f,
+                });
             }
         }
     }
     if let Some(m) = r.data_capacity_ah {
         for f in CAPACITY_FRACTIONS_PCT {
             if let Some((value, below, above)) = step(f).and_then(|s| own_halves(&s.capacity)) {
-                cap.push(Outcome { value, below, above, size: value.abs().max(1e-6), measured: m });
+                cap.push(Outcome { value, below, above, size: value.abs().max(1e-6), measured: m, fraction: f });
             }
         }
     }
@@ -163,13 +176,30 @@ pub fn calibrate_intervals(
         let recent = &past[past.len().saturating_sub(WINDOW)..];
         let eod_past: Vec<Outcome> = recent.iter().flat_map(|p| p.0.iter().copied()).collect();
         let cap_past: Vec<Outcome> = recent.iter().flat_map(|p| p.1.iter().copied()).collect();
-        let eod = Widening::learn(&eod_past, recent.len());
+        // The end of discharge per share of the discharge: a filter's own interval narrows as the discharge
+        // goes on while the model's error near the knee grows, so one widening for all would cover early
+        // predictions too often and late ones too rarely (60 % at 90 % of B0005's discharges, pooled).
+        let eod: [Widening; 3] = std::array::from_fn(|b| {
+            let at: Vec<Outcome> = eod_past.iter().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
+            Widening::learn(&at, recent.len())
+        });
         let cap = Widening::learn(&cap_past, recent.len());
         // The outcome is taken with the calibrator's own bounds, before this widening.
         let own = outcomes(r, run);
         for s in &mut run.steps {
             let load_on = r.load_on_s;
-            widen(&mut s.eod, &eod, |v| (v - load_on).max(1.0));
+            if let Some(v) = s.eod.value {
+                // The share of the discharge passed, as this reading predicts it (no look-ahead).
+                let passed_pct = 100.0 * (s.t_s - load_on) / (v - load_on).max(1.0);
+                let b = (0..EOD_FRACTIONS_PCT.len())
+                    .min_by(|&i, &j| {
+                        (f64::from(EOD_FRACTIONS_PCT[i]) - passed_pct)
+                            .abs()
+                            .total_cmp(&(f64::from(EOD_FRACTIONS_PCT[j]) - passed_pct).abs())
+                    })
+                    .unwrap_or(0);
+                widen(&mut s.eod, &eod[b], |v| (v - load_on).max(1.0));
+            }
             widen(&mut s.capacity, &cap, |v| v.abs().max(1e-6));
         }
         if !own.0.is_empty() || !own.1.is_empty() {
@@ -185,7 +215,7 @@ mod tests {
     use super::*;
 
     fn outcome(e: f64, own: f64) -> Outcome {
-        Outcome { value: 100.0, below: own, above: own, size: 100.0, measured: 100.0 + e }
+        Outcome { value: 100.0, below: own, above: own, size: 100.0, measured: 100.0 + e, fraction: 50 }
     }
 
     #[test]
