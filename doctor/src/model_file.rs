@@ -2,11 +2,19 @@
 //! shared parameters fitted on the training cycles. `bcal calibrate --model` and `bcal cell-config
 //! --model` run the calibrators on it; the per-cycle parameters are calibrated again on every cycle.
 //! [`load_lifetime`] reads the capacity lifetime model (recovery after rest) a calibrator's prior can use.
+//!
+//! A calibrator's model carries only some of the doctor's causes
+//! ([`bcal_common::measured::extension::SUPPORTED_CAUSES`]): a sensor offset or gain, an OCV correction or an
+//! extra RC branch change the measurement or the curve the filter and the policy would have to run. When a
+//! diagnosis names such a cause, the model read back here is the diagnosis's carriable causes with their
+//! fitted values, and [`DiagnosedModel::dropped`] names the rest, so every face (`bcal calibrate`, `bcal
+//! cell-config`, `--follow`, the Python package) calibrates on what it can carry and says what it left out,
+//! instead of refusing the cell.
 
 use crate::lifetime::LifetimeModel;
 use crate::sim::{Cause, ExtParams};
 use crate::DoctorError;
-use bcal_common::measured::extension::ModelExtension;
+use bcal_common::measured::extension::{ModelExtension, SUPPORTED_CAUSES};
 use bcal_common::text::shown;
 use serde::Deserialize;
 use std::collections::BTreeMap;
@@ -19,8 +27,11 @@ pub struct DiagnosedModel {
     pub cell: String,
     /// Where it was read from.
     pub path: PathBuf,
-    /// The causes of the extended model, in the doctor's order (empty: the base model won).
+    /// The causes of the extended model a calibrator's model carries, in the doctor's order (empty: the base
+    /// model won, or none of its causes can be carried).
     pub causes: Vec<Cause>,
+    /// The causes the diagnosis named that a calibrator's model cannot carry: left out, their values neutral.
+    pub dropped: Vec<Cause>,
     /// The shared parameters (per-cycle ones at their neutral values), with what the causes switch on.
     pub shared: ExtParams,
     /// The cycles the diagnosis fitted or judged (its model has seen them).
@@ -33,6 +44,27 @@ impl DiagnosedModel {
     pub fn extension(&self, reference_k: Option<f64>) -> ModelExtension {
         extension_of(&self.causes, &self.shared, reference_k)
     }
+
+    /// What the calibrators run instead of the diagnosis's model, when they cannot carry all of it: one
+    /// sentence for the user (None: the diagnosis's model as it is).
+    pub fn carrying_note(&self) -> Option<String> {
+        if self.dropped.is_empty() {
+            return None;
+        }
+        let names = |cs: &[Cause]| cs.iter().map(|c| c.name()).collect::<Vec<_>>().join(" + ");
+        Some(format!(
+            "the diagnosis named {} as well, which a calibrator's model cannot carry (it carries: {}): calibrating on {} \
+             (its fitted values, the others left neutral)",
+            names(&self.dropped),
+            SUPPORTED_CAUSES.join(", "),
+            if self.causes.is_empty() { "the base model".to_string() } else { format!("base + {}", names(&self.causes)) }
+        ))
+    }
+}
+
+/// Whether a calibrator's model can carry `cause`.
+pub fn carriable(cause: Cause) -> bool {
+    SUPPORTED_CAUSES.contains(&cause.name())
 }
 
 /// The calibrators' model of `causes` with the values of `ext` (shared and per-cycle), its Arrhenius
@@ -104,7 +136,12 @@ pub fn load_model(path: &Path) -> Result<DiagnosedModel, DoctorError> {
         shared.set(name, *value);
     }
     let cycles = f.records.iter().filter(|r| r.role == "train" || r.role == "heldout").map(|r| r.cycle).collect();
-    Ok(DiagnosedModel { cell: f.cell, path: file, causes, shared, cycles })
+    // The causes a calibrator cannot carry leave the model, their values neutral: the rest keep theirs.
+    let (causes, dropped): (Vec<Cause>, Vec<Cause>) = causes.into_iter().partition(|c| carriable(*c));
+    for c in &dropped {
+        shared.disable(*c);
+    }
+    Ok(DiagnosedModel { cell: f.cell, path: file, causes, dropped, shared, cycles })
 }
 
 /// The capacity lifetime model of a diagnosis (`diagnosis.json`'s `lifetime`, see [`crate::lifetime`]), for a
@@ -192,6 +229,23 @@ mod tests {
         assert!(m.shared.temperature_driven && m.shared.ro_activation_k == 4015.08);
         assert_eq!((m.shared.xp_shift, m.shared.kinetics_scale), (0.0, 1.0));
         assert_eq!(m.cycles, vec![1, 2]);
+        assert!(m.dropped.is_empty() && m.carrying_note().is_none());
+        // A diagnosis naming causes a calibrator cannot carry: those leave the model, the rest keep their values.
+        std::fs::write(
+            &p,
+            r#"{"cell":"B0005","extended":{"causes":["ocv","diffusion","voltage_offset"],
+                "params":{"ocv_p1_v":0.02,"t_diffusion_s":3e6,"voltage_offset_v":-0.02}}}"#,
+        )
+        .unwrap();
+        let m = load_model(&p).unwrap();
+        assert_eq!(
+            (m.causes.clone(), m.dropped.clone()),
+            (vec![Cause::Diffusion], vec![Cause::Ocv, Cause::VoltageOffset])
+        );
+        assert_eq!((m.shared.t_diffusion_s, m.shared.ocv_legendre_v, m.shared.voltage_offset_v), (3e6, [0.0; 3], 0.0));
+        let note = m.carrying_note().unwrap();
+        assert!(note.contains("ocv + voltage_offset") && note.contains("base + diffusion"), "{note}");
+        assert!(m.extension(None).check("m").is_ok());
         std::fs::write(&p, r#"{"cell":"B0005","extended":{"causes":["gremlins"],"params":{}}}"#).unwrap();
         let e = load_model(&p).unwrap_err().to_string();
         assert!(e.contains("gremlins") && e.contains("diagnosis.json"), "{e}");

@@ -229,6 +229,26 @@ impl ExtParams {
             self.temperature_driven = true;
         }
     }
+
+    /// Puts a cause's parameters back at their neutral values (the base model's), as if it were never named.
+    pub fn disable(&mut self, cause: Cause) {
+        let n = ExtParams::default();
+        match cause {
+            Cause::Thermal => {
+                self.temperature_driven = n.temperature_driven;
+                self.ro_activation_k = n.ro_activation_k;
+                self.kinetics_activation_k = n.kinetics_activation_k;
+                self.tau_thermal_s = n.tau_thermal_s;
+            }
+            Cause::Ocv => self.ocv_legendre_v = n.ocv_legendre_v,
+            Cause::Diffusion => self.t_diffusion_s = n.t_diffusion_s,
+            Cause::ExtraPolarization => (self.rc_r_ohm, self.rc_tau_s) = (n.rc_r_ohm, n.rc_tau_s),
+            Cause::VoltageOffset => self.voltage_offset_v = n.voltage_offset_v,
+            Cause::CurrentGain => self.current_gain = n.current_gain,
+            Cause::ElectrodeBalance => (self.xp_shift, self.xn_shift) = (n.xp_shift, n.xn_shift),
+            Cause::ChargeTransfer => self.kinetics_scale = n.kinetics_scale,
+        }
+    }
 }
 
 /// The cell as the doctor simulates it: base model state plus the extension states.

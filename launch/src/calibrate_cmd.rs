@@ -10,7 +10,7 @@ use anyhow::{bail, Context};
 use bcal_calib::tune::JointUkfGrid;
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::policy::{PolicyFile, POLICY_BEST};
-use bcal_doctor::read::{parse_cycle_range, CurrentSign, ReadOptions};
+use bcal_doctor::read::{parse_cycle_range, CurrentSign, ReadOptions, RecordStart};
 use bcal_doctor::Discharge;
 use bcal_realcell::calibrate::{calibrate, CalibrateInput};
 use bcal_realcell::cellspec::cell_spec;
@@ -126,6 +126,16 @@ pub fn read(
     cycles: Option<&RangeInclusive<u32>>,
     opts: &ReadOptions,
 ) -> anyhow::Result<Vec<Discharge>> {
+    read_with_starts(data, cell, cycles, opts).map(|r| r.0)
+}
+
+/// [`read`], with when each record started (the rests between discharges, for the prior across them).
+pub fn read_with_starts(
+    data: &Path,
+    cell: &str,
+    cycles: Option<&RangeInclusive<u32>>,
+    opts: &ReadOptions,
+) -> anyhow::Result<(Vec<Discharge>, Vec<RecordStart>)> {
     let (ds, rep) = bcal_doctor::input::read_any(data, cell, cycles, opts).with_context(|| {
         if data.is_dir() {
             format!("reading cell {cell} from {}", data.display())
@@ -136,7 +146,7 @@ pub fn read(
     for line in rep.summary() {
         eprintln!("{line}");
     }
-    Ok(ds)
+    Ok((ds, rep.starts))
 }
 
 /// The policy files of `rl:RUN`: a run folder's checkpoints (best and last by each criterion, duplicates
@@ -205,7 +215,12 @@ pub fn cell_name(given: &Option<String>, data: &Path) -> anyhow::Result<String> 
 
 /// The doctor's model from `--model`, if given.
 fn load_model(path: &Option<PathBuf>) -> anyhow::Result<Option<bcal_doctor::model_file::DiagnosedModel>> {
-    path.as_deref().map(bcal_doctor::model_file::load_model).transpose().map_err(anyhow::Error::from)
+    let m = path.as_deref().map(bcal_doctor::model_file::load_model).transpose()?;
+    // A cause the calibrators cannot carry is left out, not refused: the user is told which.
+    if let Some(note) = m.as_ref().and_then(|m| m.carrying_note()) {
+        eprintln!("--model {}: {note}", m.as_ref().map_or_else(String::new, |m| m.path.display().to_string()));
+    }
+    Ok(m)
 }
 
 pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
@@ -245,8 +260,9 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         );
     }
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
-    let train = read(&data, &cell, Some(&train_range), &opts)?;
-    let mut judged = read(&data, &cell, Some(&judged_range), &opts)?;
+    let (train, mut starts) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
+    let (mut judged, judged_starts) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
+    starts.extend(judged_starts);
     // Read off the training records only, as cell-config does: the judged ones are not looked at.
     let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &data, &cell, &train)?;
     if a.stride > 1 {
@@ -283,6 +299,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         spec,
         ukf_grid: if a.quick { JointUkfGrid::real_cells_quick() } else { JointUkfGrid::real_cells() },
         model,
+        starts,
     };
     let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
     cal.report.seconds = started.elapsed().as_secs_f64();

@@ -279,8 +279,11 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
         })
         .transpose()?;
     let reference_k = a.ambient_c.map(|c| c + bcal_common::measured::scenario::KELVIN_0C);
-    let model =
-        a.model.as_deref().map(bcal_doctor::model_file::load_model).transpose()?.map(|m| m.extension(reference_k));
+    let diagnosed = a.model.as_deref().map(bcal_doctor::model_file::load_model).transpose()?;
+    if let Some(note) = diagnosed.as_ref().and_then(|m| m.carrying_note()) {
+        eprintln!("--model: {note}");
+    }
+    let model = diagnosed.map(|m| m.extension(reference_k));
     let policy_name = policy_path.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
     let mut setup =
         resolve(kind, config.as_ref(), policy.as_ref().map(|p| (&p.task, policy_name.as_str())), model.as_ref())?;

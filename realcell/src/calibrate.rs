@@ -1,20 +1,24 @@
 //! `bcal calibrate`'s work, top to bottom: prepare the training and judged discharges (readings up to the
 //! cut-off), fit every one offline with the doctor on the calibrators' model (the base one, or the doctor's
 //! extended one with `--model`: the `fit` oracle, the previous-cycle reference, and the per-cycle values
-//! of the extended model each discharge starts from), fit the capacity trend on the training cycles, set
-//! up the streaming calibrators on validation cycles (the last training cycles: the joint UKF's settings,
-//! the RL policy file, both interval scales; see [`crate::tune`]), run every method along every judged
-//! discharge, score them against the cycler and assemble the report. Progress goes to a callback;
-//! nothing here prints.
+//! of the extended model each discharge starts from), learn what each discharge starts from (the prior and
+//! its width from the cell's history and its lifetime model, [`crate::prior`]), fit the parameter trend on
+//! the training cycles, set up the streaming calibrators on validation cycles (the last training cycles:
+//! the joint UKF's settings and prior-width factor, the RL policy file; see [`crate::tune`]), run every
+//! method along every judged discharge, set every method's intervals from its errors on the discharges
+//! before each ([`crate::interval`]), score them against the cycler and assemble the report. Progress goes
+//! to a callback; nothing here prints.
 //!
 //! With an extended model the streaming calibrators track qMobile and Ro in real time and the model's
 //! per-cycle parameters (electrode balance, charge-transfer factor) from discharge to discharge: each
 //! discharge runs on the values the doctor fitted on the discharge before it, once that one had ended.
 
 use crate::cellspec::{cell_spec, CellFacts};
+use crate::interval::calibrate_intervals;
+use crate::prior::{learn_width, rests_before, PriorWalk, RestWidth};
 use crate::record::{prepare, CellRecord, RecordSummary};
 use crate::report::{CalibrationReport, MethodEntry};
-use crate::run::{knee_s, knees_before, run_all, run_sequence, Before, CycleRun, Streaming, Trend};
+use crate::run::{knee_c, knees_before, run_all, run_sequence, Before, CycleRun, ParamTrend, Streaming};
 use crate::score::score;
 use crate::tune;
 use bcal_calib::tune::JointUkfGrid;
@@ -26,7 +30,9 @@ use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::policy::PolicyFile;
 use bcal_common::policy::PolicyNet;
 use bcal_doctor::fit::{refit_cycles, FitConfig, FitRecord};
+use bcal_doctor::lifetime::{assess, LifetimeConfig, LifetimeModel};
 use bcal_doctor::model_file::DiagnosedModel;
+use bcal_doctor::read::RecordStart;
 use bcal_doctor::{Cause, Discharge, ExtParams};
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -51,6 +57,9 @@ pub struct CalibrateInput<'a> {
     pub ukf_grid: JointUkfGrid,
     /// The doctor's extended model (`--model diagnosis.json`); None: the base model.
     pub model: Option<DiagnosedModel>,
+    /// When each record started (the reader's [`bcal_doctor::read::ReadReport::starts`]): the rests between
+    /// discharges. Empty: rests unknown (the priors' widths then do not depend on them).
+    pub starts: Vec<RecordStart>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -122,33 +131,80 @@ pub fn fits(
         .collect())
 }
 
+/// The cell's capacity lifetime model from its training records ([`bcal_doctor::lifetime`], fitted on their
+/// first three quarters and judged on the last, as `launch/run.sh` diagnoses): with recovery after rest
+/// when the judged training cycles name it, else the fade alone. None without a schedule or enough records.
+pub fn lifetime_model(train: &[Discharge], starts: &[RecordStart], cutoff_v: f64) -> Option<(LifetimeModel, String)> {
+    let (first, last) = (train.iter().map(|d| d.cycle).min()?, train.iter().map(|d| d.cycle).max()?);
+    if last < first + 7 {
+        return None;
+    }
+    let split = first + (last - first + 1) * 3 / 4;
+    let cfg = LifetimeConfig { cutoff_v: Some(cutoff_v), ..LifetimeConfig::default() };
+    let life = assess(&cfg, train, starts, &(first..=split - 1), &(split..=last), None).ok()?;
+    let fit = life.capacity.as_ref()?;
+    let model = if life.recovery { fit.with_recovery? } else { fit.without_recovery };
+    Some((model, life.verdict))
+}
+
 /// What each record's calibration knows before it starts (no look-ahead: only discharges that ended): the
-/// parameters and model values fitted on the record before it (the first takes `first`), at this record's
-/// ambient, and the model's knee over the discharges before it (`earlier_knees` those before `records`).
+/// prior from the walk (which has seen every discharge before `records`), the model values fitted on the
+/// record before it (the first takes `first`'s), at this record's ambient, and the model's knee over the
+/// discharges before it (`earlier_knees` those before `records`). The walk observes each record's fit.
 fn before(
+    walk: &mut PriorWalk,
     records: &[CellRecord],
     fits: &[(Degradation, ModelExtension)],
     first: &(Degradation, ModelExtension),
     earlier_knees: &[f64],
     cutoff_v: f64,
 ) -> Vec<Before> {
-    let knees: Vec<Option<f64>> = records.iter().zip(fits).map(|(r, f)| knee_s(r, f, cutoff_v)).collect();
-    records
-        .iter()
-        .zip(knees_before(earlier_knees, &knees))
-        .enumerate()
-        .map(|(k, (r, knee_s))| {
-            let prev = if k == 0 { first.clone() } else { fits[k - 1].clone() };
-            Before { prior: prev.0, model: ModelExtension { reference_k: Some(r.ambient_k), ..prev.1 }, knee_s }
-        })
-        .collect()
+    let knees: Vec<Option<f64>> = records.iter().zip(fits).map(|(r, f)| knee_c(r, f, cutoff_v)).collect();
+    let mut out = Vec::with_capacity(records.len());
+    for (k, (r, knee_c)) in records.iter().zip(knees_before(earlier_knees, &knees)).enumerate() {
+        let prev = if k == 0 { first.clone() } else { fits[k - 1].clone() };
+        let p = walk.prior(r, r.rest_before_s, &first.0);
+        out.push(Before {
+            prior: p.mean,
+            prior_sd_z: p.sd_z,
+            previous: p.previous,
+            model: ModelExtension { reference_k: Some(r.ambient_k), ..prev.1 },
+            knee_c,
+            rest_before_s: r.rest_before_s,
+        });
+        walk.observe(r, r.rest_before_s, &fits[k].0);
+    }
+    out
 }
 
-/// The joint UKF of a cell: the grid's settings chosen on the last training cycles (`train`, with their
-/// offline fits; the first starts from `spec`'s prior on `neutral`), each discharge starting from the fit
-/// of the one before it. What `bcal calibrate` runs as its `ukf`, and what `bcal cell-config` gives a cell's
-/// correction policy to train on, so that training and deployment run one filter. None without validation
-/// cycles.
+/// The joint UKF chosen among `grid` (settings, prior width factor) by [`tune::choose`] on the validation
+/// records, each starting from its [`Before`].
+pub fn choose_ukf(
+    spec: &TrackerSpec,
+    grid: &[(JointUkfSettings, Option<f64>)],
+    validation: &[CellRecord],
+    validation_before: &[Before],
+    cutoff_v: f64,
+) -> Option<(JointUkfSettings, Option<f64>, tune::Choice)> {
+    let cands: Vec<(String, Streaming)> = grid
+        .iter()
+        .map(|(g, f)| {
+            (
+                format!("{g:?}, prior width factor {f:?}"),
+                Streaming::Ukf { spec: spec.clone(), settings: *g, prior_factor: *f },
+            )
+        })
+        .collect();
+    let choice = tune::choose(&cands, validation, validation_before, cutoff_v)?;
+    let (best, factor) = grid[choice.index];
+    Some((best, factor, choice))
+}
+
+/// The joint UKF a cell's correction policy trains on (`bcal cell-config`): [`choose_ukf`] on the last
+/// training cycles (`train`, with their offline fits; the first starts from `spec`'s prior on `neutral`),
+/// each starting from the previous discharge's fit at the filter's own prior width, as the policy's recorded
+/// training discharges start. Training and `bcal calibrate` then run the same kind of filter, and a zero
+/// action is that baseline. None without validation cycles.
 pub fn choose_cell_ukf(
     spec: &TrackerSpec,
     train: &[CellRecord],
@@ -157,14 +213,14 @@ pub fn choose_cell_ukf(
     grid: &[JointUkfSettings],
     cutoff_v: f64,
 ) -> Option<(JointUkfSettings, tune::Choice)> {
-    let train_before = before(train, train_fits, &(spec.prior, neutral.clone()), &[], cutoff_v);
+    let mut walk = PriorWalk::new(spec, None, RestWidth::fallback());
+    let train_before = before(&mut walk, train, train_fits, &(spec.prior, neutral.clone()), &[], cutoff_v);
     let validation_idx = tune::validation_records(train);
     let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
     let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
-    let cands: Vec<(String, Streaming)> =
-        grid.iter().map(|g| (format!("{g:?}"), Streaming::Ukf { spec: spec.clone(), settings: *g })).collect();
-    let choice = tune::choose(&cands, &validation, &validation_before, cutoff_v)?;
-    Some((grid[choice.index], choice))
+    let grid: Vec<(JointUkfSettings, Option<f64>)> = grid.iter().map(|g| (*g, None)).collect();
+    let (best, _, choice) = choose_ukf(spec, &grid, &validation, &validation_before, cutoff_v)?;
+    Some((best, choice))
 }
 
 /// What a calibration produced: the report and the runs the figures and per-reading files need.
@@ -180,21 +236,29 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let started = Instant::now();
     let cut = input.cutoff_v;
     let mut summary = RecordSummary::default();
-    let (train, train_kept) = prepare_all(&input.train, cut, &mut summary);
-    let (judged, judged_kept) = prepare_all(&input.judged, cut, &mut summary);
+    let (mut train, train_kept) = prepare_all(&input.train, cut, &mut summary);
+    let (mut judged, judged_kept) = prepare_all(&input.judged, cut, &mut summary);
     if judged.is_empty() {
         return Err(CalibrateError::NothingToJudge(summary.refused.join("; ")));
+    }
+    // The rest before each discharge, from the records' start times.
+    let all_records: Vec<&Discharge> = input.train.iter().chain(&input.judged).collect();
+    let rests = rests_before(&all_records, &input.starts);
+    for r in train.iter_mut().chain(judged.iter_mut()) {
+        r.rest_before_s = rests.get(&r.cycle).copied();
     }
     summary.records = judged.len();
     summary.reaching_cutoff = judged.iter().filter(|r| r.eod_s.is_some()).count();
     summary.cut_short = judged.iter().filter(|r| r.eod_s.is_none()).map(|r| r.cycle).collect();
     progress(&format!(
-        "{}: {} training and {} judged discharges ({} reach the {cut} V cut-off); {} refused",
+        "{}: {} training and {} judged discharges ({} reach the {cut} V cut-off); {} refused; rests known before {} \
+         of them",
         input.cell,
         train.len(),
         judged.len(),
         summary.reaching_cutoff,
-        summary.refused.len()
+        summary.refused.len(),
+        rests.len()
     ));
 
     // The calibrators' model: the base one or the doctor's extended one, which they must be able to run.
@@ -221,7 +285,13 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         });
     }
     let model_label = match &input.model {
-        Some(m) => format!("{} (bcal diagnose of {}: {})", neutral.label(), m.cell, m.path.display()),
+        Some(m) => format!(
+            "{} (bcal diagnose of {}: {}){}",
+            neutral.label(),
+            m.cell,
+            m.path.display(),
+            m.carrying_note().map_or_else(String::new, |n| format!("; {n}"))
+        ),
         None => "base (the NASA electrochemistry model; qMobile and Ro calibrated)".into(),
     };
     progress(&format!("model: {model_label}"));
@@ -240,15 +310,15 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     ));
 
     // The model's knee: how much later than the model's own end the last discharges reached the cut-off.
-    let train_knees: Vec<f64> = train.iter().zip(&train_fits).filter_map(|(r, f)| knee_s(r, f, cut)).collect();
+    let train_knees: Vec<f64> = train.iter().zip(&train_fits).filter_map(|(r, f)| knee_c(r, f, cut)).collect();
     let knee_median = {
         let mut v = train_knees.clone();
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(0.0)
+        bcal_common::stats::median(&mut v).unwrap_or(0.0)
     };
     progress(&format!(
-        "model knee: the training cycles reach {cut} V a median {knee_median:.0} s after the model empties (each \
+        "model knee: the training cycles deliver a median {:.4} Ah past the model's empty point to {cut} V (each \
          discharge takes the median of the {} before it)",
+        knee_median / 3600.0,
         crate::run::KNEE_WINDOW
     ));
 
@@ -256,20 +326,56 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let (derived, facts) = cell_spec(&train, &train_fits, cut);
     let spec = input.spec.clone().unwrap_or(derived);
 
-    // What every discharge's calibration starts with.
-    let train_before = before(&train, &train_fits, &(spec.tracker.prior, neutral.clone()), &[], cut);
+    // What every discharge starts from: the prior from the cell's history (its lifetime model and the
+    // spread of consecutive fits against the rest between them).
+    let life = lifetime_model(&input.train, &input.starts, cut);
+    let width = if train.is_empty() {
+        RestWidth::fallback()
+    } else {
+        learn_width(&spec.tracker, life.as_ref().map(|l| &l.0), &train, &train_fits, &rests)
+    };
+    progress(&format!(
+        "prior: {}; width learned on {} consecutive training fits ({} after a rest of more than a day): {}",
+        life.as_ref().map_or("no lifetime model (the previous fit carried as it is)".into(), |l| format!(
+            "lifetime model {}",
+            l.1
+        )),
+        width.pairs,
+        width.long_rest_pairs,
+        if width.fitted() {
+            format!(
+                "sd after the usual rest {:.4} / {:.4} z (qMobile / Ro), + {:.4} / {:.4} z^2 per ln(rest / usual)",
+                width.a_z2[0].sqrt(),
+                width.a_z2[1].sqrt(),
+                width.b_z2[0],
+                width.b_z2[1]
+            )
+        } else {
+            "too few pairs: each calibrator's own prior width".into()
+        }
+    ));
+    let mut walk = PriorWalk::new(&spec.tracker, life.as_ref().map(|l| &l.0), width);
+    let train_before = before(&mut walk, &train, &train_fits, &(spec.tracker.prior, neutral.clone()), &[], cut);
     let first_judged = train_fits.last().cloned().unwrap_or((spec.tracker.prior, neutral.clone()));
-    let judged_before = before(&judged, &judged_fits, &first_judged, &train_knees, cut);
+    let judged_before = before(&mut walk, &judged, &judged_fits, &first_judged, &train_knees, cut);
 
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
     settings.insert("cell_setting".into(), serde_json::to_value(&facts).unwrap_or_default());
     settings.insert(
-        "model_knee_s".into(),
+        "model_knee_c".into(),
         serde_json::json!({"training_median": knee_median, "window": crate::run::KNEE_WINDOW,
-            "what": "measured cut-off time - the model's end of discharge under the record's offline fit, from a full \
-            cell; each discharge adds the median over the last `window` discharges before it to every model-based \
-            end-of-discharge prediction and, times the current, to every capacity"}),
+            "what": "the charge a complete discharge delivered between the model's end of discharge under the \
+            record's offline fit (from a full cell) and the measured cut-off, C; each discharge adds the median over \
+            the last `window` discharges before it to every capacity, and that charge over the current assumed to \
+            every end of discharge"}),
+    );
+    settings.insert(
+        "prior".into(),
+        serde_json::json!({"width": width, "lifetime": life.as_ref().map(|l| serde_json::json!({"model": l.0,
+            "verdict": l.1})), "judged": judged_before.iter().zip(&judged).map(|(b, r)| serde_json::json!({
+            "cycle": r.cycle, "rest_before_s": b.rest_before_s, "q_mobile_c": b.prior.q_mobile_c,
+            "r_o_ohm": b.prior.r_o_ohm, "sd_z": b.prior_sd_z})).collect::<Vec<_>>()}),
     );
 
     // Every choice of the streaming calibrators is made on the last training cycles.
@@ -284,28 +390,42 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             2 * tune::MIN_VALIDATION
         )));
     }
+    // The prior widths a streaming calibrator is tried with: factors on the learned width, or (without a
+    // history to learn it from) the settings' own.
+    let factors: Vec<Option<f64>> =
+        if width.fitted() { tune::PRIOR_FACTORS.iter().map(|f| Some(*f)).collect() } else { vec![None] };
+    let mut widenings = serde_json::Map::new();
 
     // The joint UKF: the grid's settings, chosen on the validation cycles (first: the RL correction may
     // start from it).
-    let mut ukf_best = None;
+    let mut ukf_best: Option<(JointUkfSettings, Option<f64>, tune::Choice)> = None;
     if input.ukf
         || input.policies.iter().any(|(pf, _)| pf.task.measured().is_some_and(|t| t.design == Design::UkfCorrection))
     {
-        let grid = input.ukf_grid.candidates();
+        let mut grid: Vec<(JointUkfSettings, Option<f64>)> = Vec::new();
+        for g in input.ukf_grid.candidates() {
+            for f in &factors {
+                // With a learned width the grid's own prior widths make no difference: one of each.
+                let same = |(o, of): &(JointUkfSettings, Option<f64>)| {
+                    of == f && (f.is_some() && JointUkfSettings { prior_std_z: g.prior_std_z, ..*o } == g || *o == g)
+                };
+                if !grid.iter().any(same) {
+                    grid.push((g, *f));
+                }
+            }
+        }
         progress(&format!(
             "joint UKF: choosing among {} settings on {} validation cycles",
             grid.len(),
             validation.len()
         ));
-        let (best, choice) = choose_cell_ukf(&spec.tracker, &train, &train_fits, &neutral, &grid, cut)
+        let (best, factor, choice) = choose_ukf(&spec.tracker, &grid, &validation, &validation_before, cut)
             .expect("candidates and validation checked");
         progress(&format!(
-            "joint UKF: validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
-            choice.candidates[0].eod_error_pct,
-            choice.interval_scale,
-            choice.validation_eod_coverage_pct.map_or("-".into(), |c| format!("{c:.0} %"))
+            "joint UKF: validation EOD error {:.2} % (prior width factor {factor:?})",
+            choice.candidates[0].eod_error_pct
         ));
-        ukf_best = Some((best, choice));
+        ukf_best = Some((best, factor, choice));
     }
 
     // RL: the run's policy files, the one the validation cycles prefer.
@@ -330,49 +450,47 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             let task = pf.task.measured().expect("checked above");
             match task.design {
                 Design::WindowFit => {
-                    let mut widths = vec![task.tracker.prior_std_z];
-                    widths.extend(tune::RL_PRIOR_STD_Z.iter().filter(|w| **w != task.tracker.prior_std_z));
-                    for w in widths {
-                        let unit = TrackerSpec { interval_scale: [1.0; 2], prior_std_z: w, ..task.tracker.clone() };
+                    for f in &factors {
+                        let unit = TrackerSpec { interval_scale: [1.0; 2], ..task.tracker.clone() };
                         cands.push((
-                            format!("{path} (update {}), prior_std_z {w}", pf.update_step),
-                            Streaming::Rl { spec: unit.clone(), net },
+                            format!("{path} (update {}), prior width factor {f:?}", pf.update_step),
+                            Streaming::Rl { spec: unit.clone(), net, prior_factor: *f },
                         ));
-                        meta.push((path.clone(), pf.update_step, serde_json::json!({"tracker": unit})));
+                        meta.push((
+                            path.clone(),
+                            pf.update_step,
+                            serde_json::json!({"tracker": unit, "prior_factor": f}),
+                        ));
                     }
                 }
                 Design::UkfCorrection => {
-                    // The filter it corrects: the one it trained on (at the real-cell prior widths), or the
-                    // joint UKF chosen on these validation cycles (its zero action is then that baseline).
-                    let own = task.ukf_settings();
-                    let mut filters: Vec<(String, JointUkfSettings)> = tune::RL_PRIOR_STD_Z
-                        .iter()
-                        .map(|w| {
-                            (format!("its own filter, prior std {w}"), JointUkfSettings { prior_std_z: [*w; 2], ..own })
-                        })
-                        .collect();
-                    if let Some((b, _)) = &ukf_best {
-                        filters.push(("the joint UKF chosen here".into(), *b));
+                    // The filter it corrects: the one it trained on, or the joint UKF chosen on these
+                    // validation cycles (its zero action is then that baseline), each with the learned prior
+                    // widths.
+                    let mut filters: Vec<(String, JointUkfSettings, Option<f64>)> =
+                        factors.iter().map(|f| ("its own filter".to_string(), task.ukf_settings(), *f)).collect();
+                    if let Some((b, bf, _)) = &ukf_best {
+                        filters.push(("the joint UKF chosen here".into(), *b, *bf));
                     }
-                    for (what, f) in filters {
+                    for (what, filter, f) in filters {
                         let mut t = task.clone();
-                        t.ukf = Some(f);
+                        t.ukf = Some(filter);
                         t.correction.interval_scale = [1.0; 2];
                         meta.push((
                             path.clone(),
                             pf.update_step,
-                            serde_json::json!({"filter": f, "design": "ukf-correction"}),
+                            serde_json::json!({"filter": filter, "prior_factor": f, "design": "ukf-correction"}),
                         ));
                         cands.push((
-                            format!("{path} (update {}), {what}", pf.update_step),
-                            Streaming::Correction { task: Box::new(t), net },
+                            format!("{path} (update {}), {what}, prior width factor {f:?}", pf.update_step),
+                            Streaming::Correction { task: Box::new(t), net, prior_factor: f },
                         ));
                     }
                 }
             }
         }
         progress(&format!(
-            "RL-LAC: choosing among {} candidates (policy files x filters or prior widths) on {} validation cycles",
+            "RL-LAC: choosing among {} candidates (policy files x filters and prior widths) on {} validation cycles",
             cands.len(),
             validation.len()
         ));
@@ -380,15 +498,14 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
         let (path, update, setting) = &meta[choice.index];
         progress(&format!(
-            "RL-LAC: {}; validation EOD error {:.2} %, interval scale {:.2} (EOD coverage {})",
-            choice.chosen,
-            choice.candidates[0].eod_error_pct,
-            choice.interval_scale,
-            choice.validation_eod_coverage_pct.map_or("-".into(), |c| format!("{c:.0} %"))
+            "RL-LAC: {}; validation EOD error {:.2} %",
+            choice.chosen, choice.candidates[0].eod_error_pct
         ));
         let t0 = Instant::now();
-        let r = run_sequence(&cands[choice.index].1, &judged, &judged_before, cut, &[choice.interval_scale], false)
-            .remove(0);
+        let mut r = run_sequence(&cands[choice.index].1, &judged, &judged_before, cut, &[1.0], false).remove(0);
+        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&choice.runs).collect();
+        let w = calibrate_intervals(&hist, &judged, &mut r);
+        widenings.insert("rl".into(), serde_json::to_value(&w).unwrap_or_default());
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("rl", r));
         settings.insert(
@@ -397,48 +514,81 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         );
     }
     if input.ukf {
-        let (best, choice) = ukf_best.clone().expect("chosen above");
+        let (best, factor, choice) = ukf_best.clone().expect("chosen above");
         let t0 = Instant::now();
-        let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: best };
-        let r = run_sequence(&cal, &judged, &judged_before, cut, &[choice.interval_scale], false).remove(0);
+        let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: best, prior_factor: factor };
+        let mut r = run_sequence(&cal, &judged, &judged_before, cut, &[1.0], false).remove(0);
+        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&choice.runs).collect();
+        let w = calibrate_intervals(&hist, &judged, &mut r);
+        widenings.insert("ukf".into(), serde_json::to_value(&w).unwrap_or_default());
         progress(&format!("joint UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("ukf", r));
         let mut top = choice.clone();
         top.candidates.truncate(5);
-        settings.insert("ukf".into(), serde_json::json!({"settings": best, "validation": top}));
+        settings.insert("ukf".into(), serde_json::json!({"settings": best, "prior_factor": factor, "validation": top}));
     }
-    // The references: parameters (and extended-model values) pinned for the whole discharge.
-    // Each with its own model and the knee every method gets.
-    let pinned = |pins: Vec<(Degradation, ModelExtension)>| {
+    // The references: parameters (and extended-model values) pinned for the whole discharge, each with its
+    // own model and the knee every method gets, run on the validation cycles too (their errors start the
+    // references' intervals).
+    let pinned = |pins: &dyn Fn(&Before, &CellRecord, usize) -> (Degradation, ModelExtension),
+                  recs: &[CellRecord],
+                  bs: &[Before]|
+     -> Vec<CycleRun> {
         let s = spec.tracker.clone();
-        let b: Vec<Before> = pins
-            .iter()
-            .zip(&judged_before)
-            .map(|((d, m), jb)| Before { prior: *d, model: m.clone(), knee_s: jb.knee_s })
-            .collect();
-        run_all(&judged, &b, cut, move |k| Streaming::Pinned { spec: s.clone(), d: pins[k].0 })
+        let pins: Vec<(Degradation, ModelExtension)> =
+            bs.iter().zip(recs).enumerate().map(|(k, (b, r))| pins(b, r, k)).collect();
+        let b: Vec<Before> =
+            pins.iter().zip(bs).map(|((d, m), jb)| Before { prior: *d, model: m.clone(), ..jb.clone() }).collect();
+        run_all(recs, &b, cut, move |k| Streaming::Pinned { spec: s.clone(), d: pins[k].0 })
     };
+    let validation_fits: Vec<(Degradation, ModelExtension)> =
+        validation_idx.iter().map(|&k| train_fits[k].clone()).collect();
+    let trend = ParamTrend::fit(&train.iter().zip(&train_fits).map(|(r, f)| (r.cycle, f.0)).collect::<Vec<_>>());
+    let last_train_model = train_fits.last().map_or_else(|| neutral.clone(), |f| f.1.clone());
+    type Pin<'p> = Box<dyn Fn(&Before, &CellRecord, usize, bool) -> (Degradation, ModelExtension) + 'p>;
+    let mut references: Vec<(&'static str, Pin)> = Vec::new();
     if input.fit {
-        runs.push(("fit", pinned(judged_fits.clone())));
+        let (vf, jf) = (&validation_fits, &judged_fits);
+        references.push(("fit", Box::new(move |_, _, k, judged| if judged { jf[k].clone() } else { vf[k].clone() })));
     }
-    let previous: Vec<(Degradation, ModelExtension)> =
-        judged_before.iter().map(|b| (b.prior, b.model.clone())).collect();
-    runs.push(("previous_cycle", pinned(previous)));
+    references.push(("prior", Box::new(|b, _, _, _| (b.prior, b.model.clone()))));
+    references.push(("previous_cycle", Box::new(|b, _, _, _| (b.previous, b.model.clone()))));
+    if let Some(t) = trend {
+        let m = last_train_model.clone();
+        references.push((
+            "trend",
+            Box::new(move |_, r, _, _| (t.at(r.cycle), ModelExtension { reference_k: Some(r.ambient_k), ..m.clone() })),
+        ));
+        settings.insert("trend".into(), serde_json::to_value(t).unwrap_or_default());
+    }
+    // A new cell's model: the base one at the paper's new-cell parameters.
+    references.push((
+        "uncalibrated",
+        Box::new(|_, r, _, _| {
+            (Degradation::default(), ModelExtension { reference_k: Some(r.ambient_k), ..Default::default() })
+        }),
+    ));
+    settings.insert("uncalibrated".into(), serde_json::to_value(Degradation::default()).unwrap_or_default());
+    for (key, pin) in &references {
+        let hist_runs = pinned(&|b, r, k| pin(b, r, k, false), &validation, &validation_before);
+        let mut r = pinned(&|b, r, k| pin(b, r, k, true), &judged, &judged_before);
+        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&hist_runs).collect();
+        let w = calibrate_intervals(&hist, &judged, &mut r);
+        widenings.insert(key.to_string(), serde_json::to_value(&w).unwrap_or_default());
+        runs.push((key, r));
+    }
+    settings.insert(
+        "intervals".into(),
+        serde_json::json!({"what": "each discharge's 90 % interval: the method's own half-width times `own` in \
+            quadrature with `model` times the predicted duration (end of discharge) or capacity, (own, model) the \
+            narrowest pair covering 90 % (split-conformal rank) of the method's scored predictions on the last \
+            `window` discharges that had ended (validation cycles first)", "window": crate::interval::WINDOW,
+            "per_discharge": widenings}),
+    );
     let train_capacities: Vec<(u32, f64)> = train
         .iter()
         .filter_map(|r| r.stated_capacity_ah.filter(|c| *c > 0.0).or(r.data_capacity_ah).map(|c| (r.cycle, c)))
         .collect();
-    if let Some(trend) = Trend::fit(&train_capacities) {
-        runs.push(("trend", judged.iter().map(|r| trend.run(r)).collect()));
-        settings.insert("trend".into(), serde_json::to_value(trend).unwrap_or_default());
-    }
-    // A new cell's model: the base one at the paper's new-cell parameters.
-    let new_cell: Vec<(Degradation, ModelExtension)> = judged
-        .iter()
-        .map(|r| (Degradation::default(), ModelExtension { reference_k: Some(r.ambient_k), ..Default::default() }))
-        .collect();
-    runs.push(("uncalibrated", pinned(new_cell)));
-    settings.insert("uncalibrated".into(), serde_json::to_value(Degradation::default()).unwrap_or_default());
 
     let methods: BTreeMap<String, MethodEntry> =
         runs.iter().map(|(k, r)| (k.to_string(), MethodEntry::new(k, score(&judged, r)))).collect();

@@ -124,6 +124,7 @@ mod tests {
                 data_capacity_ah: Some(1.8),
                 stated_capacity_ah: Some(1.8),
                 ambient_k: 297.15,
+                rest_before_s: None,
                 samples,
             }
         };

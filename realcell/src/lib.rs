@@ -8,7 +8,9 @@
 
 pub mod calibrate;
 pub mod cellspec;
+pub mod interval;
 pub mod predict;
+pub mod prior;
 pub mod record;
 pub mod recorded;
 pub mod report;

@@ -33,6 +33,8 @@ pub struct CellRecord {
     pub stated_capacity_ah: Option<f64>,
     /// Ambient temperature, K.
     pub ambient_k: f64,
+    /// The rest before the discharge (from the end of the record before it), s; None when unknown.
+    pub rest_before_s: Option<f64>,
 }
 
 impl CellRecord {
@@ -113,6 +115,7 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
         data_capacity_ah,
         stated_capacity_ah: d.stated_capacity_ah,
         ambient_k: d.ambient_k,
+        rest_before_s: None,
         samples,
     })
 }

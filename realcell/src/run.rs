@@ -4,8 +4,11 @@
 //! Streaming calibrators see each discharge as a BMS would, with no look-ahead: the RL policy and the joint
 //! UKF. The references beside them: `fit`, the doctor's offline least squares on the whole discharge (an
 //! oracle that sees the future), `uncalibrated` (a new cell's parameters), `previous_cycle` (the offline fit
-//! of the previous cycle carried over: what a calibrator that only re-fits between discharges has) and
-//! `trend` (a capacity-versus-cycle fit on the training cycles, extrapolated).
+//! of the previous cycle carried over, at this discharge's current and temperature: what a calibrator that
+//! only re-fits between discharges has), `prior` (the same moved by the change the cell's lifetime model
+//! expects since then: what every streaming calibrator starts from, see [`crate::prior`]) and `trend` (a
+//! trend of the model's parameters over the training cycles' fits, extrapolated and run through the model at
+//! each discharge's own current and temperature).
 
 use crate::predict::{self, Predicted, Predictor};
 use crate::record::CellRecord;
@@ -21,12 +24,13 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 /// The calibrators and references, by report key.
-pub const METHODS: [(&str, &str); 6] = [
+pub const METHODS: [(&str, &str); 7] = [
     ("rl", "RL-LAC"),
     ("ukf", "Joint UKF"),
     ("fit", "Offline fit (sees the future)"),
+    ("prior", "Prior (previous fit + expected change)"),
     ("previous_cycle", "Previous cycle's fit"),
-    ("trend", "Capacity trend"),
+    ("trend", "Parameter trend"),
     ("uncalibrated", "Uncalibrated (new cell)"),
 ];
 
@@ -52,42 +56,49 @@ pub struct CycleRun {
 /// A streaming calibrator to build per discharge.
 pub enum Streaming<'a> {
     /// The RL policy of the window-fit design (issue 12).
-    Rl {
-        spec: TrackerSpec,
-        net: &'a PolicyNet,
-    },
+    Rl { spec: TrackerSpec, net: &'a PolicyNet, prior_factor: Option<f64> },
     /// The RL correction of the joint UKF (issue 18): the task holds the filter it corrects.
-    Correction {
-        task: Box<MeasuredSpec>,
-        net: &'a PolicyNet,
-    },
-    Ukf {
-        spec: TrackerSpec,
-        settings: JointUkfSettings,
-    },
+    Correction { task: Box<MeasuredSpec>, net: &'a PolicyNet, prior_factor: Option<f64> },
+    /// The joint UKF. `prior_factor`: each discharge's prior width is this factor times the width learned
+    /// from the cell's history ([`Before::prior_sd_z`]); None, or a discharge without a learned width: the
+    /// settings' own `prior_std_z`.
+    Ukf { spec: TrackerSpec, settings: JointUkfSettings, prior_factor: Option<f64> },
     /// Parameters fixed for the whole discharge (fit, previous cycle, uncalibrated), its state from the
     /// readings as the RL calibrator's model keeps it.
-    Pinned {
-        spec: TrackerSpec,
-        d: Degradation,
-    },
+    Pinned { spec: TrackerSpec, d: Degradation },
 }
 
 impl<'a> Streaming<'a> {
-    /// The same calibrator starting from `prior` (kept inside its ranges): where each discharge starts (the
-    /// last discharge's offline fit, see [`Before`]). Pinned references are unchanged.
-    pub fn with_prior(&self, prior: &Degradation) -> Streaming<'a> {
+    /// The same calibrator starting from `b`'s prior (its mean kept inside the ranges, its width the learned
+    /// one times the calibrator's `prior_factor`, where both are known). Pinned references are unchanged.
+    pub fn with_before(&self, b: &Before) -> Streaming<'a> {
         let moved = |spec: &TrackerSpec| {
-            let z = spec.to_z(prior);
+            let z = spec.to_z(&b.prior);
             TrackerSpec { prior: spec.from_z(z), ..spec.clone() }
         };
+        let width = |f: &Option<f64>| f.zip(b.prior_sd_z).map(|(f, sd)| [f * sd[0], f * sd[1]]);
         match self {
-            Streaming::Rl { spec, net } => Streaming::Rl { spec: moved(spec), net },
-            Streaming::Correction { task, net } => Streaming::Correction {
-                task: Box::new(MeasuredSpec { tracker: moved(&task.tracker), ..(**task).clone() }),
-                net,
-            },
-            Streaming::Ukf { spec, settings } => Streaming::Ukf { spec: moved(spec), settings: *settings },
+            Streaming::Rl { spec, net, prior_factor } => {
+                let mut s = moved(spec);
+                if let Some(w) = width(prior_factor) {
+                    s.prior_std_z = w[0].max(w[1]);
+                }
+                Streaming::Rl { spec: s, net, prior_factor: *prior_factor }
+            }
+            Streaming::Correction { task, net, prior_factor } => {
+                let mut t = MeasuredSpec { tracker: moved(&task.tracker), ..(**task).clone() };
+                if let Some(w) = width(prior_factor) {
+                    t.ukf = Some(JointUkfSettings { prior_std_z: w, ..t.ukf_settings() });
+                }
+                Streaming::Correction { task: Box::new(t), net, prior_factor: *prior_factor }
+            }
+            Streaming::Ukf { spec, settings, prior_factor } => {
+                let mut s = *settings;
+                if let Some(w) = width(prior_factor) {
+                    s.prior_std_z = w;
+                }
+                Streaming::Ukf { spec: moved(spec), settings: s, prior_factor: *prior_factor }
+            }
             Streaming::Pinned { spec, d } => Streaming::Pinned { spec: spec.clone(), d: *d },
         }
     }
@@ -110,21 +121,26 @@ impl<'a> Streaming<'a> {
             ..spec.clone()
         };
         match self {
-            Streaming::Rl { spec, net } => Streaming::Rl { spec: on(spec), net },
-            Streaming::Correction { task, net } => Streaming::Correction {
+            Streaming::Rl { spec, net, prior_factor } => {
+                Streaming::Rl { spec: on(spec), net, prior_factor: *prior_factor }
+            }
+            Streaming::Correction { task, net, prior_factor } => Streaming::Correction {
                 task: Box::new(MeasuredSpec { tracker: on(&task.tracker), ..(**task).clone() }),
                 net,
+                prior_factor: *prior_factor,
             },
-            Streaming::Ukf { spec, settings } => Streaming::Ukf { spec: on(spec), settings: *settings },
+            Streaming::Ukf { spec, settings, prior_factor } => {
+                Streaming::Ukf { spec: on(spec), settings: *settings, prior_factor: *prior_factor }
+            }
             Streaming::Pinned { spec, d } => Streaming::Pinned { spec: on(spec), d: *d },
         }
     }
 
     fn build(&self) -> Box<dyn Calibrator + '_> {
         match self {
-            Streaming::Rl { spec, net } => Box::new(RlCalibrator::new(spec, net)),
-            Streaming::Correction { task, net } => Box::new(CorrectionCalibrator::new(task, net)),
-            Streaming::Ukf { spec, settings } => Box::new(JointUkf::new(*settings, spec)),
+            Streaming::Rl { spec, net, .. } => Box::new(RlCalibrator::new(spec, net)),
+            Streaming::Correction { task, net, .. } => Box::new(CorrectionCalibrator::new(task, net)),
+            Streaming::Ukf { spec, settings, .. } => Box::new(JointUkf::new(*settings, spec)),
             Streaming::Pinned { spec, d } => Box::new(Uncalibrated::pinned(spec, d)),
         }
     }
@@ -139,10 +155,10 @@ pub fn scale_interval(iv: &Interval, d: &Degradation, scale: f64) -> Interval {
 }
 
 /// Runs `cal` along `record`, predicting at every reading with the calibrator's interval times `scale`;
-/// `knee_s` is added to every predicted end of discharge (and the charge it carries to every capacity):
-/// see [`knee_offset_s`].
-pub fn run_cycle(cal: &Streaming, record: &CellRecord, cutoff_v: f64, knee_s: f64, scale: f64) -> CycleRun {
-    run_cycle_with(cal, record, cutoff_v, knee_s, &[scale], None).pop().expect("one scale, one run")
+/// the knee's charge `knee_c` is added to every predicted capacity (and the time it takes at the current
+/// assumed to every predicted end of discharge): see [`knee_c`].
+pub fn run_cycle(cal: &Streaming, record: &CellRecord, cutoff_v: f64, knee_c: f64, scale: f64) -> CycleRun {
+    run_cycle_with(cal, record, cutoff_v, knee_c, &[scale], None).pop().expect("one scale, one run")
 }
 
 /// The reading indices the scores read (every fraction of [`crate::score`]).
@@ -164,7 +180,7 @@ pub fn run_cycle_with(
     cal: &Streaming,
     record: &CellRecord,
     cutoff_v: f64,
-    knee_s: f64,
+    knee_c: f64,
     scales: &[f64],
     only: Option<&[usize]>,
 ) -> Vec<CycleRun> {
@@ -189,7 +205,9 @@ pub fn run_cycle_with(
         let iv = c.interval();
         let predict_here = only.is_none_or(|o| o.binary_search(&k).is_ok()) && current_a.is_some();
         let current_a = current_a.unwrap_or(0.0);
-        let cap_shift = knee_s * current_a / 3600.0;
+        // The knee is charge: at this discharge's current it takes knee / current seconds.
+        let cap_shift = knee_c / 3600.0;
+        let knee_s = if current_a > 0.0 { knee_c / current_a } else { 0.0 };
         let state = |p: &Degradation| c.state_under(p);
         // End of discharge: the model at the cell's temperature now.
         let now =
@@ -224,14 +242,23 @@ pub fn run_cycle_with(
 }
 
 /// What is known of the cell before a discharge, from the discharges before it (each complete by then):
-/// the parameters and model values the doctor fitted on the last one, and the model's knee (see
-/// [`knee_s`]). A streaming calibrator starts each discharge there, as a BMS that runs the doctor's fit
-/// between discharges would.
+/// the prior ([`crate::prior`]: the parameters the doctor fitted on the last one moved by the change the
+/// cell's lifetime model expects, with a width learned from the cell's history), the model values fitted on
+/// the last one, and the model's knee (see [`knee_c`]). A streaming calibrator starts each discharge there,
+/// as a BMS that runs the doctor's fit between discharges would.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Before {
+    /// The prior mean.
     pub prior: Degradation,
+    /// Its standard deviation per parameter, z units of the calibrator's ranges (None: no history).
+    pub prior_sd_z: Option<[f64; 2]>,
+    /// The previous discharge's offline fit as it was (the previous-cycle reference).
+    pub previous: Degradation,
     pub model: ModelExtension,
-    pub knee_s: f64,
+    /// The model's knee, C.
+    pub knee_c: f64,
+    /// The rest before the discharge, s (None: unknown).
+    pub rest_before_s: Option<f64>,
 }
 
 /// Runs a reference built per record (`make(record index)`) along every record, on all cores.
@@ -244,12 +271,12 @@ pub fn run_all<'a>(
     records
         .par_iter()
         .enumerate()
-        .map(|(k, r)| run_cycle(&make(k).with_model(&before[k].model), r, cutoff_v, before[k].knee_s, 1.0))
+        .map(|(k, r)| run_cycle(&make(k).with_model(&before[k].model), r, cutoff_v, before[k].knee_c, 1.0))
         .collect()
 }
 
 /// A streaming calibrator along a cell's discharges, each read one reading at a time from what was known
-/// before it (`before[k]`: the last discharge's offline fit and the model's knee), so the discharges are
+/// before it (`before[k]`: the prior, the last discharge's model values and the model's knee), so the discharges are
 /// independent and run on all cores. One run per interval scale (outer), per discharge (inner);
 /// predictions only at the scores' readings when `checkpoints_only`.
 pub fn run_sequence(
@@ -264,9 +291,9 @@ pub fn run_sequence(
         .par_iter()
         .zip(before)
         .map(|(r, b)| {
-            let c = cal.with_model(&b.model).with_prior(&b.prior);
+            let c = cal.with_model(&b.model).with_before(b);
             let only = checkpoints_only.then(|| checkpoints(r));
-            run_cycle_with(&c, r, cutoff_v, b.knee_s, scales, only.as_deref())
+            run_cycle_with(&c, r, cutoff_v, b.knee_c, scales, only.as_deref())
         })
         .collect();
     let mut out: Vec<Vec<CycleRun>> = scales.iter().map(|_| Vec::with_capacity(records.len())).collect();
@@ -281,13 +308,14 @@ pub fn run_sequence(
 /// How many of the latest discharges the model's knee is taken over (median).
 pub const KNEE_WINDOW: usize = 3;
 
-/// The model's knee on one complete discharge, s: the measured time at the cut-off minus the end the
-/// record's own offline fit predicts from its start. The model's voltage stops falling when an electrode's
+/// The model's knee on one complete discharge, C: the charge the cell delivered between the end the record's
+/// own offline fit predicts from its start and the measured time at the cut-off (that time span times the
+/// discharge's current; charge, so that it carries to a discharge at another current). The model's voltage stops falling when an electrode's
 /// surface empties (about 3.0 V at 2 A), while the real cell drops through its knee to a lower cut-off a
 /// little later, and by how much drifts with age. None for a record that never reached the cut-off, or
 /// did not start full (its rest lies more than the doctor's partial-start drop below a full cell's
 /// open-circuit voltage).
-pub fn knee_s(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64) -> Option<f64> {
+pub fn knee_c(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64) -> Option<f64> {
     let (d, ext) = fit;
     let eod = r.eod_s?;
     let first = r.samples.first()?;
@@ -310,10 +338,10 @@ pub fn knee_s(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64
         max_s: predict::PREDICT_MAX_S,
     };
     let model_eod = bcal_calib::predict_eod_s(m, &x0, &dyn_d, r.load_on_s, &q)?;
-    Some(eod - model_eod)
+    Some((eod - model_eod) * r.current_a)
 }
 
-/// The knee each discharge of a sequence runs with: the median of [`knee_s`] over the last [`KNEE_WINDOW`]
+/// The knee each discharge of a sequence runs with: the median of [`knee_c`] over the last [`KNEE_WINDOW`]
 /// discharges before it that have one (`earlier` first, the knees of discharges before the sequence);
 /// zero before any.
 pub fn knees_before(earlier: &[f64], knees: &[Option<f64>]) -> Vec<f64> {
@@ -331,59 +359,51 @@ pub fn knees_before(earlier: &[f64], knees: &[Option<f64>]) -> Vec<f64> {
         .collect()
 }
 
-/// Capacity against cycle number: ln C = a + b n fitted by least squares on the training cycles (an
-/// exponential fade), extrapolated to later cycles.
+/// The model's parameters against cycle number: qMobile and Ro each a straight line fitted by least squares
+/// on the training cycles' offline fits, extrapolated to later cycles and run through the model at each
+/// discharge's own current and temperature (a trend of the capacity figure would carry one discharge's
+/// conditions to every other).
 #[derive(Clone, Copy, Debug, Serialize)]
-pub struct Trend {
-    pub a: f64,
-    pub b: f64,
+pub struct ParamTrend {
+    /// qMobile = q_c + q_per_cycle_c n, C; Ro = r_ohm + r_per_cycle_ohm n, ohm.
+    pub q_c: f64,
+    pub q_per_cycle_c: f64,
+    pub r_ohm: f64,
+    pub r_per_cycle_ohm: f64,
     pub cycles: usize,
 }
 
-impl Trend {
-    pub fn fit(points: &[(u32, f64)]) -> Option<Self> {
-        let pts: Vec<(f64, f64)> =
-            points.iter().filter(|(_, c)| *c > 0.0 && c.is_finite()).map(|(n, c)| (f64::from(*n), c.ln())).collect();
-        if pts.len() < 2 {
-            return None;
+/// Least squares of y = a + b n; None with fewer than two distinct cycles.
+fn line(points: &[(f64, f64)]) -> Option<(f64, f64)> {
+    let n = points.len() as f64;
+    if points.len() < 2 {
+        return None;
+    }
+    let (mx, my) = (points.iter().map(|p| p.0).sum::<f64>() / n, points.iter().map(|p| p.1).sum::<f64>() / n);
+    let sxx: f64 = points.iter().map(|p| (p.0 - mx).powi(2)).sum();
+    if sxx <= 0.0 {
+        return None;
+    }
+    let b = points.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum::<f64>() / sxx;
+    Some((my - b * mx, b))
+}
+
+impl ParamTrend {
+    pub fn fit(points: &[(u32, Degradation)]) -> Option<Self> {
+        let pts: Vec<&(u32, Degradation)> =
+            points.iter().filter(|(_, d)| d.q_mobile_c.is_finite() && d.r_o_ohm.is_finite()).collect();
+        let q = line(&pts.iter().map(|(n, d)| (f64::from(*n), d.q_mobile_c)).collect::<Vec<_>>())?;
+        let r = line(&pts.iter().map(|(n, d)| (f64::from(*n), d.r_o_ohm)).collect::<Vec<_>>())?;
+        Some(Self { q_c: q.0, q_per_cycle_c: q.1, r_ohm: r.0, r_per_cycle_ohm: r.1, cycles: pts.len() })
+    }
+
+    /// The trend's parameters at `cycle` (qMobile at least 1 C, Ro at least 0).
+    pub fn at(&self, cycle: u32) -> Degradation {
+        let n = f64::from(cycle);
+        Degradation {
+            q_mobile_c: (self.q_c + self.q_per_cycle_c * n).max(1.0),
+            r_o_ohm: (self.r_ohm + self.r_per_cycle_ohm * n).max(0.0),
         }
-        let n = pts.len() as f64;
-        let (mx, my) = (pts.iter().map(|p| p.0).sum::<f64>() / n, pts.iter().map(|p| p.1).sum::<f64>() / n);
-        let sxx: f64 = pts.iter().map(|p| (p.0 - mx).powi(2)).sum();
-        let sxy: f64 = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
-        let b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
-        Some(Self { a: my - b * mx, b, cycles: pts.len() })
-    }
-
-    pub fn capacity_ah(&self, cycle: u32) -> f64 {
-        (self.a + self.b * f64::from(cycle)).exp()
-    }
-
-    /// The trend's prediction along a record: its capacity, and the end of discharge it implies (the
-    /// load-on plus capacity / current), the same at every reading.
-    pub fn run(&self, r: &CellRecord) -> CycleRun {
-        let cap = self.capacity_ah(r.cycle);
-        // At the mean loaded current so far, as every method predicts (no look-ahead).
-        let (mut sum_a, mut n) = (0.0, 0u32);
-        let steps = r
-            .samples
-            .iter()
-            .map(|s| {
-                if s.current_a > crate::record::LOAD_THRESHOLD_A {
-                    sum_a += s.current_a;
-                    n += 1;
-                }
-                let eod = (n > 0).then(|| r.load_on_s + cap * 3600.0 / (sum_a / f64::from(n)));
-                Step {
-                    t_s: s.t_s,
-                    estimate: Degradation { q_mobile_c: f64::NAN, r_o_ohm: f64::NAN },
-                    interval: None,
-                    eod: Predicted { value: eod, lo: None, hi: None },
-                    capacity: Predicted { value: Some(cap), lo: None, hi: None },
-                }
-            })
-            .collect();
-        CycleRun { cycle: r.cycle, steps }
     }
 }
 
@@ -392,10 +412,14 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_trend_recovers_an_exponential_fade() {
-        let pts: Vec<(u32, f64)> = (1..=40).map(|n| (n, 1.9 * (-0.004 * f64::from(n)).exp())).collect();
-        let t = Trend::fit(&pts).unwrap();
-        assert!((t.b + 0.004).abs() < 1e-12 && (t.capacity_ah(100) - 1.9 * (-0.4f64).exp()).abs() < 1e-9);
-        assert!(Trend::fit(&[(1, 1.0)]).is_none());
+    fn the_parameter_trend_recovers_a_linear_fade() {
+        let pts: Vec<(u32, Degradation)> = (1..=40)
+            .map(|n| (n, Degradation { q_mobile_c: 7000.0 - 12.5 * f64::from(n), r_o_ohm: 0.1 + 4e-4 * f64::from(n) }))
+            .collect();
+        let t = ParamTrend::fit(&pts).unwrap();
+        let d = t.at(100);
+        assert!((d.q_mobile_c - 5750.0).abs() < 1e-6 && (d.r_o_ohm - 0.14).abs() < 1e-9, "{d:?}");
+        assert!(ParamTrend::fit(&pts[..1]).is_none());
+        assert_eq!(t.at(10_000).q_mobile_c, 1.0);
     }
 }

@@ -5,7 +5,11 @@
 //! - end of discharge: the predicted time the voltage reaches the cut-off, made at 10 / 50 / 90 % of each
 //!   discharge, against the measured time (median and 90th percentile of the absolute error, s and % of
 //!   the discharge's duration);
-//! - coverage: how often the 90 % intervals of those predictions hold the measured value.
+//! - coverage: how often the 90 % intervals of those predictions hold the measured value (the end of
+//!   discharge measured by the cycler, and the capacity the data itself shows down to the cut-off);
+//! - the same per condition (each discharge's current and ambient temperature, rounded) when the judged
+//!   discharges ran under more than one, and the capacity errors at the discharges that follow a rest of more
+//!   than a day (where the cell has regained capacity).
 
 use crate::record::CellRecord;
 use crate::run::CycleRun;
@@ -80,11 +84,53 @@ pub struct MethodScore {
     pub coverage_90_pct: BTreeMap<String, Option<f64>>,
     /// Predictions that failed (the model never reached the cut-off within the horizon).
     pub failures: usize,
+    /// Capacity errors from half of each discharge that follows a rest of more than a day (against the
+    /// stated capacity and against the data's charge); None without such a discharge.
+    pub after_long_rest: Option<AfterRest>,
+    /// The same scores per condition (`"2.0 A, 24 C"`), when the judged discharges ran under more than one.
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub by_condition: BTreeMap<String, MethodScore>,
 }
 
-/// Scores one method's runs (`runs[k]` along `records[k]`).
+/// Capacity from half of the discharges that follow a long rest.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct AfterRest {
+    pub cycles: Vec<u32>,
+    pub capacity_50: Errors,
+    pub capacity_50_vs_data: Errors,
+}
+
+/// The condition a discharge ran under, as the reports group them: its mean current to the nearest
+/// quarter ampere and its ambient to the nearest degree.
+pub fn condition_key(r: &CellRecord) -> String {
+    format!(
+        "{:.2} A, {:.0} C",
+        (r.current_a * 4.0).round() / 4.0,
+        r.ambient_k - bcal_common::measured::scenario::KELVIN_0C
+    )
+}
+
+/// Scores one method's runs (`runs[k]` along `records[k]`), per condition too when there are several.
 pub fn score(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
+    let mut s = score_flat(records, runs);
+    let mut groups: BTreeMap<String, Vec<usize>> = BTreeMap::new();
+    for (k, r) in records.iter().enumerate() {
+        groups.entry(condition_key(r)).or_default().push(k);
+    }
+    if groups.len() > 1 {
+        for (key, idx) in groups {
+            let rs: Vec<CellRecord> = idx.iter().map(|&k| records[k].clone()).collect();
+            let us: Vec<CycleRun> = idx.iter().map(|&k| runs[k].clone()).collect();
+            s.by_condition.insert(key, score_flat(&rs, &us));
+        }
+    }
+    s
+}
+
+fn score_flat(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
     let mut s = MethodScore::default();
+    let mut after = AfterRest::default();
+    let (mut after_stated, mut after_data) = (Vec::new(), Vec::new());
     let (mut eod_in, mut eod_n, mut cap_in, mut cap_n) = (0usize, 0usize, 0usize, 0usize);
     for f in CAPACITY_FRACTIONS_PCT {
         let (mut stated, mut data) = (Vec::new(), Vec::new());
@@ -95,11 +141,21 @@ pub fn score(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
                 s.failures += 1;
                 continue;
             };
+            let long_rest = f == 50 && r.rest_before_s.is_some_and(|x| x > crate::prior::LONG_REST_S);
+            if long_rest {
+                after.cycles.push(r.cycle);
+            }
             if let Some(m) = r.stated_capacity_ah.filter(|c| *c > 0.0) {
                 stated.push((v, m));
+                if long_rest {
+                    after_stated.push((v, m));
+                }
             }
             if let Some(m) = r.data_capacity_ah {
                 data.push((v, m));
+                if long_rest {
+                    after_data.push((v, m));
+                }
                 if let (Some(lo), Some(hi)) = (p.lo, p.hi) {
                     cap_n += 1;
                     cap_in += usize::from(lo <= m && m <= hi);
@@ -135,6 +191,11 @@ pub fn score(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
     let pct = |a: usize, n: usize| (n > 0).then(|| 100.0 * a as f64 / n as f64);
     s.coverage_90_pct.insert("eod".into(), pct(eod_in, eod_n));
     s.coverage_90_pct.insert("capacity".into(), pct(cap_in, cap_n));
+    if !after.cycles.is_empty() {
+        after.capacity_50 = errors(&after_stated);
+        after.capacity_50_vs_data = errors(&after_data);
+        s.after_long_rest = Some(after);
+    }
     s
 }
 
@@ -168,20 +229,24 @@ mod tests {
             data_capacity_ah: Some(1.0),
             stated_capacity_ah: Some(1.1),
             ambient_k: 298.0,
+            rest_before_s: Some(2.0 * 86_400.0),
         };
         // Predicts an end 50 s late with an interval of +-100 s and a capacity of 1.2 Ah within [1.1, 1.3].
-        let steps = r
-            .samples
-            .iter()
-            .map(|s| Step {
-                t_s: s.t_s,
-                estimate: Degradation::default(),
-                interval: None,
-                eod: Predicted { value: Some(1050.0), lo: Some(950.0), hi: Some(1150.0) },
-                capacity: Predicted { value: Some(1.2), lo: Some(1.1), hi: Some(1.3) },
-            })
-            .collect();
-        let s = score(std::slice::from_ref(&r), &[CycleRun { cycle: 1, steps }]);
+        let s_run = |r: &CellRecord| CycleRun {
+            cycle: r.cycle,
+            steps: r
+                .samples
+                .iter()
+                .map(|s| Step {
+                    t_s: s.t_s,
+                    estimate: Degradation::default(),
+                    interval: None,
+                    eod: Predicted { value: Some(1050.0), lo: Some(950.0), hi: Some(1150.0) },
+                    capacity: Predicted { value: Some(1.2), lo: Some(1.1), hi: Some(1.3) },
+                })
+                .collect(),
+        };
+        let s = score(std::slice::from_ref(&r), &[s_run(&r)]);
         assert!((s.capacity["50"].rmse - 0.1).abs() < 1e-12);
         assert!((s.capacity_vs_data["50"].mae - 0.2).abs() < 1e-12);
         assert!((s.capacity_vs_data["50"].rmse_pct - 20.0).abs() < 1e-9);
@@ -190,5 +255,17 @@ mod tests {
         assert_eq!(s.coverage_90_pct["eod"], Some(100.0));
         // 1.0 Ah measured lies outside [1.1, 1.3].
         assert_eq!(s.coverage_90_pct["capacity"], Some(0.0));
+        // It followed two days of rest: its capacity error is also counted there.
+        let after = s.after_long_rest.as_ref().unwrap();
+        assert_eq!(after.cycles, vec![1]);
+        assert!((after.capacity_50_vs_data.rmse - 0.2).abs() < 1e-12);
+        // One condition: no breakdown; two: one entry each.
+        assert!(s.by_condition.is_empty());
+        let mut r2 = r.clone();
+        r2.current_a = 4.0;
+        let run = s_run(&r);
+        let two = score(&[r.clone(), r2], &[run.clone(), run]);
+        assert_eq!(two.by_condition.keys().cloned().collect::<Vec<_>>(), vec!["2.00 A, 25 C", "4.00 A, 25 C"]);
+        assert_eq!(two.by_condition["4.00 A, 25 C"].capacity["50"].n, 1);
     }
 }

@@ -1,9 +1,9 @@
 //! Every choice of a real-cell calibration is made on validation cycles: the last training cycles, measured
 //! discharges of the same cell that are never judged. The streaming calibrators get the same effort: the
-//! joint UKF's settings and the RL policy file (among the run's checkpoints) are chosen by their end-of-
-//! discharge error there, and both calibrators' 90 % intervals are scaled there to cover 90 % of the
-//! measured ends (the parameter intervals of a calibrator account for sensor noise, not for the model's
-//! own error on a real cell, which dominates).
+//! joint UKF's settings (its noise, and the factor on the prior width each discharge learns from the cell's
+//! history, [`PRIOR_FACTORS`]) and the RL policy file (among the run's checkpoints) are chosen by their
+//! end-of-discharge error there. Their 90 % intervals start from the validation cycles' errors and follow
+//! the cell as it ages ([`crate::interval`]).
 
 use crate::record::CellRecord;
 use crate::run::{run_sequence, Before, CycleRun, Streaming};
@@ -15,14 +15,9 @@ use serde::Serialize;
 pub const VALIDATION_SHARE: f64 = 0.25;
 pub const MIN_VALIDATION: usize = 2;
 
-/// Interval scales searched: 2^(k/2), 1/16 to 128.
-pub fn scale_grid() -> Vec<f64> {
-    (-8..=14).map(|k| 2f64.powf(f64::from(k) / 2.0)).collect()
-}
-
-/// The RL tracker's prior widths tried beside the one it was trained with (fractions of each range): on a
-/// real cell the prior is the previous discharge's estimate, as for the joint UKF's grid.
-pub const RL_PRIOR_STD_Z: [f64; 4] = [0.01, 0.02, 0.05, 0.1];
+/// Factors on the prior width learned from the cell's history ([`crate::prior`]) that the streaming
+/// calibrators are tried with: 1 is the width as learned; more lets the readings move the estimate further.
+pub const PRIOR_FACTORS: [f64; 3] = [1.0, 2.0, 4.0];
 
 /// The validation cycles, as indices into `train`: the last quarter of the training cycles that reach the
 /// cut-off (at least [`MIN_VALIDATION`]; none when there are fewer than twice that).
@@ -68,14 +63,14 @@ pub struct Choice {
     pub validation_cycles: Vec<u32>,
     /// Every candidate, best first.
     pub candidates: Vec<Candidate>,
-    /// The interval scale and the coverage of the measured ends it gave on validation, %.
-    pub interval_scale: f64,
-    pub validation_eod_coverage_pct: Option<f64>,
+    /// The chosen candidate's runs along the validation cycles (their errors start its intervals).
+    #[serde(skip)]
+    pub runs: Vec<CycleRun>,
 }
 
 /// Chooses among `candidates` (label, calibrator) by [`objective`] on `records` (each run along them in
-/// order, each discharge starting from what was known before it), then the interval scale
-/// whose end-of-discharge coverage on them is nearest 90 % (the smaller scale on a tie).
+/// order, each discharge starting from what was known before it), and keeps the chosen one's runs with a
+/// prediction at every reading.
 pub fn choose(
     candidates: &[(String, Streaming<'_>)],
     records: &[CellRecord],
@@ -95,22 +90,7 @@ pub fn choose(
         .collect();
     scored.sort_by(|a, b| a.1.total_cmp(&b.1));
     let index = scored[0].0;
-    let scales = scale_grid();
-    let runs = run_sequence(&candidates[index].1, records, before, cutoff_v, &scales, true);
-    let mut best: Option<(f64, Option<f64>)> = None;
-    for (scale, runs) in scales.iter().zip(&runs) {
-        let cov = score(records, runs).coverage_90_pct.get("eod").copied().flatten();
-        let better = match (best, cov) {
-            (None, _) => true,
-            (Some((_, Some(b))), Some(c)) => (c - 90.0).abs() < (b - 90.0).abs() - 1e-9,
-            (Some((_, None)), Some(_)) => true,
-            _ => false,
-        };
-        if better {
-            best = Some((*scale, cov));
-        }
-    }
-    let (interval_scale, validation_eod_coverage_pct) = best.unwrap_or((1.0, None));
+    let runs = run_sequence(&candidates[index].1, records, before, cutoff_v, &[1.0], false).pop().unwrap_or_default();
     Some(Choice {
         index,
         chosen: candidates[index].0.clone(),
@@ -119,19 +99,6 @@ pub fn choose(
             .iter()
             .map(|(k, e)| Candidate { label: candidates[*k].0.clone(), eod_error_pct: *e })
             .collect(),
-        interval_scale,
-        validation_eod_coverage_pct,
+        runs,
     })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_scale_grid_spans_a_sixteenth_to_128_and_contains_one() {
-        let g = scale_grid();
-        assert!((g[0] - 0.0625).abs() < 1e-12 && (g[g.len() - 1] - 128.0).abs() < 1e-9);
-        assert!(g.iter().any(|s| (s - 1.0).abs() < 1e-12));
-    }
 }

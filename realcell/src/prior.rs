@@ -1,0 +1,351 @@
+//! Across discharges (issue 18 item 5): what each discharge of a real cell starts from, as a prior with an
+//! honest width learned from the cell's own history.
+//!
+//! - **Mean.** The previous discharge's offline fit (the doctor's, once that discharge had ended), moved by
+//!   the change the cell's lifetime model expects since then: the capacity fade, and the capacity a rest
+//!   gives back (NASA cells regain capacity after long rests and lose it again over the next discharges;
+//!   [`bcal_doctor::lifetime`]). qMobile follows the expected relative change of the capacity; Ro is carried.
+//! - **Width.** Fitted on the training cycles: each consecutive pair of offline fits gives a residual, the
+//!   fit of discharge k minus its prior mean from discharge k - 1, in each parameter (z units of the
+//!   calibrator's ranges). Its variance is modelled as `a + b h(rest)`, `h(rest) = ln(max(rest, usual) /
+//!   usual)` (zero after the usual rest, growing with a longer one), fitted by least squares on the squared
+//!   residuals with a, b >= 0. A rest longer than any the training cycles saw is also covered by the
+//!   lifetime model's own uncertainty of the jump it predicts, added in quadrature, so the width grows with
+//!   the rest even where the training cycles held no long pause. Nothing in it is set per cell.
+//!
+//! Pure functions of the records, their fits and their start times: nothing here prints or simulates.
+
+use crate::record::CellRecord;
+use bcal_common::battery::Degradation;
+use bcal_common::measured::extension::ModelExtension;
+use bcal_common::measured::tracker::TrackerSpec;
+use bcal_doctor::lifetime::{Condition, LifeTracker, LifetimeModel};
+use bcal_doctor::read::RecordStart;
+use bcal_doctor::Discharge;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Fewest consecutive training pairs the width is fitted on; with fewer, [`RestWidth::fallback`].
+pub const MIN_PAIRS: usize = 4;
+/// The smallest width, z units: below the resolution of an offline fit (a few coulombs, a fraction of a
+/// milliohm), a prior would claim more than the fits that make it can know.
+pub const MIN_SD_Z: f64 = 1e-3;
+/// A day, s: the issue's "long rest".
+pub const LONG_REST_S: f64 = 86_400.0;
+
+/// The rest before each record, s: the time from the end of the record of the cycle before (when present
+/// and both start times are known) to this record's start. Records with an unknown rest are absent.
+pub fn rests_before(records: &[&Discharge], starts: &[RecordStart]) -> BTreeMap<u32, f64> {
+    let start_of: BTreeMap<u32, f64> = starts.iter().map(|s| (s.cycle, s.start_s)).collect();
+    let end_of: BTreeMap<u32, f64> = records
+        .iter()
+        .filter_map(|d| {
+            let s = start_of.get(&d.cycle)?;
+            let span = d.time_s.last()? - d.time_s.first()?;
+            Some((d.cycle, s + span))
+        })
+        .collect();
+    let mut out = BTreeMap::new();
+    for d in records {
+        let (Some(start), Some(prev_end)) =
+            (start_of.get(&d.cycle), d.cycle.checked_sub(1).and_then(|c| end_of.get(&c)))
+        else {
+            continue;
+        };
+        let rest = start - prev_end;
+        // A clock that restarts per record gives overlaps: no schedule, no rest.
+        if rest >= -60.0 {
+            out.insert(d.cycle, rest.max(0.0));
+        }
+    }
+    out
+}
+
+/// The width model of the prior: per parameter (qMobile, Ro), variance `a + b h(rest)` in z^2.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct RestWidth {
+    /// Variance after the usual rest, z^2.
+    pub a_z2: [f64; 2],
+    /// Variance added per unit of `h(rest)`, z^2.
+    pub b_z2: [f64; 2],
+    /// The usual rest (median of the training rests), s; 0 when no rest is known.
+    pub usual_rest_s: f64,
+    /// The consecutive training pairs it was fitted on, and how many of them followed a rest of more than
+    /// a day.
+    pub pairs: usize,
+    pub long_rest_pairs: usize,
+}
+
+impl RestWidth {
+    /// The width without a history: the calibrator's own setting decides (see [`Prior::sd_z`]).
+    pub fn fallback() -> Self {
+        Self { a_z2: [f64::NAN; 2], b_z2: [0.0; 2], usual_rest_s: 0.0, pairs: 0, long_rest_pairs: 0 }
+    }
+
+    pub fn fitted(&self) -> bool {
+        self.a_z2.iter().all(|a| a.is_finite())
+    }
+
+    /// `h(rest)`: zero at or below the usual rest, the log of the ratio above it.
+    pub fn h(&self, rest_s: Option<f64>) -> f64 {
+        match rest_s {
+            Some(r) if self.usual_rest_s > 0.0 && r > self.usual_rest_s => (r / self.usual_rest_s).ln(),
+            _ => 0.0,
+        }
+    }
+
+    /// The standard deviation of each parameter after a rest of `rest_s` and `gap` discharges since the
+    /// fit it starts from (the per-discharge variance adds up over a gap), z units.
+    pub fn sd_z(&self, rest_s: Option<f64>, gap: u32) -> [f64; 2] {
+        let h = self.h(rest_s);
+        std::array::from_fn(|k| (self.a_z2[k] * f64::from(gap.max(1)) + self.b_z2[k] * h).sqrt().max(MIN_SD_Z))
+    }
+
+    /// Least squares of `e^2 = a + b h` with a, b >= 0 over `(h, residual)` pairs, per parameter.
+    pub fn fit(residuals: &[(f64, [f64; 2])], usual_rest_s: f64, long_rest_pairs: usize) -> Self {
+        if residuals.len() < MIN_PAIRS {
+            return Self { usual_rest_s, pairs: residuals.len(), long_rest_pairs, ..Self::fallback() };
+        }
+        let n = residuals.len() as f64;
+        let mut a_z2 = [0.0; 2];
+        let mut b_z2 = [0.0; 2];
+        for k in 0..2 {
+            let pts: Vec<(f64, f64)> = residuals.iter().map(|(h, e)| (*h, e[k] * e[k])).collect();
+            let (mh, my) = (pts.iter().map(|p| p.0).sum::<f64>() / n, pts.iter().map(|p| p.1).sum::<f64>() / n);
+            let shh: f64 = pts.iter().map(|p| (p.0 - mh).powi(2)).sum();
+            let shy: f64 = pts.iter().map(|p| (p.0 - mh) * (p.1 - my)).sum();
+            let (mut a, mut b) = if shh > 1e-12 { (my - shy / shh * mh, shy / shh) } else { (my, 0.0) };
+            if b < 0.0 {
+                // Longer rests did not spread the fits more: one variance for all.
+                (a, b) = (my, 0.0);
+            }
+            if a < 0.0 {
+                // The usual rest's variance cannot be negative: through the origin.
+                let shh0: f64 = pts.iter().map(|p| p.0 * p.0).sum();
+                (a, b) = (0.0, if shh0 > 0.0 { pts.iter().map(|p| p.0 * p.1).sum::<f64>() / shh0 } else { 0.0 });
+            }
+            a_z2[k] = a;
+            b_z2[k] = b;
+        }
+        Self { a_z2, b_z2, usual_rest_s, pairs: residuals.len(), long_rest_pairs }
+    }
+}
+
+/// What one discharge starts from.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Prior {
+    /// The prior mean: the previous fit moved by the expected change.
+    pub mean: Degradation,
+    /// The previous discharge's offline fit itself (the previous-cycle reference).
+    pub previous: Degradation,
+    /// Standard deviation per parameter, z units (None: no history to learn it from).
+    pub sd_z: Option<[f64; 2]>,
+    /// The rest before this discharge, s (None: unknown).
+    pub rest_before_s: Option<f64>,
+    /// The relative change of capacity the lifetime model expects since the previous discharge.
+    pub expected_capacity_change: f64,
+}
+
+/// Follows the cell's life discharge by discharge and gives each its [`Prior`].
+pub struct PriorWalk<'a> {
+    spec: &'a TrackerSpec,
+    life: Option<LifeTracker>,
+    width: RestWidth,
+    /// The previous discharge: its cycle, fit and data capacity.
+    last: Option<(u32, Degradation, Option<f64>)>,
+}
+
+impl<'a> PriorWalk<'a> {
+    pub fn new(spec: &'a TrackerSpec, life: Option<&LifetimeModel>, width: RestWidth) -> Self {
+        Self { spec, life: life.map(|m| LifeTracker::new(*m)), width, last: None }
+    }
+
+    /// The prior of `record` (rest before it `rest_s`), from what the walk has seen; `first` is the prior
+    /// of the very first discharge (no history).
+    pub fn prior(&self, record: &CellRecord, rest_s: Option<f64>, first: &Degradation) -> Prior {
+        let Some((cycle, prev, prev_cap)) = self.last else {
+            return Prior {
+                mean: *first,
+                previous: *first,
+                sd_z: None,
+                rest_before_s: rest_s,
+                expected_capacity_change: 0.0,
+            };
+        };
+        let at = condition(record);
+        let (ratio, jump_sd_rel) = match (&self.life, prev_cap) {
+            (Some(t), Some(c)) if c > 0.0 => {
+                let p = t.predict(record.cycle, rest_s, at);
+                // The lifetime model's one-ahead value holds the fade and the recovery since the last
+                // observed capacity; its uncertainty of the recovery change is the jump's width.
+                let jump_sd = t.model.jump_sd_fraction * p.recovery_change.abs();
+                ((p.value / c).clamp(0.8, 1.25), jump_sd / c)
+            }
+            _ => (1.0, 0.0),
+        };
+        let mean = Degradation { q_mobile_c: prev.q_mobile_c * ratio, r_o_ohm: prev.r_o_ohm };
+        let gap = record.cycle.saturating_sub(cycle);
+        let sd_z = self.width.fitted().then(|| {
+            let mut sd = self.width.sd_z(rest_s, gap);
+            // The jump's own uncertainty, as a fraction of qMobile, in z units.
+            let span = self.spec.q_mobile_range_c[1] - self.spec.q_mobile_range_c[0];
+            sd[0] = sd[0].hypot(jump_sd_rel * prev.q_mobile_c / span);
+            sd
+        });
+        Prior { mean, previous: prev, sd_z, rest_before_s: rest_s, expected_capacity_change: ratio - 1.0 }
+    }
+
+    /// Takes the discharge `record` once it has ended: its offline fit and measured capacity.
+    pub fn observe(&mut self, record: &CellRecord, rest_s: Option<f64>, fit: &Degradation) {
+        if let Some(t) = self.life.as_mut() {
+            t.advance_to(record.cycle, rest_s, condition(record));
+            if let Some(c) = record.data_capacity_ah {
+                t.observe(c);
+            }
+        }
+        self.last = Some((record.cycle, *fit, record.data_capacity_ah));
+    }
+}
+
+fn condition(r: &CellRecord) -> Condition {
+    Condition { ambient_c: r.ambient_k - bcal_doctor::record::CELSIUS_TO_KELVIN, current_a: r.current_a }
+}
+
+/// The width learned from the training records and their fits (in order), with the residual of every
+/// consecutive pair in z units and the rest before it.
+pub fn learn_width(
+    spec: &TrackerSpec,
+    life: Option<&LifetimeModel>,
+    train: &[CellRecord],
+    fits: &[(Degradation, ModelExtension)],
+    rests: &BTreeMap<u32, f64>,
+) -> RestWidth {
+    let mut known: Vec<f64> = train.iter().filter_map(|r| rests.get(&r.cycle).copied()).collect();
+    let usual_rest_s = bcal_common::stats::median(&mut known).unwrap_or(0.0);
+    let probe = RestWidth { usual_rest_s, ..RestWidth::fallback() };
+    let mut walk = PriorWalk::new(spec, life, probe);
+    let mut residuals = Vec::new();
+    let mut long = 0;
+    for (r, (fit, _)) in train.iter().zip(fits) {
+        let rest = rests.get(&r.cycle).copied();
+        let consecutive = walk.last.is_some_and(|(c, _, _)| c + 1 == r.cycle);
+        if consecutive {
+            let p = walk.prior(r, rest, fit);
+            let (z, m) = (spec.to_z(fit), spec.to_z(&p.mean));
+            residuals.push((probe.h(rest), [z[0] - m[0], z[1] - m[1]]));
+            long += usize::from(rest.is_some_and(|x| x > LONG_REST_S));
+        }
+        walk.observe(r, rest, fit);
+    }
+    RestWidth::fit(&residuals, usual_rest_s, long)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_width_grows_with_the_rest_when_long_rests_spread_the_fits() {
+        // Residuals of 0.01 z after usual rests, 0.05 z after rests e^2 times the usual one.
+        let mut res: Vec<(f64, [f64; 2])> =
+            (0..20).map(|k| (0.0, [0.01 * if k % 2 == 0 { 1.0 } else { -1.0 }; 2])).collect();
+        res.extend((0..4).map(|k| (2.0, [0.05 * if k % 2 == 0 { 1.0 } else { -1.0 }, 0.01])));
+        let w = RestWidth::fit(&res, 3600.0, 4);
+        assert!(w.fitted());
+        let usual = w.sd_z(Some(3600.0), 1);
+        let long = w.sd_z(Some(3600.0 * 2f64.exp()), 1);
+        assert!((usual[0] - 0.01).abs() < 2e-3, "{usual:?}");
+        assert!((long[0] - 0.05).abs() < 5e-3, "{long:?}");
+        // Ro's residuals do not grow with the rest: the same width after any rest.
+        assert!((long[1] - usual[1]).abs() < 1e-12 && (usual[1] - 0.01).abs() < 1e-3, "{usual:?} {long:?}");
+        // A gap of four discharges adds four discharges' variance.
+        assert!((w.sd_z(Some(3600.0), 4)[1] - 2.0 * usual[1]).abs() < 1e-9);
+        // Too few pairs: no width.
+        assert!(!RestWidth::fit(&res[..3], 3600.0, 0).fitted());
+    }
+
+    fn record(cycle: u32, rest_s: Option<f64>, capacity_ah: f64) -> CellRecord {
+        CellRecord {
+            cell: "T".into(),
+            cycle,
+            source: "t".into(),
+            load_on_s: 10.0,
+            eod_s: Some(3000.0),
+            current_a: 2.0,
+            data_capacity_ah: Some(capacity_ah),
+            stated_capacity_ah: None,
+            ambient_k: 297.15,
+            rest_before_s: rest_s,
+            samples: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn the_prior_mean_follows_the_recovery_after_a_long_rest_and_its_width_grows_with_it() {
+        use bcal_doctor::lifetime::Quantity;
+        // A cell that fades 3 mAh per discharge and regains up to 65 mAh over a rest of about 15 h.
+        let life = LifetimeModel {
+            quantity: Quantity::CapacityAh,
+            intercept: 1.8,
+            per_cycle: -0.003,
+            reference_cycle: 20.0,
+            per_kelvin: 0.0,
+            per_ampere: 0.0,
+            reference: Condition { ambient_c: 24.0, current_a: 2.0 },
+            amplitude: 0.065,
+            tau_rest_s: 54_720.0,
+            decay_discharges: 5.0,
+            usual_rest_s: 3_600.0,
+            residual_sd: 0.004,
+            jump_sd_fraction: 0.5,
+        };
+        let spec = TrackerSpec::default();
+        let width =
+            RestWidth { a_z2: [1e-4; 2], b_z2: [4e-4, 0.0], usual_rest_s: 3_600.0, pairs: 20, long_rest_pairs: 2 };
+        let mut walk = PriorWalk::new(&spec, Some(&life), width);
+        let fit = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.12 };
+        for c in 1..=10 {
+            walk.observe(&record(c, Some(3_600.0), 1.8 - 0.003 * f64::from(c)), Some(3_600.0), &fit);
+        }
+        let usual = walk.prior(&record(11, Some(3_600.0), 0.0), Some(3_600.0), &fit);
+        let long = walk.prior(&record(11, Some(3.0 * LONG_REST_S), 0.0), Some(3.0 * LONG_REST_S), &fit);
+        // After the usual rest the prior fades from the last fit; after three days it regains capacity, and
+        // qMobile follows the capacity's relative change. Ro is carried.
+        assert!(usual.mean.q_mobile_c < fit.q_mobile_c, "{usual:?}");
+        assert!(long.mean.q_mobile_c > fit.q_mobile_c * 1.02, "{long:?}");
+        assert!((long.mean.q_mobile_c / fit.q_mobile_c - 1.0 - long.expected_capacity_change).abs() < 1e-12);
+        assert_eq!((long.previous, long.mean.r_o_ohm), (fit, fit.r_o_ohm));
+        // The width grows with the rest (the learned term and the jump's own uncertainty), in qMobile only.
+        let (su, sl) = (usual.sd_z.unwrap(), long.sd_z.unwrap());
+        assert!(sl[0] > 2.0 * su[0] && (sl[1] - su[1]).abs() < 1e-12, "{su:?} {sl:?}");
+        // Without a lifetime model the previous fit is carried as it is.
+        let mut plain = PriorWalk::new(&spec, None, width);
+        plain.observe(&record(10, None, 1.77), None, &fit);
+        assert_eq!(plain.prior(&record(11, Some(3.0 * LONG_REST_S), 0.0), Some(3.0 * LONG_REST_S), &fit).mean, fit);
+    }
+
+    #[test]
+    fn rests_come_from_the_end_of_the_record_before() {
+        let d = |cycle: u32| Discharge {
+            cell: "T".into(),
+            cycle,
+            source: "t.csv".into(),
+            ambient_k: 297.15,
+            time_s: vec![0.0, 100.0, 1000.0],
+            voltage_v: vec![4.2, 3.9, 3.0],
+            current_a: vec![0.0, 2.0, 2.0],
+            temperature_k: None,
+            stated_capacity_ah: None,
+        };
+        let (a, b, c) = (d(1), d(2), d(4));
+        let starts = [
+            RecordStart { cycle: 1, start_s: 0.0 },
+            RecordStart { cycle: 2, start_s: 5000.0 },
+            RecordStart { cycle: 4, start_s: 9000.0 },
+        ];
+        let r = rests_before(&[&a, &b, &c], &starts);
+        assert_eq!(r.get(&2), Some(&4000.0));
+        // The first record and one after a missing cycle have no known rest.
+        assert!(!r.contains_key(&1) && !r.contains_key(&4));
+    }
+}
