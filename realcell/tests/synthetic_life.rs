@@ -28,10 +28,15 @@ fn truth(n: u32) -> (f64, f64) {
     (6913.7 - 31.3 * x - 0.97 * x * x, 0.0987 + 0.00113 * x)
 }
 
-/// One discharge as a cycler writes it, and its true capacity down to the cut-off, Ah.
+/// One discharge at 2 A and 24 C as a cycler writes it, and its true capacity down to the cut-off, Ah.
 fn discharge(n: u32, rng: &mut StdRng) -> (Discharge, f64) {
+    discharge_at(n, CURRENT_A, AMBIENT_K, rng)
+}
+
+/// One discharge at `load_a` from a cell at `ambient_k`, and its true capacity down to the cut-off, Ah.
+fn discharge_at(n: u32, load_a: f64, ambient_k: f64, rng: &mut StdRng) -> (Discharge, f64) {
     let (q, r) = truth(n);
-    let c = cell::Cell::new(cell::CellParams::base(q, r, AMBIENT_K));
+    let c = cell::Cell::new(cell::CellParams::base(q, r, ambient_k));
     let mut s = c.full();
     let noise = Normal::new(0.0, 0.003).unwrap();
     let h = 0.5;
@@ -40,7 +45,7 @@ fn discharge(n: u32, rng: &mut StdRng) -> (Discharge, f64) {
     let (mut time_s, mut voltage_v, mut current_a) = (Vec::new(), Vec::new(), Vec::new());
     let mut drawn_c = 0.0;
     loop {
-        let i = if t < rest_s { 0.0 } else { CURRENT_A };
+        let i = if t < rest_s { 0.0 } else { load_a };
         if t >= next - 1e-9 {
             let v = c.voltage_v(&s);
             time_s.push(t);
@@ -60,15 +65,15 @@ fn discharge(n: u32, rng: &mut StdRng) -> (Discharge, f64) {
     let mut s = c.full();
     let mut q_c = 0.0;
     while c.voltage_v(&s) > CUTOFF_V || q_c == 0.0 {
-        s = c.rk4(&s, CURRENT_A, 0.1);
-        q_c += CURRENT_A * 0.1;
+        s = c.rk4(&s, load_a, 0.1);
+        q_c += load_a * 0.1;
     }
     let _ = drawn_c;
     let d = Discharge {
         cell: "SYN".into(),
         cycle: n,
         source: PathBuf::from(format!("synthetic/{n:03}.csv")),
-        ambient_k: AMBIENT_K,
+        ambient_k,
         time_s,
         voltage_v,
         current_a,
@@ -78,16 +83,12 @@ fn discharge(n: u32, rng: &mut StdRng) -> (Discharge, f64) {
     (d, q_c / 3600.0)
 }
 
-#[test]
-fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
-    let mut rng = StdRng::seed_from_u64(20261123);
-    let all: Vec<(Discharge, f64)> = (1..=24).map(|n| discharge(n, &mut rng)).collect();
-    let train: Vec<Discharge> = all[..12].iter().map(|(d, _)| d.clone()).collect();
-    let judged: Vec<Discharge> = all[12..].iter().map(|(d, _)| d.clone()).collect();
+/// The calibration of `all[..12]` (training) against `all[12..]` with the UKF and the offline fit.
+fn calibrate_life(all: &[(Discharge, f64)]) -> bcal_realcell::calibrate::Calibration {
     let input = CalibrateInput {
         cell: "SYN".into(),
-        train,
-        judged,
+        train: all[..12].iter().map(|(d, _)| d.clone()).collect(),
+        judged: all[12..].iter().map(|(d, _)| d.clone()).collect(),
         cutoff_v: CUTOFF_V,
         cutoff_source: "test".into(),
         policies: Vec::new(),
@@ -98,7 +99,49 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
         model: None,
         starts: Vec::new(),
     };
-    let cal = calibrate(&input, &mut |m| eprintln!("{m}")).expect("the synthetic life calibrates");
+    calibrate(&input, &mut |m| eprintln!("{m}")).expect("the synthetic life calibrates")
+}
+
+/// Issue 19, item 2: a life whose discharges run at 1, 2 and 4 A from 24 and 44 C is scored per condition,
+/// and every reference, which carries parameters through the model to each discharge's own current and
+/// temperature, does better than the new-cell model on every condition.
+#[test]
+fn a_life_under_mixed_conditions_is_scored_per_condition_and_its_references_beat_the_new_cell_model() {
+    let mut rng = StdRng::seed_from_u64(20261126);
+    let conditions = [(1.0, 297.15), (2.0, 317.15), (4.0, 297.15), (1.0, 317.15), (2.0, 297.15), (4.0, 317.15)];
+    let all: Vec<(Discharge, f64)> = (1..=24)
+        .map(|n| {
+            let (i, t) = conditions[(n as usize - 1) % conditions.len()];
+            discharge_at(n, i, t, &mut rng)
+        })
+        .collect();
+    let cal = calibrate_life(&all);
+    let r = &cal.report;
+    let by = &r.methods["uncalibrated"].scores.by_condition;
+    assert_eq!(by.len(), conditions.len(), "one score per condition: {:?}", by.keys().collect::<Vec<_>>());
+    let cap = |m: &str| r.methods[m].scores.capacity_vs_data["50"].rmse;
+    eprintln!(
+        "mixed conditions, capacity RMSE from 50 %: previous {:.4} trend {:.4} ukf {:.4} fit {:.4} uncalibrated {:.4} Ah",
+        cap("previous_cycle"),
+        cap("trend"),
+        cap("ukf"),
+        cap("fit"),
+        cap("uncalibrated")
+    );
+    for m in ["previous_cycle", "trend", "ukf", "fit"] {
+        assert!(cap(m) < cap("uncalibrated"), "{m} {} vs uncalibrated {}", cap(m), cap("uncalibrated"));
+        for (key, s) in &r.methods[m].scores.by_condition {
+            let (ours, new_cell) = (s.capacity_vs_data["50"].rmse, by[key].capacity_vs_data["50"].rmse);
+            assert!(ours < new_cell, "{m} at {key}: {ours} vs uncalibrated {new_cell}");
+        }
+    }
+}
+
+#[test]
+fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
+    let mut rng = StdRng::seed_from_u64(20261123);
+    let all: Vec<(Discharge, f64)> = (1..=24).map(|n| discharge(n, &mut rng)).collect();
+    let cal = calibrate_life(&all);
     let r = &cal.report;
     assert_eq!(r.cycles_judged, (13..=24).collect::<Vec<u32>>());
     assert_eq!(r.records.reaching_cutoff, 12, "every synthetic record ends at the cut-off under load");
