@@ -96,7 +96,24 @@ fn measured_rows(steps: usize, push: &mut dyn FnMut(String, String, f64, usize))
         episodes.iter().flat_map(|e| e.samples.iter().enumerate()).collect();
     let t = &spec.tracker;
     let us = time_readings(&flat, n, &|| Box::new(RlCalibrator::new(t, &net)));
-    push("measured_rl".into(), "measured-only RL calibrator step (tracker + 128x128 policy)".into(), us, n);
+    push(
+        "measured_rl".into(),
+        "measured-only RL calibrator step, window-fit design (tracker + 128x128 policy)".into(),
+        us,
+        n,
+    );
+    // The default design: the joint UKF (default settings) read and corrected by a 24-feature policy.
+    let mut cspec = spec.clone();
+    cspec.ukf = Some(JointUkfSettings::default());
+    let clayout = PolicyLayout { obs_dim: cspec.obs_dim(), act_dim: cspec.act_dim(), hidden: HIDDEN_DEFAULT.to_vec() };
+    let cnet = PolicyNet::from_flat(clayout.clone(), vec![0.01; clayout.n_params()])?;
+    let us = time_readings(&flat, n, &|| Box::new(bcal_calib::CorrectionCalibrator::new(&cspec, &cnet)));
+    push(
+        "measured_rl_correction".into(),
+        "measured-only RL calibrator step, correction design (joint UKF + 24 features + 128x128 policy)".into(),
+        us,
+        n,
+    );
     let us = time_readings(&flat, n, &|| Box::new(WindowFitCalibrator::new(t)));
     push("measured_window_fit".into(), "measured-only window fit step (Gauss-Newton, 2 params)".into(), us, n);
     let us = time_readings(&flat, n, &|| Box::new(JointUkf::new(JointUkfSettings::default(), t)));
