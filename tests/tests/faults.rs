@@ -31,6 +31,11 @@ fn supervised_config(actors: usize) -> TrainConfig {
     c.learner.checkpoint_every = 100;
     c.learner.validate_every = 0;
     c.replay.snapshot_every_s = 0.0;
+    // Tiny actors outrun the limiter's first verdict by tens of thousands of transitions, which at 16 samples
+    // per insert a slow CI learner needs over a minute to sample down, with every actor throttled meanwhile;
+    // at 2 the tree is back to publishing within seconds, so the liveness waits below measure restarts, not
+    // that backlog.
+    c.replay.samples_per_insert = 2.0;
     c
 }
 
