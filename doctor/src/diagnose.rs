@@ -476,20 +476,7 @@ pub fn diagnose(cfg: &DiagnoseConfig, train: &[Discharge], heldout: &[Discharge]
         removes: r.removes.clone(),
     };
     let rest_candidates = rest_results.iter().map(candidate).collect();
-    let candidates = results
-        .iter()
-        .map(|(c, r)| Candidate {
-            cause: c.name(),
-            params: r.params.clone(),
-            cycle_params: r.cycle_params.clone(),
-            train_rmse_mv: r.train_rmse_mv,
-            heldout_rmse_mv: r.heldout_rmse_mv,
-            gain_pct: r.gain_pct,
-            record_gain_pct: r.record_gain_pct,
-            score_mv: r.score_mv,
-            removes: r.removes.clone(),
-        })
-        .collect();
+    let candidates = results.iter().map(candidate).collect();
     Ok(Diagnosis {
         cell,
         cause,
