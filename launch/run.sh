@@ -91,7 +91,7 @@ if [ -n "$cell" ]; then
   "$bin/bcal" train --config "$run/cell.toml" --seed 1 "${actor_args[@]}" --run "$run/train"
   echo "== calibrate the held-out cycles"
   "$bin/bcal" calibrate --data "$data" --cell "$cell" --train-cycles "$train_cycles" --model "$run/diagnosis" \
-    "${cutoff_args[@]}" --calibrator "rl:$run/train,ukf,fit" --out "$run/calibration"
+    "${cutoff_args[@]}" --calibrator "rl:$run/train,ukf,adaptive_ukf,fit" --out "$run/calibration"
   echo
   echo "report: $run/calibration/calibration.md (calibration.json, plots, readings/); diagnosis: $run/diagnosis/diagnosis.md"
   exit 0

@@ -25,7 +25,7 @@ pub struct CostParts {
     /// Predicted minus true end of discharge, s (None when the episode never reached the cut-off). A
     /// prediction that never ends within the search counts as the search's length.
     pub eod_error_s: Option<f64>,
-    /// The cost: ln(1 + rms / voltage scale) + weight ln(1 + |EOD error| / EOD scale).
+    /// The cost: voltage weight ln(1 + rms / voltage scale) + EOD weight ln(1 + |EOD error| / EOD scale).
     pub cost: f64,
 }
 
@@ -104,7 +104,7 @@ pub fn predictive_cost(
     }
     let voltage_rms_v = if n > 0 { (sq / n as f64).sqrt() } else { 0.0 };
     let eod_error_s = eod.map(|e| model_eod.unwrap_or(run_to) - e);
-    let mut cost = (voltage_rms_v / c.voltage_scale_v).ln_1p();
+    let mut cost = c.voltage_weight * (voltage_rms_v / c.voltage_scale_v).ln_1p();
     if let Some(err) = eod_error_s {
         cost += c.eod_weight * (err.abs() / c.eod_scale_s).ln_1p();
     }

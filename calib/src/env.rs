@@ -114,7 +114,8 @@ pub fn correction_cost(spec: &MeasuredSpec, c: &Correction, episode: &Episode, k
     }
     let f = c.ukf();
     let filter = predictive_cost(&spec.cost, &m, episode, k, &f.state(), &f.estimate()).cost;
-    (own - filter).clamp(-4.0, 4.0).exp()
+    let m = bcal_common::measured::env::RELATIVE_LOG_CLAMP;
+    (own - filter).clamp(-m, m).exp()
 }
 
 /// One training environment.

@@ -100,6 +100,7 @@ impl Preset {
         let mut c = TrainConfig::default();
         if self == Preset::Measured {
             c.env.observation = Observation::Measured;
+            c.lac.cost_max = Some(crate::measured::env::RELATIVE_LOG_CLAMP.exp());
         }
         if self == Preset::Paper {
             c.env.window_steps = 16;
@@ -187,6 +188,12 @@ pub struct LacConfig {
     /// H_t per action dimension when `target_entropy` is not set: -4 (Haarnoja's -1 kept the exploration
     /// noise at ~6 % of the range and the estimates noisy).
     pub target_entropy_per_action: f64,
+    /// The largest cost one step can have. When set, the Lyapunov critic's target (Eq. 5) is clipped into
+    /// [0, cost_max / (1 - gamma)], the range a cost-to-go can have: a critic bootstrapping past it feeds
+    /// its own error back (seen as L growing to 1e5 on relative costs below e^4 on a real cell's recorded
+    /// discharges). The measured preset sets it to the relative predictive cost's bound, e^4; None: not
+    /// clipped, the paper's target exactly.
+    pub cost_max: Option<f64>,
 }
 
 /// How the learning rates move over a run.
@@ -223,6 +230,7 @@ impl Default for LacConfig {
             init_beta: 0.01,
             target_entropy: None,
             target_entropy_per_action: -4.0,
+            cost_max: None,
         }
     }
 }
@@ -452,6 +460,9 @@ impl TrainConfig {
         if !(l.gamma > 0.0 && l.gamma < 1.0) {
             return Err(bad("lac.gamma", &l.gamma, "must be in (0, 1)"));
         }
+        if let Some(m) = l.cost_max {
+            positive("lac.cost_max", m)?;
+        }
         if !(l.tau > 0.0 && l.tau <= 1.0) {
             return Err(bad("lac.tau", &l.tau, "must be in (0, 1]"));
         }
@@ -647,6 +658,31 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
             ));
         }
     }
+    // The predictive cost (`[measured.cost]`): a horizon and scales the cost can divide by, and Euler substeps
+    // below 2 t_o for the ohmic lag.
+    let c = &m.cost;
+    let max_substep_s = 2.0 * p.t_o_s;
+    for (key, v, lo, hi) in [
+        ("measured.cost.horizon_s", c.horizon_s, 1.0, 86_400.0),
+        ("measured.cost.substep_s", c.substep_s, 1e-3, max_substep_s),
+        ("measured.cost.eod_substep_s", c.eod_substep_s, 1e-3, max_substep_s),
+        ("measured.cost.voltage_scale_v", c.voltage_scale_v, 1e-6, 1e3),
+        ("measured.cost.eod_scale_s", c.eod_scale_s, 1e-3, 1e6),
+        ("measured.cost.eod_weight", c.eod_weight, 0.0, 1e3),
+        ("measured.cost.voltage_weight", c.voltage_weight, 0.0, 1e3),
+    ] {
+        if !(v.is_finite() && lo <= v && v < hi) {
+            return Err(invalid(key, v.to_string(), &format!("must be in [{lo}, {hi})")));
+        }
+    }
+    if !(0.0..=1.0).contains(&sc.rest_jump.probability) {
+        return Err(invalid(
+            "measured.scenario.rest_jump.probability",
+            sc.rest_jump.probability.to_string(),
+            "must be in [0, 1]",
+        ));
+    }
+    finite_range("measured.scenario.rest_jump.q_mobile_frac", sc.rest_jump.q_mobile_frac, 0.0, 0.5)?;
     let me = &sc.model_error;
     if !(0.0..=1.0).contains(&me.probability) {
         return Err(invalid(
@@ -903,6 +939,16 @@ mod tests {
             (
                 "[env]\nobservation = \"Measured\"\n[measured.scenario.sensor]\ncurrent_noise_a = 0.1\n",
                 "measured.scenario.sensor.current_noise_a",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.cost]\nvoltage_scale_v = 0.0\n",
+                "measured.cost.voltage_scale_v",
+            ),
+            ("[env]\nobservation = \"Measured\"\n[measured.cost]\nsubstep_s = 20.0\n", "measured.cost.substep_s"),
+            ("[env]\nobservation = \"Measured\"\n[measured.cost]\neod_weight = -1.0\n", "measured.cost.eod_weight"),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.scenario.rest_jump]\nprobability = 1.5\n",
+                "measured.scenario.rest_jump.probability",
             ),
         ];
         for (text, key) in cases {

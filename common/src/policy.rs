@@ -73,6 +73,9 @@ pub struct PolicyNet {
     params: Vec<f32>,
     /// Offset of each Linear's weight in `params` (bias follows at offset + in * out).
     offsets: Vec<usize>,
+    /// `params` with every weight transposed to [in, out] (same offsets): the wide layers run as
+    /// column updates of all their outputs at once, which vectorise with no horizontal sums.
+    transposed: Vec<f32>,
 }
 
 /// Reusable buffers for the forward pass (no allocation per call).
@@ -104,7 +107,22 @@ impl PolicyNet {
             offsets.push(o);
             o += i * out + out;
         }
-        Ok(Self { layout, params, offsets })
+        let mut net = Self { transposed: params.clone(), layout, params, offsets };
+        net.transpose();
+        Ok(net)
+    }
+
+    /// Fills `transposed` from `params`.
+    fn transpose(&mut self) {
+        for ((n_in, n_out), &o) in self.layout.linears().into_iter().zip(&self.offsets) {
+            for j in 0..n_out {
+                for i in 0..n_in {
+                    self.transposed[o + i * n_out + j] = self.params[o + j * n_in + i];
+                }
+            }
+            self.transposed[o + n_in * n_out..o + n_in * n_out + n_out]
+                .copy_from_slice(&self.params[o + n_in * n_out..o + n_in * n_out + n_out]);
+        }
     }
 
     pub fn layout(&self) -> &PolicyLayout {
@@ -128,6 +146,7 @@ impl PolicyNet {
             return Err(PolicyError::NonFinite { index });
         }
         self.params.copy_from_slice(params);
+        self.transpose();
         Ok(())
     }
 
@@ -179,10 +198,38 @@ impl PolicyNet {
     #[inline(always)]
     fn linear<const FMA: bool>(&self, k: usize, input: &[f32], out: &mut [f32]) {
         let (n_in, n_out) = (input.len(), out.len());
-        let w = &self.params[self.offsets[k]..self.offsets[k] + n_in * n_out];
-        let b = &self.params[self.offsets[k] + n_in * n_out..self.offsets[k] + n_in * n_out + n_out];
-        for j in 0..n_out {
-            out[j] = b[j] + dot::<FMA>(&w[j * n_in..(j + 1) * n_in], input);
+        let o = self.offsets[k];
+        if n_out < 8 {
+            // The heads: a few long dot products.
+            let w = &self.params[o..o + n_in * n_out];
+            let b = &self.params[o + n_in * n_out..o + n_in * n_out + n_out];
+            for j in 0..n_out {
+                out[j] = b[j] + dot::<FMA>(&w[j * n_in..(j + 1) * n_in], input);
+            }
+            return;
+        }
+        // Wide layers: out = b + sum_i W[:, i] x_i, one input at a time over a block of outputs held in
+        // registers (BLOCK lanes), then the rest of the outputs the same way one at a time.
+        const BLOCK: usize = 32;
+        let w = &self.transposed[o..o + n_in * n_out];
+        out.copy_from_slice(&self.transposed[o + n_in * n_out..o + n_in * n_out + n_out]);
+        let blocks = n_out / BLOCK;
+        for blk in 0..blocks {
+            let mut acc = [0f32; BLOCK];
+            acc.copy_from_slice(&out[blk * BLOCK..(blk + 1) * BLOCK]);
+            for (i, &x) in input.iter().enumerate() {
+                let col = &w[i * n_out + blk * BLOCK..i * n_out + (blk + 1) * BLOCK];
+                for l in 0..BLOCK {
+                    acc[l] = if FMA { col[l].mul_add(x, acc[l]) } else { acc[l] + col[l] * x };
+                }
+            }
+            out[blk * BLOCK..(blk + 1) * BLOCK].copy_from_slice(&acc);
+        }
+        for (i, &x) in input.iter().enumerate() {
+            let col = &w[i * n_out..(i + 1) * n_out];
+            for j in blocks * BLOCK..n_out {
+                out[j] = if FMA { col[j].mul_add(x, out[j]) } else { out[j] + col[j] * x };
+            }
         }
     }
 
@@ -270,10 +317,15 @@ fn dot<const FMA: bool>(w: &[f32], x: &[f32]) -> f32 {
             acc[l] = if FMA { wc[l].mul_add(xc[l], acc[l]) } else { acc[l] + wc[l] * xc[l] };
         }
     }
-    let mut s = 0.0;
-    for a in acc {
-        s += a;
+    // Pairwise (vectorised) sum of the lanes: a serial one would cost a chain of 32 dependent adds.
+    let mut width = LANES;
+    while width > 1 {
+        width /= 2;
+        for l in 0..width {
+            acc[l] += acc[l + width];
+        }
     }
+    let mut s = acc[0];
     for k in chunks * LANES..w.len() {
         s = if FMA { w[k].mul_add(x[k], s) } else { s + w[k] * x[k] };
     }

@@ -7,9 +7,11 @@
 //! with the cell's load, sampling, temperature, cut-off and parameter ranges from its training cycles).
 
 use anyhow::{bail, Context};
-use bcal_calib::tune::JointUkfGrid;
+use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
 use bcal_common::config::{Preset, TrainConfig};
+use bcal_common::measured::scenario::RestJumpConfig;
 use bcal_common::policy::{PolicyFile, POLICY_BEST};
+use bcal_doctor::lifetime::Quantity;
 use bcal_doctor::read::{parse_cycle_range, CurrentSign, ReadOptions, RecordStart};
 use bcal_doctor::Discharge;
 use bcal_realcell::calibrate::{calibrate, CalibrateInput};
@@ -59,10 +61,11 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "A..B", default_value = "1..40")]
     pub train_cycles: String,
     /// Calibrators, comma separated: `rl:RUN` (the RL policy of a measured-only run folder, or a policy file),
-    /// `ukf` (the joint UKF, its settings chosen on the last training cycles), `fit` (the doctor's offline
-    /// least squares on the whole discharge: an oracle that sees the future). The references (uncalibrated,
-    /// previous cycle, capacity trend) always run.
-    /// Default `ukf,fit`; with --follow one of ukf, adaptive_ukf, fit (the streaming window fit),
+    /// `ukf` (the joint UKF, its settings chosen on the last training cycles), `adaptive_ukf` (that filter
+    /// with its noise adapted by covariance matching, the rule chosen on the same cycles), `fit` (the doctor's
+    /// offline least squares on the whole discharge: an oracle that sees the future). The references
+    /// (uncalibrated, previous cycle, prior, parameter trend) always run.
+    /// Default `ukf,adaptive_ukf,fit`; with --follow one of ukf, adaptive_ukf, fit (the streaming window fit),
     /// uncalibrated or rl:FILE (default ukf).
     #[arg(long, value_delimiter = ',')]
     pub calibrator: Vec<String>,
@@ -118,18 +121,9 @@ pub struct CellConfigArgs {
 }
 
 /// Reads the discharges of `cycles` (all when None): a NASA folder, else any CSV the doctor reads (the
-/// generic layout, the Battery Data Format, units and current sign as `opts` say); what the reader
-/// decided or skipped goes to stderr.
-pub fn read(
-    data: &Path,
-    cell: &str,
-    cycles: Option<&RangeInclusive<u32>>,
-    opts: &ReadOptions,
-) -> anyhow::Result<Vec<Discharge>> {
-    read_with_starts(data, cell, cycles, opts).map(|r| r.0)
-}
-
-/// [`read`], with when each record started (the rests between discharges, for the prior across them).
+/// generic layout, the Battery Data Format, units and current sign as `opts` say), with when each record
+/// started (the rests between discharges, for the prior across them); what the reader decided or skipped
+/// goes to stderr.
 pub fn read_with_starts(
     data: &Path,
     cell: &str,
@@ -244,7 +238,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     let (Some(data), Some(out)) = (a.data.clone(), a.out.clone()) else {
         bail!("give --data PATH and --out DIR (or --follow - for live readings)");
     };
-    let calibrators = if a.calibrator.is_empty() { vec!["ukf".into(), "fit".into()] } else { a.calibrator.clone() };
+    let calibrators = if a.calibrator.is_empty() {
+        vec!["ukf".into(), "adaptive_ukf".into(), "fit".into()]
+    } else {
+        a.calibrator.clone()
+    };
     let started = Instant::now();
     let cell = cell_name(&a.cell, &data)?;
     let model = load_model(&a.model)?;
@@ -271,10 +269,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     }
     // The calibrators asked for.
     let mut policies: Vec<(PolicyFile, String)> = Vec::new();
-    let (mut ukf, mut fit) = (false, false);
+    let (mut ukf, mut adaptive_ukf, mut fit) = (false, false, false);
     for c in &calibrators {
         match c.trim() {
             "ukf" => ukf = true,
+            "adaptive_ukf" | "adaptive-ukf" => adaptive_ukf = true,
             "fit" => fit = true,
             s if s.starts_with("rl:") => {
                 if !policies.is_empty() {
@@ -282,7 +281,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
                 }
                 policies = policy_candidates(Path::new(&s[3..]))?
             }
-            other => bail!("unknown calibrator `{other}`: use rl:RUN, ukf or fit (comma separated)"),
+            other => bail!("unknown calibrator `{other}`: use rl:RUN, ukf, adaptive_ukf or fit (comma separated)"),
         }
     }
     // The RL run's own cell setting (its simulated cells) sets up the UKF too, so both run the same model.
@@ -295,6 +294,8 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         cutoff_source: cut_source,
         policies: policies.iter().map(|(pf, p)| (pf, p.clone())).collect(),
         ukf,
+        adaptive_ukf,
+        adaptive_grid: if a.quick { AdaptiveGrid::quick() } else { AdaptiveGrid::default() },
         fit,
         spec,
         ukf_grid: if a.quick { JointUkfGrid::real_cells_quick() } else { JointUkfGrid::real_cells() },
@@ -319,12 +320,38 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
 /// simulated variety around it.
 pub const RECORDED_SHARE: f64 = 0.5;
 
+/// The simulated cells' capacity jumps after long rests (issue 18, item 4), read off the cell's training
+/// records: as often as their discharges followed a rest of more than a day, up to what the cell's lifetime
+/// model says such a rest adds (relative to the records' median capacity). None (probability 0) without
+/// long rests, a lifetime model with recovery, or capacities.
+fn rest_jump(
+    kept: &[&Discharge],
+    records: &[bcal_realcell::record::CellRecord],
+    starts: &[RecordStart],
+    cutoff_v: f64,
+) -> RestJumpConfig {
+    let none = RestJumpConfig::default();
+    let rests = bcal_realcell::prior::rests_before(kept, starts);
+    let long = rests.values().filter(|r| **r > bcal_realcell::prior::LONG_REST_S).count();
+    let owned: Vec<Discharge> = kept.iter().map(|d| (*d).clone()).collect();
+    let Some((life, _)) = bcal_realcell::calibrate::lifetime_model(&owned, starts, cutoff_v) else { return none };
+    let mut caps: Vec<f64> = records.iter().filter_map(|r| r.data_capacity_ah).collect();
+    let cap_ah = bcal_common::stats::median(&mut caps).unwrap_or(0.0);
+    if long == 0 || life.amplitude <= 0.0 || life.quantity != Quantity::CapacityAh || cap_ah <= 0.0 {
+        return none;
+    }
+    RestJumpConfig {
+        probability: long as f64 / records.len() as f64,
+        q_mobile_frac: [0.0, (life.amplitude / cap_ah).min(0.5)],
+    }
+}
+
 pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let range = parse_cycle_range(&a.train_cycles)?;
     let cell = cell_name(&a.cell, &a.data)?;
     let model = load_model(&a.model)?;
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
-    let ds = read(&a.data, &cell, Some(&range), &opts)?;
+    let (ds, starts) = read_with_starts(&a.data, &cell, Some(&range), &opts)?;
     let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &a.data, &cell, &ds)?;
     let mut summary = RecordSummary::default();
     let mut records = Vec::new();
@@ -360,6 +387,21 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     eprintln!("joint UKF of {cell}: {ukf:?}; validation EOD error {:.2} %", choice.candidates[0].eod_error_pct);
     spec.ukf = Some(ukf);
     spec.scenario.prior_sd_z = Some(ukf.prior_std_z);
+    spec.scenario.rest_jump = rest_jump(&kept, &records, &starts, cut);
+    // `bcal calibrate` chooses among the cell's policies by their end-of-discharge error on its validation
+    // cycles, so the policy learns from that term alone (B0006: with it, the policy chosen there beat the
+    // tuned UKF's EOD on the judged cycles; docs/calibrator.md).
+    spec.cost.voltage_weight = 0.0;
+    if spec.scenario.rest_jump.probability > 0.0 {
+        let j = &spec.scenario.rest_jump;
+        eprintln!(
+            "capacity regained over long rests: {:.0} % of the simulated cells start from a prior up to {:.1} % below \
+             their qMobile (the training cycles' share of discharges after a rest of more than a day, and what the \
+             cell's lifetime model says such a rest adds)",
+            100.0 * j.probability,
+            100.0 * j.q_mobile_frac[1]
+        );
+    }
     // The cell's own recorded training discharges join the simulated ones in training (beside the config).
     let set = bcal_realcell::recorded::recorded_set(&cell, &records, &fits);
     let recorded_path = a.out.with_extension("recorded.bin");

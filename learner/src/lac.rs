@@ -257,6 +257,22 @@ pub fn critic_target(cost: &Tensor, gamma: f64, terminal: &Tensor, l_target_next
     Ok((cost + (terminal.ones_like() - terminal) * l_target_next * gamma).detach())
 }
 
+/// [`critic_target`] clipped into [0, max] when a bound is set (`lac.critic_target_max`): equal to it
+/// wherever the target lies in the range a cost-to-go can have.
+pub fn critic_target_bounded(
+    cost: &Tensor,
+    gamma: f64,
+    terminal: &Tensor,
+    l_target_next: &Tensor,
+    max: Option<f64>,
+) -> Result<Tensor, LacError> {
+    let y = critic_target(cost, gamma, terminal, l_target_next)?;
+    Ok(match max {
+        Some(m) => y.clamp(0.0, m),
+        None => y,
+    })
+}
+
 /// Eq. (4): critic_loss = 0.5 mean (L(s, a) - target)^2.
 pub fn critic_loss(l_sa: &Tensor, target: &Tensor) -> Result<Tensor, LacError> {
     same_shape("critic_loss", l_sa, target)?;
@@ -320,6 +336,7 @@ pub struct Lac {
     pub(crate) experiment: Experiment,
     pub(crate) lac_config: bcal_common::config::LacConfig,
     gamma: f64,
+    critic_target_max: Option<f64>,
     alpha3: f64,
     tau: f64,
     pub(crate) lr_multipliers: f64,
@@ -399,6 +416,7 @@ impl Lac {
             experiment: cfg.config.experiment,
             lac_config: l.clone(),
             gamma: l.gamma,
+            critic_target_max: l.cost_max.map(|c| c / (1.0 - l.gamma)),
             alpha3: l.alpha3,
             tau: l.tau,
             lr_multipliers: cfg.lr_multipliers,
@@ -468,7 +486,7 @@ impl Lac {
         let target = tch::no_grad(|| {
             let (a_next_target, _) = self.actor_target.sample(&b.next_obs);
             let l_target_next = self.critic_target.forward(&b.next_obs, &a_next_target);
-            critic_target(&b.cost, self.gamma, &b.terminal, &l_target_next)
+            critic_target_bounded(&b.cost, self.gamma, &b.terminal, &l_target_next, self.critic_target_max)
         })?;
         // Eq. (4).
         let l_sa = self.critic.forward(&b.obs, &b.action);

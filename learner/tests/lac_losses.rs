@@ -3,8 +3,8 @@
 //! [n] vs [n, 1] mix-up from broadcasting silently.
 
 use bcal_learner::lac::{
-    actor_loss, beta_loss, beta_of, critic_loss, critic_target, lambda_loss, lambda_of, lyapunov_decrease,
-    squashed_gaussian,
+    actor_loss, beta_loss, beta_of, critic_loss, critic_target, critic_target_bounded, lambda_loss, lambda_of,
+    lyapunov_decrease, squashed_gaussian,
 };
 use tch::Tensor;
 
@@ -39,6 +39,17 @@ fn critic_target_eq5_bootstraps_unless_terminal_and_carries_no_gradient() {
     let y = critic_target(&t(&[1.0, 2.0]), 0.5, &t(&[0.0, 1.0]), &l_next).unwrap();
     assert_eq!(vec(&y), vec![6.0, 2.0]);
     assert!(!y.requires_grad(), "the critic target is a stop-gradient");
+}
+
+#[test]
+fn a_bounded_critic_target_is_eq5_within_the_bound_and_clipped_past_it() {
+    // cost [1, 2, 3], L_targ [10, 1000, 20], gamma 0.5, bound 100: [6, 502 -> 100, 13].
+    let l_next = t(&[10.0, 1000.0, 20.0]);
+    let (cost, terminal) = (t(&[1.0, 2.0, 3.0]), t(&[0.0, 0.0, 0.0]));
+    let y = critic_target_bounded(&cost, 0.5, &terminal, &l_next, Some(100.0)).unwrap();
+    assert_eq!(vec(&y), vec![6.0, 100.0, 13.0]);
+    let plain = critic_target_bounded(&cost, 0.5, &terminal, &l_next, None).unwrap();
+    assert_eq!(vec(&plain), vec(&critic_target(&cost, 0.5, &terminal, &l_next).unwrap()));
 }
 
 #[test]

@@ -21,7 +21,7 @@ use crate::report::{CalibrationReport, MethodEntry};
 use crate::run::{knee_c, knees_before, run_all, run_sequence, Before, CycleRun, ParamTrend, Streaming};
 use crate::score::score;
 use crate::tune;
-use bcal_calib::tune::JointUkfGrid;
+use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
 use bcal_common::battery::Degradation;
 use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
@@ -50,6 +50,9 @@ pub struct CalibrateInput<'a> {
     /// choose one.
     pub policies: Vec<(&'a PolicyFile, String)>,
     pub ukf: bool,
+    /// The adaptive UKF (its rule chosen among `adaptive_grid` on top of the chosen joint UKF).
+    pub adaptive_ukf: bool,
+    pub adaptive_grid: AdaptiveGrid,
     pub fit: bool,
     /// The cell's setting (None: derived from the training cycles here).
     pub spec: Option<MeasuredSpec>,
@@ -382,7 +385,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let validation_idx = tune::validation_records(&train);
     let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
     let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
-    if (input.ukf || !input.policies.is_empty()) && validation.is_empty() {
+    if (input.ukf || input.adaptive_ukf || !input.policies.is_empty()) && validation.is_empty() {
         return Err(CalibrateError::Validation(format!(
             "the streaming calibrators' settings are chosen on the last training cycles, and {} of the training \
              cycles reach the {cut} V cut-off (at least {} are needed): widen --train-cycles",
@@ -400,6 +403,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // start from it).
     let mut ukf_best: Option<(JointUkfSettings, Option<f64>, tune::Choice)> = None;
     if input.ukf
+        || input.adaptive_ukf
         || input.policies.iter().any(|(pf, _)| pf.task.measured().is_some_and(|t| t.design == Design::UkfCorrection))
     {
         let mut grid: Vec<(JointUkfSettings, Option<f64>)> = Vec::new();
@@ -526,6 +530,47 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let mut top = choice.clone();
         top.candidates.truncate(5);
         settings.insert("ukf".into(), serde_json::json!({"settings": best, "prior_factor": factor, "validation": top}));
+    }
+    // The adaptive UKF (issue 18, item 3): the covariance-matching rules on top of the chosen filter, with its
+    // prior width, chosen by the same validation objective (the same effort as the filter it adapts).
+    if input.adaptive_ukf {
+        let (best, factor, _) = ukf_best.clone().expect("chosen above");
+        let rules = input.adaptive_grid.candidates();
+        let cands: Vec<(String, Streaming)> = rules
+            .iter()
+            .map(|rule| {
+                let s = Streaming::AdaptiveUkf {
+                    spec: spec.tracker.clone(),
+                    settings: best,
+                    rule: *rule,
+                    prior_factor: factor,
+                };
+                (format!("{rule:?}"), s)
+            })
+            .collect();
+        progress(&format!(
+            "adaptive UKF: choosing among {} covariance-matching rules on top of the joint UKF on {} validation cycles",
+            cands.len(),
+            validation.len()
+        ));
+        let choice =
+            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
+        let t0 = Instant::now();
+        let mut r = run_sequence(&cands[choice.index].1, &judged, &judged_before, cut, &[1.0], false).remove(0);
+        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&choice.runs).collect();
+        let w = calibrate_intervals(&hist, &judged, &mut r);
+        widenings.insert("adaptive_ukf".into(), serde_json::to_value(&w).unwrap_or_default());
+        progress(&format!(
+            "adaptive UKF: validation EOD error {:.2} %; {} discharges in {:.0} s",
+            choice.candidates[0].eod_error_pct,
+            judged.len(),
+            t0.elapsed().as_secs_f64()
+        ));
+        runs.push(("adaptive_ukf", r));
+        settings.insert(
+            "adaptive_ukf".into(),
+            serde_json::json!({"filter": best, "prior_factor": factor, "rule": rules[choice.index], "validation": choice}),
+        );
     }
     // The references: parameters (and extended-model values) pinned for the whole discharge, each with its
     // own model and the knee every method gets, run on the validation cycles too (their errors start the

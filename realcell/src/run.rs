@@ -14,7 +14,7 @@ use crate::predict::{self, Predicted, Predictor};
 use crate::record::CellRecord;
 use bcal_calib::joint_ukf::{JointUkf, JointUkfSettings};
 use bcal_calib::Interval;
-use bcal_calib::{Calibrator, CorrectionCalibrator, RlCalibrator, Uncalibrated};
+use bcal_calib::{AdaptiveRule, AdaptiveUkf, Calibrator, CorrectionCalibrator, RlCalibrator, Uncalibrated};
 use bcal_common::battery::Degradation;
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::measured::extension::ModelExtension;
@@ -24,9 +24,10 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 /// The calibrators and references, by report key.
-pub const METHODS: [(&str, &str); 7] = [
+pub const METHODS: [(&str, &str); 8] = [
     ("rl", "RL-LAC"),
     ("ukf", "Joint UKF"),
+    ("adaptive_ukf", "Adaptive UKF (covariance matching)"),
     ("fit", "Offline fit (sees the future)"),
     ("prior", "Prior (previous fit + expected change)"),
     ("previous_cycle", "Previous cycle's fit"),
@@ -63,6 +64,8 @@ pub enum Streaming<'a> {
     /// from the cell's history ([`Before::prior_sd_z`]); None, or a discharge without a learned width: the
     /// settings' own `prior_std_z`.
     Ukf { spec: TrackerSpec, settings: JointUkfSettings, prior_factor: Option<f64> },
+    /// The joint UKF whose noise follows the covariance-matching rule (issue 18, item 3), prior as `Ukf`.
+    AdaptiveUkf { spec: TrackerSpec, settings: JointUkfSettings, rule: AdaptiveRule, prior_factor: Option<f64> },
     /// Parameters fixed for the whole discharge (fit, previous cycle, uncalibrated), its state from the
     /// readings as the RL calibrator's model keeps it.
     Pinned { spec: TrackerSpec, d: Degradation },
@@ -99,6 +102,13 @@ impl<'a> Streaming<'a> {
                 }
                 Streaming::Ukf { spec: moved(spec), settings: s, prior_factor: *prior_factor }
             }
+            Streaming::AdaptiveUkf { spec, settings, rule, prior_factor } => {
+                let mut s = *settings;
+                if let Some(w) = width(prior_factor) {
+                    s.prior_std_z = w;
+                }
+                Streaming::AdaptiveUkf { spec: moved(spec), settings: s, rule: *rule, prior_factor: *prior_factor }
+            }
             Streaming::Pinned { spec, d } => Streaming::Pinned { spec: spec.clone(), d: *d },
         }
     }
@@ -106,7 +116,10 @@ impl<'a> Streaming<'a> {
     /// The calibrator's setting (its model, ranges, prior).
     pub fn spec(&self) -> &TrackerSpec {
         match self {
-            Streaming::Rl { spec, .. } | Streaming::Ukf { spec, .. } | Streaming::Pinned { spec, .. } => spec,
+            Streaming::Rl { spec, .. }
+            | Streaming::Ukf { spec, .. }
+            | Streaming::AdaptiveUkf { spec, .. }
+            | Streaming::Pinned { spec, .. } => spec,
             Streaming::Correction { task, .. } => &task.tracker,
         }
     }
@@ -132,6 +145,9 @@ impl<'a> Streaming<'a> {
             Streaming::Ukf { spec, settings, prior_factor } => {
                 Streaming::Ukf { spec: on(spec), settings: *settings, prior_factor: *prior_factor }
             }
+            Streaming::AdaptiveUkf { spec, settings, rule, prior_factor } => {
+                Streaming::AdaptiveUkf { spec: on(spec), settings: *settings, rule: *rule, prior_factor: *prior_factor }
+            }
             Streaming::Pinned { spec, d } => Streaming::Pinned { spec: on(spec), d: *d },
         }
     }
@@ -141,6 +157,7 @@ impl<'a> Streaming<'a> {
             Streaming::Rl { spec, net, .. } => Box::new(RlCalibrator::new(spec, net)),
             Streaming::Correction { task, net, .. } => Box::new(CorrectionCalibrator::new(task, net)),
             Streaming::Ukf { spec, settings, .. } => Box::new(JointUkf::new(*settings, spec)),
+            Streaming::AdaptiveUkf { spec, settings, rule, .. } => Box::new(AdaptiveUkf::new(*settings, *rule, spec)),
             Streaming::Pinned { spec, d } => Box::new(Uncalibrated::pinned(spec, d)),
         }
     }

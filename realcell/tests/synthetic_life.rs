@@ -9,7 +9,7 @@
 #[allow(dead_code)]
 mod cell;
 
-use bcal_calib::tune::JointUkfGrid;
+use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
 use bcal_doctor::Discharge;
 use bcal_realcell::calibrate::{calibrate, CalibrateInput};
 use rand::rngs::StdRng;
@@ -93,6 +93,8 @@ fn calibrate_life(all: &[(Discharge, f64)]) -> bcal_realcell::calibrate::Calibra
         cutoff_source: "test".into(),
         policies: Vec::new(),
         ukf: true,
+        adaptive_ukf: true,
+        adaptive_grid: AdaptiveGrid::quick(),
         fit: true,
         spec: None,
         ukf_grid: JointUkfGrid::real_cells_quick(),
@@ -160,9 +162,10 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
     let cap = |m: &str, f: &str| r.methods[m].scores.capacity_vs_data[f].rmse;
     let eod50 = |m: &str| r.methods[m].scores.eod_error_pct["50"].median;
     eprintln!(
-        "capacity RMSE from 50 %: fit {:.4} ukf {:.4} previous {:.4} trend {:.4} uncalibrated {:.4} Ah; EOD at 50 %: fit {:.2} ukf {:.2} uncalibrated {:.2} %",
+        "capacity RMSE from 50 %: fit {:.4} ukf {:.4} adaptive ukf {:.4} previous {:.4} trend {:.4} uncalibrated {:.4} Ah; EOD at 50 %: fit {:.2} ukf {:.2} uncalibrated {:.2} %",
         cap("fit", "50"),
         cap("ukf", "50"),
+        cap("adaptive_ukf", "50"),
         cap("previous_cycle", "50"),
         cap("trend", "50"),
         cap("uncalibrated", "50"),
@@ -182,7 +185,7 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
         cap("ukf", "50"),
         cap("previous_cycle", "50")
     );
-    for m in ["fit", "ukf", "previous_cycle"] {
+    for m in ["fit", "ukf", "adaptive_ukf", "previous_cycle"] {
         assert!(
             cap(m, "50") < 0.3 * cap("uncalibrated", "50"),
             "{m} {} vs uncalibrated {}",

@@ -145,11 +145,15 @@ impl Default for CorrectionSpec {
     }
 }
 
+/// The relative predictive cost is exp(e(corrected) - e(filter)) with the difference clamped to
+/// +-RELATIVE_LOG_CLAMP: one reading's cost lies in [e^-4, e^4].
+pub const RELATIVE_LOG_CLAMP: f64 = 4.0;
+
 /// The correction policy's cost (training only): the calibrated model's error at predicting what comes
 /// next. At each reading the model runs forward from the estimate chosen then (the filter's state given
 /// that estimate) under the simulated cell's own load, over `horizon_s`, against the cell's own voltage
 /// at the readings there; where the episode reaches the cut-off, the end of discharge it predicts joins
-/// it: e = ln(1 + rms / `voltage_scale_v`) + `eod_weight` ln(1 + |EOD error| / `eod_scale_s`). With
+/// it: e = `voltage_weight` ln(1 + rms / `voltage_scale_v`) + `eod_weight` ln(1 + |EOD error| / `eod_scale_s`). With
 /// `relative` (the default) the cost is exp(e(corrected) - e(filter)), clamped to e^-4..e^4: the same
 /// prediction judged against the uncorrected filter's at the same reading. Its minimum is still the
 /// estimate that predicts best (the filter's error does not depend on the action), but the critic no longer
@@ -169,6 +173,9 @@ pub struct PredictiveCost {
     pub relative: bool,
     /// Voltage error scale, V (default 2 mV).
     pub voltage_scale_v: f64,
+    /// Weight of the voltage term (default 1; 0 leaves it out: a real cell's policy, whose choices are made
+    /// on the end-of-discharge error alone, `bcal cell-config`).
+    pub voltage_weight: f64,
     /// Weight of the end-of-discharge term (default 1; 0 leaves it out).
     pub eod_weight: f64,
     /// End-of-discharge error scale, s (default 30).
@@ -183,6 +190,7 @@ impl Default for PredictiveCost {
             eod_substep_s: 5.0,
             relative: true,
             voltage_scale_v: 0.002,
+            voltage_weight: 1.0,
             eod_weight: 1.0,
             eod_scale_s: 30.0,
         }

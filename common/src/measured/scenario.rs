@@ -132,6 +132,8 @@ pub struct ScenarioConfig {
     /// deviations, fractions of the qMobile and Ro ranges (a real cell's calibrator starts from the last
     /// discharge's fit); None (default): from the calibrator's own prior.
     pub prior_sd_z: Option<[f64; 2]>,
+    /// Capacity regained over a long rest that the prior does not know (only with `prior_sd_z`).
+    pub rest_jump: RestJumpConfig,
     /// Recorded discharges of a real cell that training also learns from (`bcal cell-config` writes them).
     pub recorded: RecordedConfig,
 }
@@ -147,6 +149,22 @@ pub struct RecordedConfig {
     pub path: Option<String>,
     /// Share of training episodes drawn from its training discharges (the rest are simulated).
     pub share: f64,
+}
+
+/// A cell that regained capacity over a long rest (NASA cells do): with `probability`, an episode's prior
+/// sits below its truth's qMobile by a fraction drawn uniformly from `q_mobile_frac`, as the previous
+/// discharge's fit sits below a cell that has rested since (issue 18, item 4). Off by default.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RestJumpConfig {
+    pub probability: f64,
+    pub q_mobile_frac: [f64; 2],
+}
+
+impl Default for RestJumpConfig {
+    fn default() -> Self {
+        Self { probability: 0.0, q_mobile_frac: [0.0, 0.04] }
+    }
 }
 
 /// The recorded discharges of one cell: training and validation (the last training cycles).
@@ -301,6 +319,7 @@ impl Default for ScenarioConfig {
             model: super::extension::ModelExtension::default(),
             model_error: ModelErrorConfig::default(),
             prior_sd_z: None,
+            rest_jump: RestJumpConfig::default(),
             recorded: RecordedConfig::default(),
         }
     }
@@ -476,10 +495,16 @@ pub fn draw_spec(cfg: &ScenarioConfig, split: Split, rng: &mut SmallRng) -> Epis
     let prior = cfg.prior_sd_z.map(|sd| {
         let span = [cfg.q_mobile_c[1] - cfg.q_mobile_c[0], cfg.r_o_ohm[1] - cfg.r_o_ohm[0]];
         let n = |rng: &mut SmallRng, s: f64| Normal::new(0.0, s.max(0.0)).expect("finite sd").sample(rng);
-        Degradation {
+        let mut p = Degradation {
             q_mobile_c: (truth.q_mobile_c + n(rng, sd[0]) * span[0]).max(1.0),
             r_o_ohm: (truth.r_o_ohm + n(rng, sd[1]) * span[1]).max(1e-4),
+        };
+        // Drawn only when asked for, so episode sets without jumps stay what they were.
+        let j = &cfg.rest_jump;
+        if j.probability > 0.0 && rng.random_bool(j.probability.clamp(0.0, 1.0)) {
+            p.q_mobile_c = (p.q_mobile_c - uniform(rng, j.q_mobile_frac) * truth.q_mobile_c).max(1.0);
         }
+        p
     });
     EpisodeSpec {
         truth,
@@ -618,6 +643,37 @@ mod tests {
             assert!(rms > 0.001 && rms < 0.006 || n < 30, "voltage noise {rms}");
         }
         assert!(kinds.len() >= 2, "{kinds:?}");
+    }
+
+    /// A long rest's regained capacity: the prior lags the truth's qMobile by the drawn fraction in as many
+    /// episodes as asked, and never sits above it (prior spread zero, so only the jump moves it).
+    #[test]
+    fn rest_jumps_put_the_prior_below_the_truth_as_often_and_as_far_as_asked() {
+        let cfg = ScenarioConfig {
+            prior_sd_z: Some([0.0, 0.0]),
+            rest_jump: RestJumpConfig { probability: 0.3, q_mobile_frac: [0.02, 0.04] },
+            ..ScenarioConfig::default()
+        };
+        let mut rng = SmallRng::seed_from_u64(11);
+        let specs: Vec<EpisodeSpec> = (0..400).map(|_| draw_spec(&cfg, Split::Train, &mut rng)).collect();
+        let mut jumped = 0;
+        for s in &specs {
+            let (p, t) = (s.prior.expect("a prior is drawn"), s.truth);
+            assert_eq!(p.r_o_ohm, t.r_o_ohm);
+            let frac = 1.0 - p.q_mobile_c / t.q_mobile_c;
+            if frac != 0.0 {
+                assert!((0.02..=0.04).contains(&frac), "jump {frac}");
+                jumped += 1;
+            }
+        }
+        assert!((90..=150).contains(&jumped), "{jumped} of 400 jumped at probability 0.3");
+        // Off by default: the same draws as a config without the option.
+        let plain = ScenarioConfig { rest_jump: RestJumpConfig::default(), ..cfg.clone() };
+        let mut rng = SmallRng::seed_from_u64(11);
+        assert!((0..50).all(|_| {
+            let s = draw_spec(&plain, Split::Train, &mut rng);
+            s.prior == Some(s.truth)
+        }));
     }
 
     #[test]
