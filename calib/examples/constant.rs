@@ -1,4 +1,6 @@
 //! Analysis behind docs/calibrator.md (`cargo run --release -p bcal-calib --example constant [P]`, P the model-error probability): the mean relative cost of each constant action, and of a policy binned by elapsed time and sampling.
+#[path = "shared/mod.rs"]
+mod shared;
 use bcal_calib::env::correction_cost;
 use bcal_calib::Correction;
 use bcal_common::dataset::Split;
@@ -63,12 +65,7 @@ fn main() {
             ..Default::default()
         }
     } else {
-        JointUkfSettings {
-            meas_std_v: 0.005,
-            param_walk_per_sqrt_s: 0.0,
-            charge_walk_c_per_sqrt_s: 0.01,
-            ..Default::default()
-        }
+        shared::tuned_ukf()
     });
     let mut rng = rand::rngs::SmallRng::seed_from_u64(7);
     let train: Vec<Episode> = (0..160)

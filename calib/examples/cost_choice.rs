@@ -8,26 +8,19 @@
 //! never reads a true parameter; only this choice does, on validation cells, as the filter's own tuning does.
 //! The setting whose optimum lies nearest the truth is the one a policy trained on it can at best approach.
 #![allow(clippy::type_complexity, clippy::field_reassign_with_default)] // one-off analysis table
+#[path = "shared/mod.rs"]
+mod shared;
 use bcal_calib::cost::{predictive_cost, PredictionModel};
 use bcal_calib::Correction;
 use bcal_common::dataset::Split;
 use bcal_common::measured::env::{MeasuredSpec, PredictiveCost};
 use bcal_common::measured::scenario::{episode_set, Episode};
-use bcal_common::measured::tracker::JointUkfSettings;
 use bcal_common::nrmse::Param;
 use rayon::prelude::*;
 
 /// Validation cells used, and every how many readings a hindsight optimum is taken.
 const CELLS: usize = 48;
 const EVERY: usize = 10;
-
-fn regime(e: &Episode) -> &'static str {
-    if e.spec.interval_s[0] == 1.0 {
-        "1s"
-    } else {
-        "10-20s"
-    }
-}
 
 /// Per regime: (points, RMS % error of qMobile and Ro at the filter, the same at the cost's optimum).
 fn optimum(spec: &MeasuredSpec, cost: &PredictiveCost, cells: &[Episode]) -> Vec<(&'static str, usize, [f64; 4])> {
@@ -63,7 +56,7 @@ fn optimum(spec: &MeasuredSpec, cost: &PredictiveCost, cells: &[Episode]) -> Vec
                 let at_filter = c.estimate();
                 let t = e.spec.truth;
                 out.push((
-                    regime(e),
+                    shared::regime(e),
                     [
                         Param::QMobile.err_pct(&at_filter, &t),
                         Param::ROhm.err_pct(&at_filter, &t),
@@ -89,12 +82,7 @@ fn optimum(spec: &MeasuredSpec, cost: &PredictiveCost, cells: &[Episode]) -> Vec
 fn main() {
     let mut spec = MeasuredSpec::default();
     // The filter docs/calibrator.md's other analyses correct (the evaluator's tuned one at 3 mV).
-    spec.ukf = Some(JointUkfSettings {
-        meas_std_v: 0.005,
-        param_walk_per_sqrt_s: 0.0,
-        charge_walk_c_per_sqrt_s: 0.01,
-        ..Default::default()
-    });
+    spec.ukf = Some(shared::tuned_ukf());
     let val = episode_set(&spec.scenario, Split::Validation, CELLS).expect("the default setting simulates");
     println!("| horizon s | EOD weight | regime | points | filter q / Ro % | cost's optimum q / Ro % | mean |");
     println!("| ---: | ---: | --- | ---: | --- | --- | ---: |");

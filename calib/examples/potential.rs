@@ -1,5 +1,7 @@
 //! Analysis behind docs/calibrator.md (`cargo run --release -p bcal-calib --example potential`): where a correction of the tuned joint UKF could gain.
 #![allow(clippy::type_complexity, clippy::field_reassign_with_default)] // one-off analysis tables
+#[path = "shared/mod.rs"]
+mod shared;
 use bcal_calib::tune::{mean_nrmse_pct, Make};
 use bcal_calib::JointUkf;
 use bcal_common::dataset::Split;
@@ -7,25 +9,12 @@ use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::measured::scenario::{episode_set, Episode};
 use bcal_common::measured::tracker::JointUkfSettings;
 
-fn regime(e: &Episode) -> &'static str {
-    if e.spec.interval_s[0] == 1.0 {
-        "1s"
-    } else {
-        "10-20s"
-    }
-}
-
 fn main() {
     let spec = MeasuredSpec::default();
     let val = episode_set(&spec.scenario, Split::Validation, 48).unwrap();
-    let tuned = JointUkfSettings {
-        meas_std_v: 0.005,
-        param_walk_per_sqrt_s: 0.0,
-        charge_walk_c_per_sqrt_s: 0.01,
-        ..Default::default()
-    };
+    let tuned = shared::tuned_ukf();
     for r in ["1s", "10-20s"] {
-        let eps: Vec<Episode> = val.iter().filter(|e| regime(e) == r).cloned().collect();
+        let eps: Vec<Episode> = val.iter().filter(|e| shared::regime(e) == r).cloned().collect();
         for m in [0.002, 0.003, 0.005, 0.01] {
             for w in [0.0, 1e-5] {
                 let s = JointUkfSettings { meas_std_v: m, param_walk_per_sqrt_s: w, ..tuned };
@@ -47,12 +36,7 @@ pub fn shift_potential() {
     use bcal_common::nrmse::Param;
     use rayon::prelude::*;
     let mut spec = MeasuredSpec::default();
-    spec.ukf = Some(JointUkfSettings {
-        meas_std_v: 0.005,
-        param_walk_per_sqrt_s: 0.0,
-        charge_walk_c_per_sqrt_s: 0.01,
-        ..Default::default()
-    });
+    spec.ukf = Some(shared::tuned_ukf());
     let val = episode_set(&spec.scenario, Split::Validation, 48).unwrap();
     let grid: Vec<f64> = (0..9).map(|k| -2.0 + 0.5 * k as f64).collect();
     let rows: Vec<(String, [f64; 2], [f64; 2], f64, f64)> = val
@@ -89,7 +73,7 @@ pub fn shift_potential() {
                 let e0 = c.estimate();
                 let t = e.spec.truth;
                 out.push((
-                    regime(e).to_string(),
+                    shared::regime(e).to_string(),
                     [Param::QMobile.err_pct(&e0, &t), Param::ROhm.err_pct(&e0, &t)],
                     [Param::QMobile.err_pct(&eb, &t), Param::ROhm.err_pct(&eb, &t)],
                     zero,

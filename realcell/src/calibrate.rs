@@ -398,6 +398,18 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let factors: Vec<Option<f64>> =
         if width.fitted() { tune::PRIOR_FACTORS.iter().map(|f| Some(*f)).collect() } else { vec![None] };
     let mut widenings = serde_json::Map::new();
+    // A chosen streaming calibrator along the judged cycles, its intervals widened from its own runs along the
+    // validation cycles (`choice.runs`) and then from each judged discharge that has ended.
+    let judge = |cal: &Streaming,
+                 choice: &tune::Choice,
+                 widenings: &mut serde_json::Map<String, serde_json::Value>,
+                 key: &str| {
+        let mut r = run_sequence(cal, &judged, &judged_before, cut, &[1.0], false).remove(0);
+        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&choice.runs).collect();
+        let w = calibrate_intervals(&hist, &judged, &mut r);
+        widenings.insert(key.into(), serde_json::to_value(&w).unwrap_or_default());
+        r
+    };
 
     // The joint UKF: the grid's settings, chosen on the validation cycles (first: the RL correction may
     // start from it).
@@ -506,10 +518,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             choice.chosen, choice.candidates[0].eod_error_pct
         ));
         let t0 = Instant::now();
-        let mut r = run_sequence(&cands[choice.index].1, &judged, &judged_before, cut, &[1.0], false).remove(0);
-        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&choice.runs).collect();
-        let w = calibrate_intervals(&hist, &judged, &mut r);
-        widenings.insert("rl".into(), serde_json::to_value(&w).unwrap_or_default());
+        let r = judge(&cands[choice.index].1, &choice, &mut widenings, "rl");
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("rl", r));
         settings.insert(
@@ -521,10 +530,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let (best, factor, choice) = ukf_best.clone().expect("chosen above");
         let t0 = Instant::now();
         let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: best, prior_factor: factor };
-        let mut r = run_sequence(&cal, &judged, &judged_before, cut, &[1.0], false).remove(0);
-        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&choice.runs).collect();
-        let w = calibrate_intervals(&hist, &judged, &mut r);
-        widenings.insert("ukf".into(), serde_json::to_value(&w).unwrap_or_default());
+        let r = judge(&cal, &choice, &mut widenings, "ukf");
         progress(&format!("joint UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("ukf", r));
         let mut top = choice.clone();
@@ -556,10 +562,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let choice =
             tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
         let t0 = Instant::now();
-        let mut r = run_sequence(&cands[choice.index].1, &judged, &judged_before, cut, &[1.0], false).remove(0);
-        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&choice.runs).collect();
-        let w = calibrate_intervals(&hist, &judged, &mut r);
-        widenings.insert("adaptive_ukf".into(), serde_json::to_value(&w).unwrap_or_default());
+        let r = judge(&cands[choice.index].1, &choice, &mut widenings, "adaptive_ukf");
         progress(&format!(
             "adaptive UKF: validation EOD error {:.2} %; {} discharges in {:.0} s",
             choice.candidates[0].eod_error_pct,
