@@ -15,32 +15,13 @@ use crate::{Calibrator, Interval};
 use bcal_common::battery::Degradation;
 use bcal_common::math::ModelState;
 use bcal_common::measured::scenario::Sample;
+pub use bcal_common::measured::tracker::AdaptiveRule;
 use bcal_common::measured::tracker::{JointUkfSettings, TrackerSpec};
-use serde::{Deserialize, Serialize};
 
-/// The adaptive rule's settings.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct AdaptiveRule {
-    /// Readings the innovation averages span (exponential weights 1/n), at least 1.
-    pub window_readings: f64,
-    /// Bounds of the measurement variance as factors of the tuned one.
-    pub meas_scale_range: [f64; 2],
-    /// Whether the parameters' random walk adapts too.
-    pub adapt_walk: bool,
-    /// Largest random-walk variance of a parameter, z^2 per second.
-    pub walk_max_var_per_s: f64,
-}
-
-impl Default for AdaptiveRule {
-    fn default() -> Self {
-        Self { window_readings: 32.0, meas_scale_range: [0.25, 100.0], adapt_walk: true, walk_max_var_per_s: 1e-6 }
-    }
-}
-
-/// The joint UKF under the covariance-matching rule.
+/// The rule's running averages: applied after each step of a joint UKF, it sets that filter's noise for
+/// the readings to come. The adaptive UKF is a filter with one; the correction policy may run on one too.
 #[derive(Clone, Debug)]
-pub struct AdaptiveUkf {
-    ukf: JointUkf,
+pub struct CovarianceMatching {
     rule: AdaptiveRule,
     /// Mean square innovation, V^2, and the mean part the sigma points predicted, V^2.
     nu2: f64,
@@ -48,19 +29,54 @@ pub struct AdaptiveUkf {
     /// Mean squared update of zq and zr per second, z^2/s.
     walk: [f64; 2],
     updates: f64,
+}
+
+impl CovarianceMatching {
+    /// The rule at the start of a discharge of a filter tuned as `settings`.
+    pub fn new(rule: AdaptiveRule, settings: &JointUkfSettings) -> Self {
+        let w = settings.param_walk_per_sqrt_s.powi(2);
+        Self { rule, nu2: 0.0, predicted: 0.0, walk: [w; 2], updates: 0.0 }
+    }
+
+    pub fn rule(&self) -> &AdaptiveRule {
+        &self.rule
+    }
+
+    /// Reads the update `ukf` has just made (if it made one) and sets its noise.
+    pub fn after_step(&mut self, ukf: &mut JointUkf) {
+        let Some(u) = ukf.last_update().copied() else { return };
+        self.updates += 1.0;
+        let w = 1.0 / self.updates.min(self.rule.window_readings.max(1.0));
+        self.nu2 += w * (u.innovation_v.powi(2) - self.nu2);
+        self.predicted += w * ((u.innovation_var_v2 - u.meas_var_v2).max(0.0) - self.predicted);
+        let tuned = ukf.settings().meas_std_v.powi(2);
+        let [lo, hi] = self.rule.meas_scale_range;
+        let meas_var = ((self.nu2 - self.predicted) / tuned).clamp(lo, hi);
+        let mut walk = None;
+        if self.rule.adapt_walk && u.dt_s > 0.0 {
+            for (k, g) in u.param_gain.iter().enumerate() {
+                let q = (g * u.innovation_v).powi(2) / u.dt_s;
+                self.walk[k] += w * (q - self.walk[k]);
+            }
+            walk = Some(self.walk.map(|q| q.clamp(0.0, self.rule.walk_max_var_per_s)));
+        }
+        ukf.set_noise_scales(NoiseScales { param_walk_var_per_s: walk, meas_var });
+    }
+}
+
+/// The joint UKF under the covariance-matching rule.
+#[derive(Clone, Debug)]
+pub struct AdaptiveUkf {
+    ukf: JointUkf,
+    matching: CovarianceMatching,
     interval_scale: [f64; 2],
 }
 
 impl AdaptiveUkf {
     pub fn new(settings: JointUkfSettings, rule: AdaptiveRule, spec: &TrackerSpec) -> Self {
-        let w = settings.param_walk_per_sqrt_s.powi(2);
         Self {
             ukf: JointUkf::new(settings, spec),
-            rule,
-            nu2: 0.0,
-            predicted: 0.0,
-            walk: [w; 2],
-            updates: 0.0,
+            matching: CovarianceMatching::new(rule, &settings),
             interval_scale: [1.645; 2],
         }
     }
@@ -85,23 +101,7 @@ impl AdaptiveUkf {
 impl Calibrator for AdaptiveUkf {
     fn step(&mut self, s: &Sample) {
         self.ukf.step(s);
-        let Some(u) = self.ukf.last_update().copied() else { return };
-        self.updates += 1.0;
-        let w = 1.0 / self.updates.min(self.rule.window_readings.max(1.0));
-        self.nu2 += w * (u.innovation_v.powi(2) - self.nu2);
-        self.predicted += w * ((u.innovation_var_v2 - u.meas_var_v2).max(0.0) - self.predicted);
-        let tuned = self.ukf.settings().meas_std_v.powi(2);
-        let [lo, hi] = self.rule.meas_scale_range;
-        let meas_var = ((self.nu2 - self.predicted) / tuned).clamp(lo, hi);
-        let mut walk = None;
-        if self.rule.adapt_walk && u.dt_s > 0.0 {
-            for (k, g) in u.param_gain.iter().enumerate() {
-                let q = (g * u.innovation_v).powi(2) / u.dt_s;
-                self.walk[k] += w * (q - self.walk[k]);
-            }
-            walk = Some(self.walk.map(|q| q.clamp(0.0, self.rule.walk_max_var_per_s)));
-        }
-        self.ukf.set_noise_scales(NoiseScales { param_walk_var_per_s: walk, meas_var });
+        self.matching.after_step(&mut self.ukf);
     }
     fn estimate(&self) -> Degradation {
         self.ukf.estimate()

@@ -10,6 +10,7 @@
 //! to come (an adaptive filter whose rule is learned). [`CorrectionCalibrator`] is the deployed policy.
 //! Everything here reads what a BMS has: voltage, current, temperature and time.
 
+use crate::adaptive::CovarianceMatching;
 use crate::joint_ukf::{JointUkf, NoiseScales};
 use crate::{Calibrator, Interval};
 use bcal_common::battery::Degradation;
@@ -30,6 +31,8 @@ const SLOW_READINGS: f64 = 64.0;
 #[derive(Clone, Debug)]
 pub struct Correction {
     ukf: JointUkf,
+    /// The covariance-matching rule under the correction (`CorrectionSpec::adaptive`): it sets the noise.
+    matching: Option<CovarianceMatching>,
     spec: CorrectionSpec,
     /// The tuned parameter walk's variance, z^2/s, and the one the action scales (the tuned one, or the
     /// floor when that is zero).
@@ -63,6 +66,7 @@ impl Correction {
         Self {
             walk_var_ref: tuned_walk_var.max(spec.walk_floor_per_sqrt_s.powi(2)),
             tuned_walk_var,
+            matching: spec.adaptive.map(|rule| CovarianceMatching::new(rule, &ukf)),
             ukf: JointUkf::new(ukf, tracker),
             spec: spec.clone(),
             shift: [0.0; 2],
@@ -94,6 +98,9 @@ impl Correction {
     /// Takes one reading: the filter steps under the noise the last action set, the features follow.
     pub fn ingest(&mut self, s: &Sample) {
         self.ukf.step(s);
+        if let Some(m) = &mut self.matching {
+            m.after_step(&mut self.ukf);
+        }
         self.readings += 1;
         match self.last {
             None => {
@@ -187,6 +194,10 @@ impl Correction {
         // a |a|: fine control near zero, where a precisely known parameter (Ro within a fraction of a
         // percent) can only be nudged, and the whole reach at the ends, where model error needs it.
         self.shift = [a[0] * a[0].abs(), a[1] * a[1].abs()];
+        if self.matching.is_some() {
+            // The rule owns the filter's noise (the config refuses noise actions beside it).
+            return;
+        }
         // Zero action is the tuned filter exactly (also when its tuned walk is zero).
         let walk = if a[2] == 0.0 {
             self.tuned_walk_var

@@ -332,21 +332,34 @@ mod tests {
 
     /// Zero action is the tuned filter: a policy whose weights are all zero reproduces the joint UKF's
     /// estimates reading for reading.
+    /// On top of the adaptive UKF (`correction.adaptive`) the zero action is that filter, rule and all; and
+    /// the rule does change the estimates (else the first check would prove nothing).
     #[test]
     fn a_zero_correction_is_the_filter() {
-        let spec = MeasuredSpec::default();
-        let eps = bcal_common::measured::scenario::episode_set(&spec.scenario, Split::Validation, 2).unwrap();
-        let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: vec![8] };
+        use crate::Calibrator;
+        let plain = MeasuredSpec::default();
+        let rule = crate::AdaptiveRule { window_readings: 16.0, adapt_walk: false, ..Default::default() };
+        let mut adaptive = plain.clone();
+        adaptive.correction.adaptive = Some(rule);
+        let eps = bcal_common::measured::scenario::episode_set(&plain.scenario, Split::Validation, 2).unwrap();
+        let layout = PolicyLayout { obs_dim: plain.obs_dim(), act_dim: plain.act_dim(), hidden: vec![8] };
         let net = PolicyNet::from_flat(layout.clone(), vec![0.0; layout.n_params()]).unwrap();
         let mut scratch = Scratch::new(net.layout());
+        let mut differ = 0;
         for e in &eps {
-            let t = rollout_policy(&spec, e, &net, &mut scratch, 50);
-            let mut f = crate::JointUkf::new(spec.ukf_settings(), &spec.tracker);
-            for (s, est) in e.samples.iter().zip(&t.estimates) {
+            let t = rollout_policy(&plain, e, &net, &mut scratch, 50);
+            let ta = rollout_policy(&adaptive, e, &net, &mut scratch, 50);
+            let mut f = crate::JointUkf::new(plain.ukf_settings(), &plain.tracker);
+            let mut fa = crate::AdaptiveUkf::new(plain.ukf_settings(), rule, &plain.tracker);
+            for ((s, est), est_a) in e.samples.iter().zip(&t.estimates).zip(&ta.estimates) {
                 f.step(s);
+                fa.step(s);
                 assert_eq!(f.estimate(), *est);
+                assert_eq!(fa.estimate(), *est_a);
+                differ += usize::from(est != est_a);
             }
             assert!(!t.costs.is_empty() && t.costs.iter().all(|(_, c)| c.is_finite() && *c >= 0.0));
         }
+        assert!(differ > 0, "the rule never changed an estimate");
     }
 }

@@ -30,7 +30,7 @@ pub mod tracker_based;
 pub mod tune;
 pub mod window;
 
-pub use adaptive::{AdaptiveRule, AdaptiveUkf};
+pub use adaptive::{AdaptiveRule, AdaptiveUkf, CovarianceMatching};
 pub use correction::{Correction, CorrectionCalibrator};
 pub use eod::{predict_eod_s, EodQuery};
 pub use joint_ukf::{JointUkf, JointUkfSettings};

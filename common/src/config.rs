@@ -675,6 +675,24 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
             return Err(invalid(key, v.to_string(), &format!("must be in [{lo}, {hi})")));
         }
     }
+    if let Some(rule) = &m.correction.adaptive {
+        if let Some((field, value, why)) = rule.check() {
+            let key = match field {
+                "window_readings" => "measured.correction.adaptive.window_readings",
+                "meas_scale_range" => "measured.correction.adaptive.meas_scale_range",
+                _ => "measured.correction.adaptive.walk_max_var_per_s",
+            };
+            return Err(invalid(key, value, why));
+        }
+        if m.correction.noise_actions {
+            return Err(invalid(
+                "measured.correction.noise_actions",
+                "true".into(),
+                "must be false when measured.correction.adaptive is set: the covariance-matching rule sets the \
+                 filter's noise (drop one of the two)",
+            ));
+        }
+    }
     if !(0.0..=1.0).contains(&sc.rest_jump.probability) {
         return Err(invalid(
             "measured.scenario.rest_jump.probability",
@@ -949,6 +967,17 @@ mod tests {
             (
                 "[env]\nobservation = \"Measured\"\n[measured.scenario.rest_jump]\nprobability = 1.5\n",
                 "measured.scenario.rest_jump.probability",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.correction.adaptive]\nwindow_readings = 0.5\n\
+                 meas_scale_range = [0.25, 100.0]\nadapt_walk = false\nwalk_max_var_per_s = 0.0\n",
+                "measured.correction.adaptive.window_readings",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.correction]\nnoise_actions = true\n\
+                 [measured.correction.adaptive]\nwindow_readings = 64.0\nmeas_scale_range = [0.25, 100.0]\n\
+                 adapt_walk = false\nwalk_max_var_per_s = 0.0\n",
+                "measured.correction.noise_actions",
             ),
         ];
         for (text, key) in cases {

@@ -14,7 +14,7 @@ use bcal_common::policy::{PolicyFile, POLICY_BEST};
 use bcal_doctor::lifetime::Quantity;
 use bcal_doctor::read::{parse_cycle_range, CurrentSign, ReadOptions, RecordStart};
 use bcal_doctor::Discharge;
-use bcal_realcell::calibrate::{calibrate, CalibrateInput};
+use bcal_realcell::calibrate::{calibrate, choose_cell_rule, choose_cell_ukf, CalibrateInput, CellHistory};
 use bcal_realcell::cellspec::cell_spec;
 use bcal_realcell::record::{prepare, RecordSummary};
 use std::ops::RangeInclusive;
@@ -371,20 +371,43 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let (causes, shared) = bcal_realcell::calibrate::model_parts(model.as_ref());
     let fits = bcal_realcell::calibrate::fits(&kept, &bcal_doctor::fit::FitConfig::default(), &causes, &shared)?;
     let (mut spec, facts) = cell_spec(&records, &fits, cut);
-    // The filter the correction policy trains on is the one `bcal calibrate` runs on this cell (chosen on
-    // the same validation cycles), so a zero action is that baseline in training and on the judged cycles;
-    // simulated cells start from a prior drawn at that filter's prior width, as the recorded ones start from
-    // the previous discharge's fit.
+    // The filter the correction policy trains on is the one `bcal calibrate` runs on this cell: chosen on the
+    // same validation cycles, each starting from the same prior (the previous fit moved by the cell's
+    // lifetime model, the width learned from its history times the chosen factor), so a zero action is that
+    // baseline in training and on the judged cycles. Simulated and recorded training discharges start from a
+    // prior at that width after the usual rest.
     let neutral = bcal_realcell::calibrate::extension_of(&causes, &shared, records[0].ambient_k);
+    let owned: Vec<Discharge> = kept.iter().map(|d| (*d).clone()).collect();
+    let history = CellHistory::read(&spec.tracker, &owned, &starts, &mut records, &fits, cut);
     let grid = JointUkfGrid::real_cells().candidates();
-    eprintln!("choosing the cell's joint UKF among {} settings on its validation cycles ...", grid.len());
-    let (ukf, choice) = bcal_realcell::calibrate::choose_cell_ukf(&spec.tracker, &records, &fits, &neutral, &grid, cut)
-        .ok_or_else(|| {
-            anyhow::anyhow!(
-                "too few training cycles of {cell} reach the cut-off to choose its filter: widen --train-cycles"
-            )
-        })?;
-    eprintln!("joint UKF of {cell}: {ukf:?}; validation EOD error {:.2} %", choice.candidates[0].eod_error_pct);
+    let too_few = || {
+        anyhow::anyhow!(
+            "too few training cycles of {cell} reach the cut-off to choose its filter: widen --train-cycles"
+        )
+    };
+    eprintln!(
+        "choosing the cell's joint UKF among {} settings x {} prior widths on its validation cycles ...",
+        grid.len(),
+        history.factors().len()
+    );
+    let (mut ukf, factor, choice) =
+        choose_cell_ukf(&spec.tracker, &records, &fits, &neutral, &history, &grid, cut).ok_or_else(too_few)?;
+    eprintln!(
+        "joint UKF of {cell}: {ukf:?}, prior width factor {factor:?}; validation EOD error {:.2} %",
+        choice.candidates[0].eod_error_pct
+    );
+    // The policy learns on top of the best filter: that UKF alone or under the covariance-matching rule the
+    // same validation cycles prefer (the adaptive UKF `bcal calibrate` runs beside it).
+    let rules = AdaptiveGrid::default().candidates();
+    eprintln!("choosing the filter's covariance-matching rule among {} and none on the same cycles ...", rules.len());
+    let (rule, choice) =
+        choose_cell_rule(&spec.tracker, &records, &fits, &neutral, &history, (ukf, factor), &rules, cut)
+            .ok_or_else(too_few)?;
+    eprintln!("rule under the correction: {rule:?}; validation EOD error {:.2} %", choice.candidates[0].eod_error_pct);
+    spec.correction.adaptive = rule;
+    if let Some(sd) = history.usual_sd_z(factor) {
+        ukf.prior_std_z = sd;
+    }
     spec.ukf = Some(ukf);
     spec.scenario.prior_sd_z = Some(ukf.prior_std_z);
     spec.scenario.rest_jump = rest_jump(&kept, &records, &starts, cut);

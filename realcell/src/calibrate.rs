@@ -25,8 +25,8 @@ use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
 use bcal_common::battery::Degradation;
 use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
-use bcal_common::measured::tracker::JointUkfSettings;
 use bcal_common::measured::tracker::TrackerSpec;
+use bcal_common::measured::tracker::{AdaptiveRule, JointUkfSettings};
 use bcal_common::policy::PolicyFile;
 use bcal_common::policy::PolicyNet;
 use bcal_doctor::fit::{refit_cycles, FitConfig, FitRecord};
@@ -203,27 +203,136 @@ pub fn choose_ukf(
     Some((best, factor, choice))
 }
 
-/// The joint UKF a cell's correction policy trains on (`bcal cell-config`): [`choose_ukf`] on the last
-/// training cycles (`train`, with their offline fits; the first starts from `spec`'s prior on `neutral`),
-/// each starting from the previous discharge's fit at the filter's own prior width, as the policy's recorded
-/// training discharges start. Training and `bcal calibrate` then run the same kind of filter, and a zero
-/// action is that baseline. None without validation cycles.
+/// What a cell's training cycles say of the discharges to come, as `bcal calibrate` reads them: the
+/// lifetime model (fade, recovery after rest) and the prior width learned from consecutive fits. Sets each
+/// record's rest before it from the records' start times.
+pub struct CellHistory {
+    pub life: Option<LifetimeModel>,
+    pub width: RestWidth,
+}
+
+impl CellHistory {
+    pub fn read(
+        spec: &TrackerSpec,
+        train_ds: &[Discharge],
+        starts: &[RecordStart],
+        train: &mut [CellRecord],
+        train_fits: &[(Degradation, ModelExtension)],
+        cutoff_v: f64,
+    ) -> Self {
+        let refs: Vec<&Discharge> = train_ds.iter().collect();
+        let rests = rests_before(&refs, starts);
+        for r in train.iter_mut() {
+            r.rest_before_s = rests.get(&r.cycle).copied();
+        }
+        let life = lifetime_model(train_ds, starts, cutoff_v).map(|l| l.0);
+        let width = if train.is_empty() {
+            RestWidth::fallback()
+        } else {
+            learn_width(spec, life.as_ref(), train, train_fits, &rests)
+        };
+        Self { life, width }
+    }
+
+    /// The prior widths a streaming calibrator is tried with: factors on the learned width, or (without a
+    /// history to learn it from) the settings' own.
+    pub fn factors(&self) -> Vec<Option<f64>> {
+        prior_factors(&self.width)
+    }
+
+    /// The learned prior standard deviations after the usual rest times `factor`, z; None without them.
+    pub fn usual_sd_z(&self, factor: Option<f64>) -> Option<[f64; 2]> {
+        let f = factor?;
+        self.width.fitted().then(|| self.width.a_z2.map(|a| f * a.sqrt()))
+    }
+}
+
+/// The prior widths a streaming calibrator is tried with: factors on the learned width, or (without a
+/// history to learn it from) the settings' own.
+fn prior_factors(width: &RestWidth) -> Vec<Option<f64>> {
+    if width.fitted() {
+        tune::PRIOR_FACTORS.iter().map(|f| Some(*f)).collect()
+    } else {
+        vec![None]
+    }
+}
+
+/// A cell's joint UKF chosen among `grid` and `history`'s prior widths on its training cycles' validation
+/// cycles, each starting from the prior `bcal calibrate` gives it (the previous discharge's fit moved by
+/// the lifetime model, the learned width times the factor): the filter and width `bcal calibrate` chooses
+/// from the same cycles, so the policy trains on top of the baseline it is judged against. None without
+/// validation cycles.
 pub fn choose_cell_ukf(
     spec: &TrackerSpec,
     train: &[CellRecord],
     train_fits: &[(Degradation, ModelExtension)],
     neutral: &ModelExtension,
+    history: &CellHistory,
     grid: &[JointUkfSettings],
     cutoff_v: f64,
-) -> Option<(JointUkfSettings, tune::Choice)> {
-    let mut walk = PriorWalk::new(spec, None, RestWidth::fallback());
+) -> Option<(JointUkfSettings, Option<f64>, tune::Choice)> {
+    let (validation, validation_before) = cell_validation(spec, train, train_fits, neutral, history, cutoff_v);
+    let mut cands: Vec<(JointUkfSettings, Option<f64>)> = Vec::new();
+    for g in grid {
+        for f in history.factors() {
+            // With a learned width the grid's own prior widths make no difference: one of each.
+            let g = if f.is_some() { JointUkfSettings { prior_std_z: grid[0].prior_std_z, ..*g } } else { *g };
+            if !cands.contains(&(g, f)) {
+                cands.push((g, f));
+            }
+        }
+    }
+    choose_ukf(spec, &cands, &validation, &validation_before, cutoff_v)
+}
+
+/// The best filter a cell's correction policy can learn on top of: the chosen joint UKF `ukf` (with its
+/// prior width factor) alone (None) or under one of the covariance-matching `rules`, whichever predicts the
+/// end of discharge best on the same validation cycles. None without validation cycles.
+#[allow(clippy::too_many_arguments)]
+pub fn choose_cell_rule(
+    spec: &TrackerSpec,
+    train: &[CellRecord],
+    train_fits: &[(Degradation, ModelExtension)],
+    neutral: &ModelExtension,
+    history: &CellHistory,
+    (ukf, prior_factor): (JointUkfSettings, Option<f64>),
+    rules: &[AdaptiveRule],
+    cutoff_v: f64,
+) -> Option<(Option<AdaptiveRule>, tune::Choice)> {
+    let (validation, validation_before) = cell_validation(spec, train, train_fits, neutral, history, cutoff_v);
+    if validation.is_empty() {
+        return None;
+    }
+    let mut options: Vec<Option<AdaptiveRule>> = vec![None];
+    options.extend(rules.iter().copied().map(Some));
+    let cands: Vec<(String, Streaming)> = options
+        .iter()
+        .map(|rule| match rule {
+            None => ("joint UKF".to_string(), Streaming::Ukf { spec: spec.clone(), settings: ukf, prior_factor }),
+            Some(r) => {
+                (format!("{r:?}"), Streaming::AdaptiveUkf { spec: spec.clone(), settings: ukf, rule: *r, prior_factor })
+            }
+        })
+        .collect();
+    let choice = tune::choose(&cands, &validation, &validation_before, cutoff_v)?;
+    Some((options[choice.index], choice))
+}
+
+/// The validation cycles among a cell's training cycles, each with the prior `bcal calibrate` gives it.
+fn cell_validation(
+    spec: &TrackerSpec,
+    train: &[CellRecord],
+    train_fits: &[(Degradation, ModelExtension)],
+    neutral: &ModelExtension,
+    history: &CellHistory,
+    cutoff_v: f64,
+) -> (Vec<CellRecord>, Vec<Before>) {
+    let mut walk = PriorWalk::new(spec, history.life.as_ref(), history.width);
     let train_before = before(&mut walk, train, train_fits, &(spec.prior, neutral.clone()), &[], cutoff_v);
     let validation_idx = tune::validation_records(train);
     let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
     let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
-    let grid: Vec<(JointUkfSettings, Option<f64>)> = grid.iter().map(|g| (*g, None)).collect();
-    let (best, _, choice) = choose_ukf(spec, &grid, &validation, &validation_before, cutoff_v)?;
-    Some((best, choice))
+    (validation, validation_before)
 }
 
 /// What a calibration produced: the report and the runs the figures and per-reading files need.
@@ -393,10 +502,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             2 * tune::MIN_VALIDATION
         )));
     }
-    // The prior widths a streaming calibrator is tried with: factors on the learned width, or (without a
-    // history to learn it from) the settings' own.
-    let factors: Vec<Option<f64>> =
-        if width.fitted() { tune::PRIOR_FACTORS.iter().map(|f| Some(*f)).collect() } else { vec![None] };
+    let factors = prior_factors(&width);
     let mut widenings = serde_json::Map::new();
     // A chosen streaming calibrator along the judged cycles, its intervals widened from its own runs along the
     // validation cycles (`choice.runs`) and then from each judged discharge that has ended.
@@ -444,6 +550,37 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         ukf_best = Some((best, factor, choice));
     }
 
+    // The adaptive UKF (issue 18, item 3): the covariance-matching rules on top of the chosen filter, with its
+    // prior width, chosen by the same validation objective (the same effort as the filter it adapts). Chosen
+    // before RL: the correction may run on top of it.
+    type Chosen<'s> = (AdaptiveRule, Vec<(String, Streaming<'s>)>, tune::Choice);
+    let mut adaptive_best: Option<Chosen> = None;
+    if input.adaptive_ukf {
+        let (best, factor, _) = ukf_best.clone().expect("chosen above");
+        let rules = input.adaptive_grid.candidates();
+        let cands: Vec<(String, Streaming)> = rules
+            .iter()
+            .map(|rule| {
+                let s = Streaming::AdaptiveUkf {
+                    spec: spec.tracker.clone(),
+                    settings: best,
+                    rule: *rule,
+                    prior_factor: factor,
+                };
+                (format!("{rule:?}"), s)
+            })
+            .collect();
+        progress(&format!(
+            "adaptive UKF: choosing among {} covariance-matching rules on top of the joint UKF on {} validation cycles",
+            cands.len(),
+            validation.len()
+        ));
+        let choice =
+            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
+        progress(&format!("adaptive UKF: validation EOD error {:.2} %", choice.candidates[0].eod_error_pct));
+        adaptive_best = Some((rules[choice.index], cands, choice));
+    }
+
     // RL: the run's policy files, the one the validation cycles prefer.
     if !input.policies.is_empty() {
         let mut nets: Vec<PolicyNet> = Vec::new();
@@ -483,19 +620,31 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                     // The filter it corrects: the one it trained on, or the joint UKF chosen on these
                     // validation cycles (its zero action is then that baseline), each with the learned prior
                     // widths.
-                    let mut filters: Vec<(String, JointUkfSettings, Option<f64>)> =
-                        factors.iter().map(|f| ("its own filter".to_string(), task.ukf_settings(), *f)).collect();
+                    type Filter = (String, JointUkfSettings, Option<AdaptiveRule>, Option<f64>);
+                    let mut filters: Vec<Filter> = factors
+                        .iter()
+                        .map(|f| ("its own filter".to_string(), task.ukf_settings(), task.correction.adaptive, *f))
+                        .collect();
                     if let Some((b, bf, _)) = &ukf_best {
-                        filters.push(("the joint UKF chosen here".into(), *b, *bf));
+                        filters.push(("the joint UKF chosen here".into(), *b, None, *bf));
+                        if let Some((rule, _, _)) = &adaptive_best {
+                            filters.push(("the adaptive UKF chosen here".into(), *b, Some(*rule), *bf));
+                        }
                     }
-                    for (what, filter, f) in filters {
+                    for (what, filter, rule, f) in filters {
                         let mut t = task.clone();
                         t.ukf = Some(filter);
+                        t.correction.adaptive = rule;
+                        // A rule owns the noise: a policy trained with noise actions runs on the plain filter.
+                        if rule.is_some() && t.correction.noise_actions {
+                            continue;
+                        }
                         t.correction.interval_scale = [1.0; 2];
                         meta.push((
                             path.clone(),
                             pf.update_step,
-                            serde_json::json!({"filter": filter, "prior_factor": f, "design": "ukf-correction"}),
+                            serde_json::json!({"filter": filter, "rule": rule, "prior_factor": f,
+                                "design": "ukf-correction"}),
                         ));
                         cands.push((
                             format!("{path} (update {}), {what}, prior width factor {f:?}", pf.update_step),
@@ -537,42 +686,15 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         top.candidates.truncate(5);
         settings.insert("ukf".into(), serde_json::json!({"settings": best, "prior_factor": factor, "validation": top}));
     }
-    // The adaptive UKF (issue 18, item 3): the covariance-matching rules on top of the chosen filter, with its
-    // prior width, chosen by the same validation objective (the same effort as the filter it adapts).
-    if input.adaptive_ukf {
+    if let Some((rule, cands, choice)) = &adaptive_best {
         let (best, factor, _) = ukf_best.clone().expect("chosen above");
-        let rules = input.adaptive_grid.candidates();
-        let cands: Vec<(String, Streaming)> = rules
-            .iter()
-            .map(|rule| {
-                let s = Streaming::AdaptiveUkf {
-                    spec: spec.tracker.clone(),
-                    settings: best,
-                    rule: *rule,
-                    prior_factor: factor,
-                };
-                (format!("{rule:?}"), s)
-            })
-            .collect();
-        progress(&format!(
-            "adaptive UKF: choosing among {} covariance-matching rules on top of the joint UKF on {} validation cycles",
-            cands.len(),
-            validation.len()
-        ));
-        let choice =
-            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
         let t0 = Instant::now();
-        let r = judge(&cands[choice.index].1, &choice, &mut widenings, "adaptive_ukf");
-        progress(&format!(
-            "adaptive UKF: validation EOD error {:.2} %; {} discharges in {:.0} s",
-            choice.candidates[0].eod_error_pct,
-            judged.len(),
-            t0.elapsed().as_secs_f64()
-        ));
+        let r = judge(&cands[choice.index].1, choice, &mut widenings, "adaptive_ukf");
+        progress(&format!("adaptive UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         runs.push(("adaptive_ukf", r));
         settings.insert(
             "adaptive_ukf".into(),
-            serde_json::json!({"filter": best, "prior_factor": factor, "rule": rules[choice.index], "validation": choice}),
+            serde_json::json!({"filter": best, "prior_factor": factor, "rule": rule, "validation": choice}),
         );
     }
     // The references: parameters (and extended-model values) pinned for the whole discharge, each with its

@@ -11,7 +11,10 @@ mod cell;
 
 use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
 use bcal_doctor::Discharge;
-use bcal_realcell::calibrate::{calibrate, CalibrateInput};
+use bcal_realcell::calibrate::{
+    calibrate, choose_cell_ukf, extension_of, fits, model_parts, CalibrateInput, CellHistory,
+};
+use bcal_realcell::record::{prepare, CellRecord};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -198,4 +201,29 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
     // interval should (12 cycles at three shares each: a discharge missed at all three moves it by 8 points).
     let cov = r.methods["ukf"].scores.coverage_90_pct["eod"].expect("the UKF has intervals");
     assert!((75.0..=100.0).contains(&cov), "ukf EOD coverage {cov}");
+
+    // `bcal cell-config` picks the filter a cell's policy trains on from the training cycles alone, the way
+    // `bcal calibrate` picks its joint UKF (the same prior walk, learned width and factors): the policy then
+    // learns on top of the very baseline it is judged against.
+    let train: Vec<Discharge> = all[..12].iter().map(|(d, _)| d.clone()).collect();
+    let mut records: Vec<CellRecord> = train.iter().map(|d| prepare(d, CUTOFF_V).expect("usable")).collect();
+    let (causes, shared) = model_parts(None);
+    let refs: Vec<&Discharge> = train.iter().collect();
+    let fits = fits(&refs, &bcal_doctor::fit::FitConfig::default(), &causes, &shared).expect("fits");
+    let spec = bcal_realcell::cellspec::cell_spec(&records, &fits, CUTOFF_V).0;
+    let history = CellHistory::read(&spec.tracker, &train, &[], &mut records, &fits, CUTOFF_V);
+    let neutral = extension_of(&causes, &shared, records[0].ambient_k);
+    let grid = JointUkfGrid::real_cells_quick().candidates();
+    let (ukf, factor, _) =
+        choose_cell_ukf(&spec.tracker, &records, &fits, &neutral, &history, &grid, CUTOFF_V).expect("validation");
+    let chosen = &cal.report.settings["ukf"];
+    let mut ukf_json = serde_json::to_value(ukf).unwrap();
+    let mut calibrate_json = chosen["settings"].clone();
+    if factor.is_some() {
+        // With a learned width the grid's own prior width is not used (either may be named).
+        ukf_json["prior_std_z"] = serde_json::Value::Null;
+        calibrate_json["prior_std_z"] = serde_json::Value::Null;
+    }
+    assert_eq!(ukf_json, calibrate_json);
+    assert_eq!(serde_json::to_value(factor).unwrap(), chosen["prior_factor"]);
 }

@@ -4,7 +4,7 @@
 //! (`bcal_calib::env`).
 
 use super::scenario::ScenarioConfig;
-use super::tracker::{JointUkfSettings, TrackerSpec, OBS_DIM};
+use super::tracker::{AdaptiveRule, JointUkfSettings, TrackerSpec, OBS_DIM};
 use serde::{Deserialize, Serialize};
 
 /// Features the correction policy observes (`bcal_calib::correction`).
@@ -128,6 +128,10 @@ pub struct CorrectionSpec {
     /// Factors on the filter's standard deviations of qMobile and Ro for the 90 % interval around the
     /// corrected estimate, chosen on validation (1.645 for a Gaussian).
     pub interval_scale: [f64; 2],
+    /// The covariance-matching rule that sets the filter's noise under the correction, so the policy learns
+    /// on top of the adaptive UKF (on real cells the best filter); zero action is then that filter. None
+    /// (default): the tuned filter's fixed noise. The rule owns the noise: not with `noise_actions`.
+    pub adaptive: Option<AdaptiveRule>,
 }
 
 impl Default for CorrectionSpec {
@@ -141,6 +145,7 @@ impl Default for CorrectionSpec {
             meas_decades: 1.0,
             walk_floor_per_sqrt_s: 1e-6,
             interval_scale: [1.645, 1.645],
+            adaptive: None,
         }
     }
 }

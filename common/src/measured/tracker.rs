@@ -140,3 +140,42 @@ impl Default for JointUkfSettings {
         }
     }
 }
+
+/// The covariance-matching rule of the adaptive joint UKF (issue 18, item 3; `bcal_calib::adaptive` runs it):
+/// the filter's measurement variance, and with `adapt_walk` its parameter walk, follow its own innovations.
+/// It lives here because the correction policy may run on top of it ([`crate::measured::env::CorrectionSpec`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AdaptiveRule {
+    /// Readings the innovation averages span (exponential weights 1/n), at least 1.
+    pub window_readings: f64,
+    /// Bounds of the measurement variance as factors of the tuned one.
+    pub meas_scale_range: [f64; 2],
+    /// Whether the parameters' random walk adapts too.
+    pub adapt_walk: bool,
+    /// Largest random-walk variance of a parameter, z^2 per second.
+    pub walk_max_var_per_s: f64,
+}
+
+impl Default for AdaptiveRule {
+    fn default() -> Self {
+        Self { window_readings: 32.0, meas_scale_range: [0.25, 100.0], adapt_walk: true, walk_max_var_per_s: 1e-6 }
+    }
+}
+
+impl AdaptiveRule {
+    /// Why the rule cannot run, naming the field, or None.
+    pub fn check(&self) -> Option<(&'static str, String, &'static str)> {
+        let [lo, hi] = self.meas_scale_range;
+        if !(self.window_readings.is_finite() && self.window_readings >= 1.0) {
+            return Some(("window_readings", self.window_readings.to_string(), "must be at least 1 reading"));
+        }
+        if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo <= hi) {
+            return Some(("meas_scale_range", format!("{:?}", self.meas_scale_range), "must be 0 < low <= high"));
+        }
+        if !(self.walk_max_var_per_s.is_finite() && self.walk_max_var_per_s >= 0.0) {
+            return Some(("walk_max_var_per_s", self.walk_max_var_per_s.to_string(), "must be finite and >= 0"));
+        }
+        None
+    }
+}
