@@ -303,19 +303,26 @@ pub fn choose_cell_rule(
     if validation.is_empty() {
         return None;
     }
-    let mut options: Vec<Option<AdaptiveRule>> = vec![None];
-    options.extend(rules.iter().copied().map(Some));
-    let cands: Vec<(String, Streaming)> = options
-        .iter()
-        .map(|rule| match rule {
-            None => ("joint UKF".to_string(), Streaming::Ukf { spec: spec.clone(), settings: ukf, prior_factor }),
-            Some(r) => {
-                (format!("{r:?}"), Streaming::AdaptiveUkf { spec: spec.clone(), settings: ukf, rule: *r, prior_factor })
-            }
-        })
-        .collect();
+    let mut cands = vec![("joint UKF".to_string(), Streaming::Ukf { spec: spec.clone(), settings: ukf, prior_factor })];
+    cands.extend(adaptive_candidates(spec, ukf, prior_factor, rules));
     let choice = tune::choose(&cands, &validation, &validation_before, cutoff_v)?;
-    Some((options[choice.index], choice))
+    // Candidate 0 is the filter alone.
+    Some((choice.index.checked_sub(1).map(|k| rules[k]), choice))
+}
+
+/// The adaptive UKF's candidates: the filter `ukf` at `prior_factor` under each of `rules`, labelled by rule.
+fn adaptive_candidates<'a>(
+    spec: &TrackerSpec,
+    ukf: JointUkfSettings,
+    prior_factor: Option<f64>,
+    rules: &[AdaptiveRule],
+) -> Vec<(String, Streaming<'a>)> {
+    rules
+        .iter()
+        .map(|r| {
+            (format!("{r:?}"), Streaming::AdaptiveUkf { spec: spec.clone(), settings: ukf, rule: *r, prior_factor })
+        })
+        .collect()
 }
 
 /// The validation cycles among a cell's training cycles, each with the prior `bcal calibrate` gives it.
@@ -558,18 +565,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     if input.adaptive_ukf {
         let (best, factor, _) = ukf_best.clone().expect("chosen above");
         let rules = input.adaptive_grid.candidates();
-        let cands: Vec<(String, Streaming)> = rules
-            .iter()
-            .map(|rule| {
-                let s = Streaming::AdaptiveUkf {
-                    spec: spec.tracker.clone(),
-                    settings: best,
-                    rule: *rule,
-                    prior_factor: factor,
-                };
-                (format!("{rule:?}"), s)
-            })
-            .collect();
+        let cands = adaptive_candidates(&spec.tracker, best, factor, &rules);
         progress(&format!(
             "adaptive UKF: choosing among {} covariance-matching rules on top of the joint UKF on {} validation cycles",
             cands.len(),
