@@ -238,19 +238,28 @@ impl Correction {
 }
 
 /// The correction policy as a calibrator: the filter reads, the policy's deterministic action corrects it.
+/// With several policies (an ensemble: the same task trained from other seeds) the action is their mean,
+/// which keeps what the seeds agree on and shrinks what one seed alone learned toward zero (the filter).
 pub struct CorrectionCalibrator<'a> {
     core: Correction,
-    net: &'a PolicyNet,
+    nets: &'a [PolicyNet],
     scratch: Scratch,
     obs: [f32; CORRECTION_OBS_DIM],
 }
 
 impl<'a> CorrectionCalibrator<'a> {
     pub fn new(spec: &MeasuredSpec, net: &'a PolicyNet) -> Self {
+        Self::ensemble(spec, std::slice::from_ref(net))
+    }
+
+    /// The mean action of `nets` (at least one, all trained on this task).
+    pub fn ensemble(spec: &MeasuredSpec, nets: &'a [PolicyNet]) -> Self {
+        assert!(!nets.is_empty(), "a correction policy needs at least one network");
+        let widest = nets.iter().max_by_key(|n| n.layout().max_width()).expect("checked non-empty");
         Self {
             core: Correction::of_task(spec),
-            scratch: Scratch::new(net.layout()),
-            net,
+            scratch: Scratch::new(widest.layout()),
+            nets,
             obs: [0.0; CORRECTION_OBS_DIM],
         }
     }
@@ -264,10 +273,20 @@ impl Calibrator for CorrectionCalibrator<'_> {
     fn step(&mut self, s: &Sample) {
         self.core.ingest(s);
         self.core.observe(&mut self.obs);
+        let mut sum = [0f32; CORRECTION_ACT_DIM];
         let mut a = [0f32; CORRECTION_ACT_DIM];
-        let n = self.net.layout().act_dim.min(CORRECTION_ACT_DIM);
-        self.net.act_deterministic(&self.obs, &mut self.scratch, &mut a[..n]);
-        self.core.apply_action(&a[..n]);
+        let n = self.nets[0].layout().act_dim.min(CORRECTION_ACT_DIM);
+        for net in self.nets {
+            net.act_deterministic(&self.obs, &mut self.scratch, &mut a[..n]);
+            for (t, x) in sum.iter_mut().zip(&a[..n]) {
+                *t += x;
+            }
+        }
+        let k = self.nets.len() as f32;
+        for t in &mut sum[..n] {
+            *t /= k;
+        }
+        self.core.apply_action(&sum[..n]);
     }
     fn estimate(&self) -> Degradation {
         self.core.estimate()
@@ -280,5 +299,54 @@ impl Calibrator for CorrectionCalibrator<'_> {
     }
     fn state_under(&self, d: &Degradation) -> Option<ModelState> {
         self.core.state_under(d)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bcal_common::dataset::Split;
+    use bcal_common::measured::scenario::episode_set;
+    use bcal_common::policy::PolicyLayout;
+
+    /// A network whose deterministic action is tanh(`bias`) whatever it observes (all weights zero).
+    fn constant_policy(spec: &MeasuredSpec, bias: &[f32]) -> PolicyNet {
+        let layout = PolicyLayout { obs_dim: spec.obs_dim(), act_dim: spec.act_dim(), hidden: vec![8] };
+        let mut params = vec![0f32; layout.n_params()];
+        let linears = layout.linears();
+        let hidden: usize = linears[..linears.len() - 2].iter().map(|(i, o)| i * o + o).sum();
+        let (mean_in, mean_out) = linears[linears.len() - 2];
+        let bias_at = hidden + mean_in * mean_out;
+        params[bias_at..bias_at + bias.len()].copy_from_slice(bias);
+        PolicyNet::from_flat(layout, params).unwrap()
+    }
+
+    /// An ensemble applies its members' mean action: with a zero member beside it, a policy's shift is
+    /// halved, reading for reading, and the estimates differ from the filter's (else this proves nothing).
+    #[test]
+    fn an_ensemble_applies_the_mean_action() {
+        let spec = MeasuredSpec::default();
+        assert_eq!(spec.act_dim(), 2, "the default correction shifts qMobile and Ro only");
+        let bias = [0.6f32, -0.4];
+        let nets = [constant_policy(&spec, &bias), constant_policy(&spec, &[0.0, 0.0])];
+        let half = [bias[0].tanh() / 2.0, bias[1].tanh() / 2.0];
+        let ep = &episode_set(&spec.scenario, Split::Validation, 1).unwrap()[0];
+        let mut ensemble = CorrectionCalibrator::ensemble(&spec, &nets);
+        let mut by_hand = Correction::of_task(&spec);
+        let mut filter = JointUkf::new(spec.ukf_settings(), &spec.tracker);
+        let mut moved = 0;
+        for s in &ep.samples {
+            ensemble.step(s);
+            by_hand.ingest(s);
+            by_hand.apply_action(&half);
+            filter.step(s);
+            assert_eq!(ensemble.estimate(), by_hand.estimate());
+            moved += usize::from(ensemble.estimate() != filter.estimate());
+        }
+        assert!(
+            2 * moved > ep.samples.len(),
+            "the mean action moved only {moved} of {} estimates off the filter's",
+            ep.samples.len()
+        );
     }
 }

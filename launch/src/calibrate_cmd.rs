@@ -60,7 +60,9 @@ pub struct CalibrateArgs {
     /// Training cycles, A..B: the capacity trend, the cell's setting and the first previous-cycle reference.
     #[arg(long, value_name = "A..B", default_value = "1..40")]
     pub train_cycles: String,
-    /// Calibrators, comma separated: `rl:RUN` (the RL policy of a measured-only run folder, or a policy file),
+    /// Calibrators, comma separated: `rl:RUN` (the RL policy of a measured-only run folder, or a policy file;
+    /// `rl:` given more than once: an ensemble of runs of one cell config trained from other seeds, each run's
+    /// delivered policy, whose mean action corrects the filter),
     /// `ukf` (the joint UKF, its settings chosen on the last training cycles), `adaptive_ukf` (that filter
     /// with its noise adapted by covariance matching, the rule chosen on the same cycles), `fit` (the doctor's
     /// offline least squares on the whole discharge: an oracle that sees the future). The references
@@ -268,22 +270,31 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         judged.retain(|d| (d.cycle - first) % a.stride == 0);
     }
     // The calibrators asked for.
-    let mut policies: Vec<(PolicyFile, String)> = Vec::new();
+    let mut runs: Vec<&str> = Vec::new();
     let (mut ukf, mut adaptive_ukf, mut fit) = (false, false, false);
     for c in &calibrators {
         match c.trim() {
             "ukf" => ukf = true,
             "adaptive_ukf" | "adaptive-ukf" => adaptive_ukf = true,
             "fit" => fit = true,
-            s if s.starts_with("rl:") => {
-                if !policies.is_empty() {
-                    bail!("--calibrator names rl: twice; give one run folder or policy file");
-                }
-                policies = policy_candidates(Path::new(&s[3..]))?
-            }
+            s if s.starts_with("rl:") => runs.push(&s.trim()[3..]),
             other => bail!("unknown calibrator `{other}`: use rl:RUN, ukf, adaptive_ukf or fit (comma separated)"),
         }
     }
+    // One run: each of its checkpoints is a candidate. Several: one ensemble of each run's delivered policy.
+    let mut policies: Vec<(PolicyFile, String)> = Vec::new();
+    for run in &runs {
+        let mut files = policy_candidates(Path::new(run))?;
+        if runs.len() > 1 {
+            files.truncate(1);
+        }
+        policies.extend(files);
+    }
+    let groups: Vec<Vec<(&PolicyFile, String)>> = if runs.len() > 1 {
+        vec![policies.iter().map(|(pf, p)| (pf, p.clone())).collect()]
+    } else {
+        policies.iter().map(|(pf, p)| vec![(pf, p.clone())]).collect()
+    };
     // The RL run's own cell setting (its simulated cells) sets up the UKF too, so both run the same model.
     let spec = policies.first().and_then(|(pf, _)| pf.task.measured().cloned());
     let input = CalibrateInput {
@@ -292,7 +303,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         judged,
         cutoff_v: cut,
         cutoff_source: cut_source,
-        policies: policies.iter().map(|(pf, p)| (pf, p.clone())).collect(),
+        policies: groups,
         ukf,
         adaptive_ukf,
         adaptive_grid: if a.quick { AdaptiveGrid::quick() } else { AdaptiveGrid::default() },

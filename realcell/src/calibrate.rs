@@ -46,9 +46,10 @@ pub struct CalibrateInput<'a> {
     pub judged: Vec<Discharge>,
     pub cutoff_v: f64,
     pub cutoff_source: String,
-    /// The RL policy candidates (a run's checkpoints) and where each came from: the validation cycles
-    /// choose one.
-    pub policies: Vec<(&'a PolicyFile, String)>,
+    /// The RL policy candidates and where each came from: the validation cycles choose one. A candidate is
+    /// one policy file (a run's checkpoints are candidates each) or an ensemble: several runs of one task
+    /// (other seeds), whose mean action corrects the filter (correction design only).
+    pub policies: Vec<Vec<(&'a PolicyFile, String)>>,
     pub ukf: bool,
     /// The adaptive UKF (its rule chosen among `adaptive_grid` on top of the chosen joint UKF).
     pub adaptive_ukf: bool,
@@ -71,6 +72,8 @@ pub enum CalibrateError {
     PolicyTask { path: String, observation: String },
     #[error("the policy {path} was trained on the {trained} model, but this calibration runs the {model} model: train a policy on it (bcal cell-config with the same --model, then bcal train --config)")]
     PolicyModel { path: String, trained: String, model: String },
+    #[error("the policy {path} cannot join {first} in an ensemble: the members must be correction-design runs of one task (the same cell config, other --seed)")]
+    Ensemble { path: String, first: String },
     #[error("no usable judged discharge: {0}")]
     NothingToJudge(String),
     #[error("the doctor's fit failed: {0}")]
@@ -529,7 +532,11 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let mut ukf_best: Option<(JointUkfSettings, Option<f64>, tune::Choice)> = None;
     if input.ukf
         || input.adaptive_ukf
-        || input.policies.iter().any(|(pf, _)| pf.task.measured().is_some_and(|t| t.design == Design::UkfCorrection))
+        || input
+            .policies
+            .iter()
+            .flatten()
+            .any(|(pf, _)| pf.task.measured().is_some_and(|t| t.design == Design::UkfCorrection))
     {
         let mut grid: Vec<(JointUkfSettings, Option<f64>)> = Vec::new();
         for g in input.ukf_grid.candidates() {
@@ -579,35 +586,56 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
 
     // RL: the run's policy files, the one the validation cycles prefer.
     if !input.policies.is_empty() {
-        let mut nets: Vec<PolicyNet> = Vec::new();
-        for (pf, path) in &input.policies {
-            let Some(task) = pf.task.measured() else {
-                return Err(CalibrateError::PolicyTask { path: path.clone(), observation: pf.task.observation_name() });
-            };
-            if !task.tracker.model.same_kind(&neutral) {
-                return Err(CalibrateError::PolicyModel {
-                    path: path.clone(),
-                    trained: task.tracker.model.label(),
-                    model: neutral.label(),
-                });
+        // Each candidate's networks, checked to run here (and an ensemble's members to share one task).
+        let mut nets: Vec<Vec<PolicyNet>> = Vec::new();
+        for members in &input.policies {
+            let mut group = Vec::new();
+            for (pf, path) in members {
+                let Some(task) = pf.task.measured() else {
+                    return Err(CalibrateError::PolicyTask {
+                        path: path.clone(),
+                        observation: pf.task.observation_name(),
+                    });
+                };
+                if !task.tracker.model.same_kind(&neutral) {
+                    return Err(CalibrateError::PolicyModel {
+                        path: path.clone(),
+                        trained: task.tracker.model.label(),
+                        model: neutral.label(),
+                    });
+                }
+                let (first, first_path) = &members[0];
+                if members.len() > 1 && (task.design != Design::UkfCorrection || pf.task != first.task) {
+                    return Err(CalibrateError::Ensemble { path: path.clone(), first: first_path.clone() });
+                }
+                group.push(pf.net()?);
             }
-            nets.push(pf.net()?);
+            nets.push(group);
         }
         let mut cands: Vec<(String, Streaming)> = Vec::new();
-        let mut meta: Vec<(String, u64, serde_json::Value)> = Vec::new();
-        for ((pf, path), net) in input.policies.iter().zip(&nets) {
+        let mut meta: Vec<(String, serde_json::Value, serde_json::Value)> = Vec::new();
+        for (members, group) in input.policies.iter().zip(&nets) {
+            let (pf, _) = members[0];
             let task = pf.task.measured().expect("checked above");
+            let path = members.iter().map(|(_, p)| p.as_str()).collect::<Vec<_>>().join(" + ");
+            let updates: Vec<u64> = members.iter().map(|(m, _)| m.update_step).collect();
+            let update = if updates.len() == 1 { serde_json::json!(updates[0]) } else { serde_json::json!(updates) };
+            let named = if members.len() == 1 {
+                format!("{path} (update {})", pf.update_step)
+            } else {
+                format!("mean action of {path} (updates {updates:?})")
+            };
             match task.design {
                 Design::WindowFit => {
                     for f in &factors {
                         let unit = TrackerSpec { interval_scale: [1.0; 2], ..task.tracker.clone() };
                         cands.push((
-                            format!("{path} (update {}), prior width factor {f:?}", pf.update_step),
-                            Streaming::Rl { spec: unit.clone(), net, prior_factor: *f },
+                            format!("{named}, prior width factor {f:?}"),
+                            Streaming::Rl { spec: unit.clone(), net: &group[0], prior_factor: *f },
                         ));
                         meta.push((
                             path.clone(),
-                            pf.update_step,
+                            update.clone(),
                             serde_json::json!({"tracker": unit, "prior_factor": f}),
                         ));
                     }
@@ -638,13 +666,13 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                         t.correction.interval_scale = [1.0; 2];
                         meta.push((
                             path.clone(),
-                            pf.update_step,
+                            update.clone(),
                             serde_json::json!({"filter": filter, "rule": rule, "prior_factor": f,
-                                "design": "ukf-correction"}),
+                                "design": "ukf-correction", "ensemble": members.len()}),
                         ));
                         cands.push((
-                            format!("{path} (update {}), {what}, prior width factor {f:?}", pf.update_step),
-                            Streaming::Correction { task: Box::new(t), net, prior_factor: f },
+                            format!("{named}, {what}, prior width factor {f:?}"),
+                            Streaming::Correction { task: Box::new(t), nets: group, prior_factor: f },
                         ));
                     }
                 }

@@ -58,8 +58,9 @@ pub struct CycleRun {
 pub enum Streaming<'a> {
     /// The RL policy of the window-fit design (issue 12).
     Rl { spec: TrackerSpec, net: &'a PolicyNet, prior_factor: Option<f64> },
-    /// The RL correction of the joint UKF (issue 18): the task holds the filter it corrects.
-    Correction { task: Box<MeasuredSpec>, net: &'a PolicyNet, prior_factor: Option<f64> },
+    /// The RL correction of the joint UKF (issue 18): the task holds the filter it corrects; with several
+    /// networks (seeds of one task) their mean action corrects it.
+    Correction { task: Box<MeasuredSpec>, nets: &'a [PolicyNet], prior_factor: Option<f64> },
     /// The joint UKF. `prior_factor`: each discharge's prior width is this factor times the width learned
     /// from the cell's history ([`Before::prior_sd_z`]); None, or a discharge without a learned width: the
     /// settings' own `prior_std_z`.
@@ -88,12 +89,12 @@ impl<'a> Streaming<'a> {
                 }
                 Streaming::Rl { spec: s, net, prior_factor: *prior_factor }
             }
-            Streaming::Correction { task, net, prior_factor } => {
+            Streaming::Correction { task, nets, prior_factor } => {
                 let mut t = MeasuredSpec { tracker: moved(&task.tracker), ..(**task).clone() };
                 if let Some(w) = width(prior_factor) {
                     t.ukf = Some(JointUkfSettings { prior_std_z: w, ..t.ukf_settings() });
                 }
-                Streaming::Correction { task: Box::new(t), net, prior_factor: *prior_factor }
+                Streaming::Correction { task: Box::new(t), nets, prior_factor: *prior_factor }
             }
             Streaming::Ukf { spec, settings, prior_factor } => {
                 let mut s = *settings;
@@ -137,9 +138,9 @@ impl<'a> Streaming<'a> {
             Streaming::Rl { spec, net, prior_factor } => {
                 Streaming::Rl { spec: on(spec), net, prior_factor: *prior_factor }
             }
-            Streaming::Correction { task, net, prior_factor } => Streaming::Correction {
+            Streaming::Correction { task, nets, prior_factor } => Streaming::Correction {
                 task: Box::new(MeasuredSpec { tracker: on(&task.tracker), ..(**task).clone() }),
-                net,
+                nets,
                 prior_factor: *prior_factor,
             },
             Streaming::Ukf { spec, settings, prior_factor } => {
@@ -155,7 +156,7 @@ impl<'a> Streaming<'a> {
     fn build(&self) -> Box<dyn Calibrator + '_> {
         match self {
             Streaming::Rl { spec, net, .. } => Box::new(RlCalibrator::new(spec, net)),
-            Streaming::Correction { task, net, .. } => Box::new(CorrectionCalibrator::new(task, net)),
+            Streaming::Correction { task, nets, .. } => Box::new(CorrectionCalibrator::ensemble(task, nets)),
             Streaming::Ukf { spec, settings, .. } => Box::new(JointUkf::new(*settings, spec)),
             Streaming::AdaptiveUkf { spec, settings, rule, .. } => Box::new(AdaptiveUkf::new(*settings, *rule, spec)),
             Streaming::Pinned { spec, d } => Box::new(Uncalibrated::pinned(spec, d)),

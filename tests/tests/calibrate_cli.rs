@@ -1,6 +1,6 @@
 //! `bcal calibrate` refuses what it cannot honestly run, each with one line that names the file and what to
 //! do: judged cycles before the training ones, a NASA folder without a cell, a policy trained on another
-//! observation or another model, and a model diagnosed on the cycles it would be judged on. The data is a
+//! observation or another model, an ensemble of policies of different tasks, and a model diagnosed on the cycles it would be judged on. The data is a
 //! small generic CSV written here from the base model (a rest, then 2 A to below the cut-off).
 
 use bcal_common::battery::{BatteryModel, Degradation, Load};
@@ -120,6 +120,17 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
     let line: Vec<&str> = err.lines().filter(|l| l.starts_with("error")).collect();
     assert!(!ok && line.len() == 1, "one error line: {err}");
     assert!(line[0].contains("trained on the base model") && line[0].contains("electrode_balance"), "{err}");
+
+    // An ensemble of policies trained on different tasks (here: other correction bounds) has no one filter to
+    // correct: each member must be a seed of one cell config.
+    let other = MeasuredSpec {
+        correction: bcal_common::measured::env::CorrectionSpec { shift_max_sd: 1.0, ..Default::default() },
+        ..MeasuredSpec::default()
+    };
+    let q = policy(dir.path(), "other.bcalpol", bcal_common::task::Task::Measured(other));
+    let ensemble = format!("rl:{},rl:{}", p.display(), q.display());
+    let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "1..6", "--calibrator", &ensemble]].concat());
+    assert!(!ok && err.contains("cannot join") && err.contains("other.bcalpol"), "{err}");
 
     // A model diagnosed on a cycle this calibration judges.
     std::fs::write(
