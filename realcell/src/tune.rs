@@ -16,8 +16,9 @@ pub const VALIDATION_SHARE: f64 = 0.25;
 pub const MIN_VALIDATION: usize = 2;
 
 /// Factors on the prior width learned from the cell's history ([`crate::prior`]) that the streaming
-/// calibrators are tried with: 1 is the width as learned; more lets the readings move the estimate further.
-pub const PRIOR_FACTORS: [f64; 3] = [1.0, 2.0, 4.0];
+/// calibrators are tried with: 1 is the width as learned; more lets the readings move the estimate further,
+/// less holds it nearer the prior (B0006 and B0018 chose the grid's lowest, 1, before 0.25 and 0.5 joined).
+pub const PRIOR_FACTORS: [f64; 5] = [0.25, 0.5, 1.0, 2.0, 4.0];
 
 /// The validation cycles, as indices into `train`: the last quarter of the training cycles that reach the
 /// cut-off (at least [`MIN_VALIDATION`]; none when there are fewer than twice that).
