@@ -328,6 +328,26 @@ fn adaptive_candidates<'a>(
         .collect()
 }
 
+/// `tune::choose` on the validation cycles, said first: "`what.0`: choosing among N `what.1` on M validation
+/// cycles". The caller has checked there are candidates and validation cycles.
+fn choose_announced(
+    progress: &mut dyn FnMut(&str),
+    what: (&str, &str),
+    cands: &[(String, Streaming<'_>)],
+    validation: &[CellRecord],
+    before: &[Before],
+    cutoff_v: f64,
+) -> tune::Choice {
+    progress(&format!(
+        "{}: choosing among {} {} on {} validation cycles",
+        what.0,
+        cands.len(),
+        what.1,
+        validation.len()
+    ));
+    tune::choose(cands, validation, before, cutoff_v).expect("candidates and validation checked")
+}
+
 /// The validation cycles among a cell's training cycles, each with the prior `bcal calibrate` gives it.
 fn cell_validation(
     spec: &TrackerSpec,
@@ -573,13 +593,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let (best, factor, _) = ukf_best.clone().expect("chosen above");
         let rules = input.adaptive_grid.candidates();
         let cands = adaptive_candidates(&spec.tracker, best, factor, &rules);
-        progress(&format!(
-            "adaptive UKF: choosing among {} covariance-matching rules on top of the joint UKF on {} validation cycles",
-            cands.len(),
-            validation.len()
-        ));
-        let choice =
-            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
+        let what = ("adaptive UKF", "covariance-matching rules on top of the joint UKF");
+        let choice = choose_announced(progress, what, &cands, &validation, &validation_before, cut);
         progress(&format!("adaptive UKF: validation EOD error {:.2} %", choice.candidates[0].eod_error_pct));
         adaptive_best = Some((rules[choice.index], cands, choice));
     }
@@ -678,13 +693,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 }
             }
         }
-        progress(&format!(
-            "RL-LAC: choosing among {} candidates (policy files x filters and prior widths) on {} validation cycles",
-            cands.len(),
-            validation.len()
-        ));
-        let choice =
-            tune::choose(&cands, &validation, &validation_before, cut).expect("candidates and validation checked");
+        let what = ("RL-LAC", "candidates (policy files x filters and prior widths)");
+        let choice = choose_announced(progress, what, &cands, &validation, &validation_before, cut);
         let (path, update, setting) = &meta[choice.index];
         progress(&format!(
             "RL-LAC: {}; validation EOD error {:.2} %",
