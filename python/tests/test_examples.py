@@ -31,3 +31,25 @@ def test_calibrate_nasa_cell(tmp_path):
     png = tmp_path / "estimates.png"
     out = run_example("calibrate_nasa_cell.py", "--kind", "fit", "--out", str(png))
     assert "B0005 cycle 100:" in out and png.stat().st_size > 10_000
+
+
+def test_eod_by_age_scores_each_discharge_as_calibrate_does(tmp_path):
+    """Two hand-made discharges (load on at 10 s, cut-off 2.5 V crossed at 1010 s by interpolation): the
+    prediction at the first reading at or after 50 % counts, in % of the 1000 s discharge."""
+    run = tmp_path / "cal"
+    (run / "readings").mkdir(parents=True)
+    (run / "calibration.json").write_text('{"cutoff_v": 2.5}')
+    head = "t_s,voltage_v,current_a,q_mobile_c,q_mobile_lo_c,q_mobile_hi_c,r_o_ohm,r_o_lo_ohm,r_o_hi_ohm,eod_s\n"
+    # (method, cycle) -> the end of discharge it predicts at 510 s (50 %) and at every other reading.
+    predictions = {("rl", 41): (1030.0, 0.0), ("ukf", 41): (1000.0, 0.0), ("rl", 90): (1011.0, 9e9),
+                   ("ukf", 90): (1050.0, 9e9)}
+    for (method, cycle), (at_half, elsewhere) in predictions.items():
+        d = run / "readings" / method
+        d.mkdir(exist_ok=True)
+        rows = [(0.0, 4.2, 0.0), (10.0, 4.0, 2.0), (510.0, 3.6, 2.0), (1000.0, 2.6, 2.0), (1020.0, 2.4, 2.0)]
+        lines = [f"{t},{v},{i},0,0,0,0,0,0,{at_half if t == 510.0 else elsewhere}" for t, v, i in rows]
+        (d / f"B0000-{cycle:04d}.csv").write_text(head + "\n".join(lines) + "\n")
+    out = run_example("eod_by_age.py", str(run), "--bins", "41-80,81-120")
+    # rl: |1030 - 1010| / 1000 = 2 %, |1011 - 1010| = 0.1 %; ukf: 1 %, 4 %.
+    assert "41-80: 2.00 against 1.00 %, better on 0 of 1" in out, out
+    assert "81-120: 0.10 against 4.00 %, better on 1 of 1" in out, out
