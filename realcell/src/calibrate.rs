@@ -694,20 +694,52 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             }
         }
         let what = ("RL-LAC", "candidates (policy files x filters and prior widths)");
-        let choice = choose_announced(progress, what, &cands, &validation, &validation_before, cut);
-        let (path, update, setting) = &meta[choice.index];
-        progress(&format!(
-            "RL-LAC: {}; validation EOD error {:.2} %",
-            choice.chosen, choice.candidates[0].eod_error_pct
-        ));
+        let mut choice = choose_announced(progress, what, &cands, &validation, &validation_before, cut);
+        // Delivered only when it beats the joint UKF chosen here on most validation cycles, not just in
+        // their mean (`tune::first_consistent`); else what is delivered is that filter.
+        let reference = ukf_best.as_ref().map(|(_, _, c)| c.candidates[0].per_cycle_pct.clone());
+        let position = reference.as_ref().map(|r| tune::first_consistent(&choice.candidates, r));
+        let need = |n: usize| (tune::MIN_WIN_SHARE * n as f64).ceil() as usize;
+        if let Some(Some(p)) = position.filter(|p| *p != Some(0)) {
+            progress(&format!(
+                "RL-LAC: the best in the mean ({}) beats the joint UKF on fewer than {} of {} validation cycles",
+                choice.chosen,
+                need(validation.len()),
+                validation.len()
+            ));
+            choice = tune::rechoose(choice, p, &cands, &validation, &validation_before, cut);
+        }
         let t0 = Instant::now();
-        let r = judge(&cands[choice.index].1, &choice, &mut widenings, "rl");
+        if let (Some(None), Some((best, factor, ukf_choice))) = (position, &ukf_best) {
+            let why = format!(
+                "no candidate beats the joint UKF chosen here on at least {} of {} validation cycles and in the mean: \
+                 the joint UKF is delivered",
+                need(validation.len()),
+                validation.len()
+            );
+            progress(&format!("RL-LAC: {why}"));
+            let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: *best, prior_factor: *factor };
+            runs.push(("rl", judge(&cal, ukf_choice, &mut widenings, "rl")));
+            settings.insert(
+                "rl".into(),
+                serde_json::json!({"policy_file": null, "update_step": null, "delivered": why, "validation": choice,
+                    "setting": {"filter": best, "prior_factor": factor}}),
+            );
+        } else {
+            let (path, update, setting) = &meta[choice.index];
+            progress(&format!(
+                "RL-LAC: {}; validation EOD error {:.2} %",
+                choice.chosen,
+                choice.candidates.iter().find(|c| c.index == choice.index).map_or(f64::NAN, |c| c.eod_error_pct)
+            ));
+            runs.push(("rl", judge(&cands[choice.index].1, &choice, &mut widenings, "rl")));
+            settings.insert(
+                "rl".into(),
+                serde_json::json!({"policy_file": path, "update_step": update, "validation": choice,
+                    "setting": setting}),
+            );
+        }
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
-        runs.push(("rl", r));
-        settings.insert(
-            "rl".into(),
-            serde_json::json!({"policy_file": path, "update_step": update, "validation": choice, "setting": setting}),
-        );
     }
     if input.ukf {
         let (best, factor, choice) = ukf_best.clone().expect("chosen above");
