@@ -154,10 +154,9 @@ impl Correction {
         let p = self.ukf.model_params();
         let xn = (self.ukf.xn() - p.xn_min) / (p.xn_max - p.xn_min);
         let [vo, vsn, vsp] = self.ukf.overpotentials_v();
-        let (zq, zr) = if self.spec.observe_estimate { (2.0 * z[0] - 1.0, 2.0 * z[1] - 1.0) } else { (0.0, 0.0) };
         let f = [
-            zq,
-            zr,
+            2.0 * z[0] - 1.0,
+            2.0 * z[1] - 1.0,
             sd_feature(sd[0]),
             sd_feature(sd[1]),
             corr.clamp(-1.0, 1.0),
@@ -207,11 +206,6 @@ impl Correction {
         };
         let meas_var = 10f64.powf(a[3] * self.spec.meas_decades);
         self.ukf.set_noise_scales(NoiseScales { param_walk_var_per_s: Some([walk; 2]), meas_var });
-    }
-
-    /// The shift in force, each a fraction of its largest ([-1, 1]).
-    pub fn shift(&self) -> [f64; 2] {
-        self.shift
     }
 
     /// The corrected estimate: the filter's mean shifted by the action (in units of its largest shift: the
@@ -354,29 +348,5 @@ mod tests {
             "the mean action moved only {moved} of {} estimates off the filter's",
             ep.samples.len()
         );
-    }
-
-    /// The filter's estimate reaches the policy unless the spec hides it: features 1-2 are the filter's mean
-    /// mapped onto [-1, 1] by default, 0 when hidden (and the rest of the observation is the same).
-    #[test]
-    fn the_estimate_is_observed_unless_hidden() {
-        let shown = MeasuredSpec::default();
-        assert!(shown.correction.observe_estimate);
-        let mut hidden = shown.clone();
-        hidden.correction.observe_estimate = false;
-        let ep = &episode_set(&hidden.scenario, Split::Validation, 1).unwrap()[0];
-        let (mut a, mut b) = (Correction::of_task(&hidden), Correction::of_task(&shown));
-        let (mut oa, mut ob) = (vec![0f32; CORRECTION_OBS_DIM], vec![0f32; CORRECTION_OBS_DIM]);
-        for s in &ep.samples[..ep.samples.len() / 2] {
-            a.ingest(s);
-            b.ingest(s);
-        }
-        a.observe(&mut oa);
-        b.observe(&mut ob);
-        assert_eq!(&oa[..2], &[0.0, 0.0]);
-        let z = b.ukf().mean_z();
-        assert_eq!(&ob[..2], &[(2.0 * z[0] - 1.0) as f32, (2.0 * z[1] - 1.0) as f32]);
-        assert!(ob[..2].iter().all(|v| *v != 0.0));
-        assert_eq!(&oa[2..], &ob[2..]);
     }
 }

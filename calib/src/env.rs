@@ -109,15 +109,13 @@ pub fn correction_cost(spec: &MeasuredSpec, c: &Correction, episode: &Episode, k
     let ref_k = ext.reference_k.unwrap_or(episode.samples[0].temperature_k);
     let m = PredictionModel::at(ext, crate::cost::temperature_of(&x), ref_k, spec.tracker.cutoff_v);
     let own = predictive_cost(&spec.cost, &m, episode, k, &x, &c.estimate()).cost;
-    let [q, r] = c.shift();
-    let size = spec.cost.shift_weight * 0.5 * (q * q + r * r);
     if !spec.cost.relative {
-        return own + size;
+        return own;
     }
     let f = c.ukf();
     let filter = predictive_cost(&spec.cost, &m, episode, k, &f.state(), &f.estimate()).cost;
     let m = bcal_common::measured::env::RELATIVE_LOG_CLAMP;
-    (own - filter).clamp(-m, m).exp() + size
+    (own - filter).clamp(-m, m).exp()
 }
 
 /// One training environment.
@@ -280,7 +278,6 @@ pub fn validate_policy(spec: &MeasuredSpec, episodes: &[Episode], net: &PolicyNe
 #[cfg(test)]
 mod tests {
     use super::*;
-    use bcal_common::measured::env::PredictiveCost;
     use bcal_common::policy::PolicyLayout;
 
     fn window_spec() -> MeasuredSpec {
@@ -331,32 +328,6 @@ mod tests {
         let (q, r) = acc.pct();
         assert!((score.nrmse_q_pct - q).abs() < 1e-9 && (score.nrmse_r_pct - r).abs() < 1e-9);
         assert!(score.tracking_error > 0.0);
-    }
-
-    /// The correction pays for its size on top of the relative prediction error: nothing at zero action
-    /// (whose relative cost is 1), `shift_weight` times the mean squared shift otherwise, and the
-    /// prediction part of the cost does not depend on the weight.
-    #[test]
-    fn the_correction_pays_for_its_size() {
-        let free = MeasuredSpec::default();
-        assert_eq!(free.cost.shift_weight, 0.0, "off by default");
-        let spec = MeasuredSpec { cost: PredictiveCost { shift_weight: 0.05, ..free.cost.clone() }, ..free.clone() };
-        let eps = bcal_common::measured::scenario::episode_set(&spec.scenario, Split::Validation, 1).unwrap();
-        let e = &eps[0];
-        let mut c = Correction::of_task(&spec);
-        let k = e.samples.len() / 2;
-        for s in &e.samples[..=k] {
-            c.ingest(s);
-        }
-        c.apply_action(&[0.0, 0.0]);
-        // 1 up to the round trip of the estimate through the filter's normalised units.
-        assert!((correction_cost(&spec, &c, e, k) - 1.0).abs() < 1e-9);
-        c.apply_action(&[0.8, -0.5]);
-        let [q, r] = c.shift();
-        assert!((q - 0.64).abs() < 1e-6 && (r + 0.25).abs() < 1e-6, "a|a|: {q} {r}");
-        let paid = correction_cost(&spec, &c, e, k) - correction_cost(&free, &c, e, k);
-        let expected = spec.cost.shift_weight * 0.5 * (q * q + r * r);
-        assert!((paid - expected).abs() < 1e-12, "{paid} against {expected}");
     }
 
     /// Zero action is the tuned filter: a policy whose weights are all zero reproduces the joint UKF's

@@ -670,7 +670,6 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
         ("measured.cost.eod_scale_s", c.eod_scale_s, 1e-3, 1e6),
         ("measured.cost.eod_weight", c.eod_weight, 0.0, 1e3),
         ("measured.cost.voltage_weight", c.voltage_weight, 0.0, 1e3),
-        ("measured.cost.shift_weight", c.shift_weight, 0.0, 1e3),
     ] {
         if !(v.is_finite() && lo <= v && v < hi) {
             return Err(invalid(key, v.to_string(), &format!("must be in [{lo}, {hi})")));

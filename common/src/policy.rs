@@ -524,7 +524,12 @@ impl PolicyFile {
             return Err(corrupt("checksum mismatch (truncated or damaged)".into()));
         }
         let (pf, _): (PolicyFile, usize) = bincode::serde::decode_from_slice(&bytes[12..], bincode::config::standard())
-            .map_err(|e| corrupt(format!("undecodable: {e}")))?;
+            .map_err(|e| {
+                corrupt(format!(
+                    "undecodable ({e}): written by a bcal whose task format differs from this one's (the file \
+                     records no schema version), or damaged; run it with the bcal that trained it, or retrain"
+                ))
+            })?;
         if pf.layout.obs_dim != pf.task.obs_dim() || pf.layout.act_dim != pf.task.act_dim() {
             return Err(corrupt(format!(
                 "network shape {}->{} does not match its task {}->{}",

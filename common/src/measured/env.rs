@@ -132,11 +132,6 @@ pub struct CorrectionSpec {
     /// on top of the adaptive UKF (on real cells the best filter); zero action is then that filter. None
     /// (default): the tuned filter's fixed noise. The rule owns the noise: not with `noise_actions`.
     pub adaptive: Option<AdaptiveRule>,
-    /// Whether the policy sees the filter's estimate itself (its mean qMobile and Ro, features 1-2; default
-    /// true). Off, those features read 0, so a policy cannot tie its correction to where an ageing cell's
-    /// parameters stand, a place its training cycles never reached. Tried on B0006 and B0018 (the k runs,
-    /// docs/calibrator.md): no better on the real validation cycles, so not the default.
-    pub observe_estimate: bool,
 }
 
 impl Default for CorrectionSpec {
@@ -151,7 +146,6 @@ impl Default for CorrectionSpec {
             walk_floor_per_sqrt_s: 1e-6,
             interval_scale: [1.645, 1.645],
             adaptive: None,
-            observe_estimate: true,
         }
     }
 }
@@ -191,13 +185,6 @@ pub struct PredictiveCost {
     pub eod_weight: f64,
     /// End-of-discharge error scale, s (default 30).
     pub eod_scale_s: f64,
-    /// Cost of the correction's size: this times the mean over the two parameters of the shift squared (as
-    /// a fraction of its largest), added to the cost (0.05: a whole shift of both costs 5 % of the filter's
-    /// relative cost). Where the prediction barely depends on the estimate (the last minutes before the
-    /// cut-off under an EOD-only cost) nothing else holds a shift near zero. Default 0: 0.05 was tried on
-    /// B0006 and B0018 (the j runs, docs/calibrator.md) and did no better on the real validation cycles.
-    /// (`lac.cost_max`, the relative cost's e^4, leaves this term out: at most `shift_weight` a step.)
-    pub shift_weight: f64,
 }
 
 impl Default for PredictiveCost {
@@ -211,7 +198,6 @@ impl Default for PredictiveCost {
             voltage_weight: 1.0,
             eod_weight: 1.0,
             eod_scale_s: 30.0,
-            shift_weight: 0.0,
         }
     }
 }
