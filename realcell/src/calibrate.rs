@@ -699,22 +699,21 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         // their mean (`tune::first_consistent`); else what is delivered is that filter.
         let reference = ukf_best.as_ref().map(|(_, _, c)| c.candidates[0].per_cycle_pct.clone());
         let position = reference.as_ref().map(|r| tune::first_consistent(&choice.candidates, r));
-        let need = |n: usize| (tune::MIN_WIN_SHARE * n as f64).ceil() as usize;
         if let Some(Some(p)) = position.filter(|p| *p != Some(0)) {
             progress(&format!(
                 "RL-LAC: the best in the mean ({}) beats the joint UKF on fewer than {} of {} validation cycles",
                 choice.chosen,
-                need(validation.len()),
+                tune::wins_needed(validation.len()),
                 validation.len()
             ));
-            choice = tune::rechoose(choice, p, &cands, &validation, &validation_before, cut);
+            choice = tune::chosen_at(choice.candidates, p, &cands, &validation, &validation_before, cut);
         }
         let t0 = Instant::now();
         if let (Some(None), Some((best, factor, ukf_choice))) = (position, &ukf_best) {
             let why = format!(
                 "no candidate beats the joint UKF chosen here on at least {} of {} validation cycles and in the mean: \
                  the joint UKF is delivered",
-                need(validation.len()),
+                tune::wins_needed(validation.len()),
                 validation.len()
             );
             progress(&format!("RL-LAC: {why}"));

@@ -55,6 +55,11 @@ pub fn per_cycle(records: &[CellRecord], runs: &[CycleRun]) -> Vec<f64> {
 /// delivered ([`first_consistent`]): 8 of 10 (were the two equally good, that would happen 5 times in 100).
 pub const MIN_WIN_SHARE: f64 = 0.75;
 
+/// The wins of [`MIN_WIN_SHARE`] of `n` validation cycles.
+pub fn wins_needed(n: usize) -> usize {
+    (MIN_WIN_SHARE * n as f64).ceil() as usize
+}
+
 /// One candidate's validation figures.
 #[derive(Clone, Debug, Serialize)]
 pub struct Candidate {
@@ -79,7 +84,7 @@ pub fn first_consistent(candidates: &[Candidate], reference: &[f64]) -> Option<u
     if n == 0 {
         return None;
     }
-    let need = (MIN_WIN_SHARE * n as f64).ceil() as usize;
+    let need = wins_needed(n);
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     candidates.iter().position(|c| {
         c.per_cycle_pct.len() == n
@@ -132,8 +137,9 @@ pub fn choose(
     Some(chosen_at(scored, 0, candidates, records, before, cutoff_v))
 }
 
-/// The choice of `scored[position]` (candidates scored best first), with its runs along `records`.
-fn chosen_at(
+/// The choice of `scored[position]` (candidates scored best first, as a [`Choice`] lists them), with its
+/// runs along `records`.
+pub fn chosen_at(
     scored: Vec<Candidate>,
     position: usize,
     candidates: &[(String, Streaming<'_>)],
@@ -150,18 +156,6 @@ fn chosen_at(
         candidates: scored,
         runs,
     }
-}
-
-/// `choice` moved to the candidate at `position` among its candidates (best first), its runs recomputed.
-pub fn rechoose(
-    choice: Choice,
-    position: usize,
-    candidates: &[(String, Streaming<'_>)],
-    records: &[CellRecord],
-    before: &[Before],
-    cutoff_v: f64,
-) -> Choice {
-    chosen_at(choice.candidates, position, candidates, records, before, cutoff_v)
 }
 
 #[cfg(test)]
