@@ -66,7 +66,10 @@ pub struct CalibrateArgs {
     /// `ukf` (the joint UKF, its settings chosen on the last training cycles), `adaptive_ukf` (that filter
     /// with its noise adapted by covariance matching, the rule chosen on the same cycles), `fit` (the doctor's
     /// offline least squares on the whole discharge: an oracle that sees the future). The references
-    /// (uncalibrated, previous cycle, prior, parameter trend) always run.
+    /// (uncalibrated, previous cycle, prior, parameter trend) always run. Over a cell's discharges the
+    /// policy serves each share of a discharge where it beat the joint UKF on 8 of the last 10 that ended,
+    /// else the filter, and every streaming calibrator hands a share to its prior alone where the prior
+    /// did (docs/realcell.md, "who serves each discharge").
     /// Default `ukf,adaptive_ukf,fit`; with --follow one of ukf, adaptive_ukf, fit (the streaming window fit),
     /// uncalibrated or rl:FILE (default ukf).
     #[arg(long, value_delimiter = ',')]

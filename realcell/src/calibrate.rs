@@ -19,7 +19,7 @@ use crate::prior::{learn_width, rests_before, PriorWalk, RestWidth};
 use crate::record::{prepare, CellRecord, RecordSummary};
 use crate::report::{CalibrationReport, MethodEntry};
 use crate::run::{knee_c, knees_before, run_all, run_sequence, Before, CycleRun, ParamTrend, Streaming};
-use crate::score::score;
+use crate::score::{score, EOD_FRACTIONS_PCT};
 use crate::tune;
 use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
 use bcal_common::battery::Degradation;
@@ -348,6 +348,19 @@ fn choose_announced(
     tune::choose(cands, validation, before, cutoff_v).expect("candidates and validation checked")
 }
 
+/// The judged cycles each share's gate served ([`tune::gate_runs`]), keyed by the share, %.
+fn served_cycles(judged: &[CellRecord], gates: &tune::Served) -> serde_json::Value {
+    let per: serde_json::Map<String, serde_json::Value> = EOD_FRACTIONS_PCT
+        .iter()
+        .zip(gates)
+        .map(|(f, g)| {
+            let cycles: Vec<u32> = judged.iter().zip(g).filter(|(_, g)| **g).map(|(j, _)| j.cycle).collect();
+            (f.to_string(), serde_json::json!(cycles))
+        })
+        .collect();
+    serde_json::Value::Object(per)
+}
+
 /// The validation cycles among a cell's training cycles, each with the prior `bcal calibrate` gives it.
 fn cell_validation(
     spec: &TrackerSpec,
@@ -534,17 +547,52 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     }
     let factors = prior_factors(&width);
     let mut widenings = serde_json::Map::new();
-    // A chosen streaming calibrator along the judged cycles, its intervals widened from its own runs along the
-    // validation cycles (`choice.runs`) and then from each judged discharge that has ended.
-    let judge = |cal: &Streaming,
-                 choice: &tune::Choice,
-                 widenings: &mut serde_json::Map<String, serde_json::Value>,
-                 key: &str| {
-        let mut r = run_sequence(cal, &judged, &judged_before, cut, &[1.0], false).remove(0);
-        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&choice.runs).collect();
-        let w = calibrate_intervals(&hist, &judged, &mut r);
+    // Parameters (and extended-model values) pinned for the whole discharge, each with its own model and the
+    // knee every method gets: the references, and the prior every streaming calibrator is held to.
+    let pinned = |pins: &dyn Fn(&Before, &CellRecord, usize) -> (Degradation, ModelExtension),
+                  recs: &[CellRecord],
+                  bs: &[Before]|
+     -> Vec<CycleRun> {
+        let s = spec.tracker.clone();
+        let pins: Vec<(Degradation, ModelExtension)> =
+            bs.iter().zip(recs).enumerate().map(|(k, (b, r))| pins(b, r, k)).collect();
+        let b: Vec<Before> =
+            pins.iter().zip(bs).map(|((d, m), jb)| Before { prior: *d, model: m.clone(), ..jb.clone() }).collect();
+        run_all(recs, &b, cut, move |k| Streaming::Pinned { spec: s.clone(), d: pins[k].0 })
+    };
+    // A chosen streaming calibrator's runs along the judged cycles (along the validation ones: its choice's).
+    let raw = |cal: &Streaming, choice: &tune::Choice| tune::Runs {
+        validation: choice.runs.clone(),
+        judged: run_sequence(cal, &judged, &judged_before, cut, &[1.0], false).remove(0),
+    };
+    let prior_pin = |b: &Before, _: &CellRecord, _: usize| (b.prior, b.model.clone());
+    let prior_runs = tune::Runs {
+        validation: pinned(&prior_pin, &validation, &validation_before),
+        judged: pinned(&prior_pin, &judged, &judged_before),
+    };
+    // Every streaming calibrator is held to the prior it starts from (issue 18, item 5): the prior alone
+    // serves a discharge where it beat the calibrator on most of the last that ended (`tune::gate_runs`).
+    // Then its intervals are widened from its runs along the validation cycles and each judged discharge
+    // that has ended.
+    let deliver = |key: &'static str,
+                   r: tune::Runs,
+                   entry: &mut serde_json::Value,
+                   widenings: &mut serde_json::Map<String, serde_json::Value>,
+                   runs: &mut Vec<(&'static str, Vec<CycleRun>)>| {
+        let alone = MethodEntry::new(key, score(&judged, &r.judged));
+        let (mut held, gate) = tune::gate_runs(&prior_runs, &r, &validation, &judged);
+        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
+        let w = calibrate_intervals(&hist, &judged, &mut held.judged);
         widenings.insert(key.into(), serde_json::to_value(&w).unwrap_or_default());
-        r
+        entry["held_to_prior"] = serde_json::json!({
+            "prior_cycles": served_cycles(&judged, &gate),
+            "alone": {"capacity_rmse_ah": alone.capacity_rmse_ah, "eod_error_pct": alone.eod_error_pct},
+            "what": format!("the prior alone (`prior`) serves the readings of a judged discharge near a share of it \
+                (10 / 50 / 90 %, by the predicted end) when it beat this calibrator's EOD error there on at least \
+                {:.0} % of the last {} discharges that ended before it (validation cycles first) and in their mean \
+                (`prior_cycles`, per share); `alone`: the calibrator's figures without it",
+                tune::MIN_WIN_SHARE * 100.0, tune::GATE_WINDOW)});
+        runs.push((key, held.judged));
     };
 
     // The joint UKF: the grid's settings, chosen on the validation cycles (first: the RL correction may
@@ -583,6 +631,14 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         ));
         ukf_best = Some((best, factor, choice));
     }
+    // Its runs along the judged cycles: delivered as `ukf`, and the filter the policy is gated against.
+    let ukf_runs = ukf_best.as_ref().map(|(best, factor, choice)| {
+        let t0 = Instant::now();
+        let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: *best, prior_factor: *factor };
+        let r = raw(&cal, choice);
+        progress(&format!("joint UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
+        r
+    });
 
     // The adaptive UKF (issue 18, item 3): the covariance-matching rules on top of the chosen filter, with its
     // prior width, chosen by the same validation objective (the same effort as the filter it adapts). Chosen
@@ -695,87 +751,80 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         }
         let what = ("RL-LAC", "candidates (policy files x filters and prior widths)");
         let mut choice = choose_announced(progress, what, &cands, &validation, &validation_before, cut);
-        // Delivered only when it beats the joint UKF chosen here on most validation cycles, not just in
-        // their mean (`tune::first_consistent`); else what is delivered is that filter.
+        // The policy: the best in the mean that also beats the joint UKF chosen here on most validation
+        // cycles (`tune::first_consistent`), else the best in the mean; which of the two serves each judged
+        // discharge is then the online gate's call.
         let reference = ukf_best.as_ref().map(|(_, _, c)| c.candidates[0].per_cycle_pct.clone());
-        let position = reference.as_ref().map(|r| tune::first_consistent(&choice.candidates, r));
-        if let Some(Some(p)) = position.filter(|p| *p != Some(0)) {
-            progress(&format!(
-                "RL-LAC: the best in the mean ({}) beats the joint UKF on fewer than {} of {} validation cycles",
-                choice.chosen,
-                tune::wins_needed(validation.len()),
-                validation.len()
-            ));
-            choice = tune::chosen_at(choice.candidates, p, &cands, &validation, &validation_before, cut);
+        if let Some(p) = reference.as_ref().and_then(|r| tune::first_consistent(&choice.candidates, r)) {
+            if p != 0 {
+                progress(&format!(
+                    "RL-LAC: the best in the mean ({}) beats the joint UKF on fewer than {} of {} validation cycles",
+                    choice.chosen,
+                    tune::wins_needed(validation.len()),
+                    validation.len()
+                ));
+                choice = tune::chosen_at(choice.candidates, p, &cands, &validation, &validation_before, cut);
+            }
         }
+        let (path, update, setting) = &meta[choice.index];
+        progress(&format!(
+            "RL-LAC: {}; validation EOD error {:.2} %",
+            choice.chosen,
+            choice.candidates.iter().find(|c| c.index == choice.index).map_or(f64::NAN, |c| c.eod_error_pct)
+        ));
         let t0 = Instant::now();
-        if let (Some(None), Some((best, factor, ukf_choice))) = (position, &ukf_best) {
-            let why = format!(
-                "no candidate beats the joint UKF chosen here on at least {} of {} validation cycles and in the mean: \
-                 the joint UKF is delivered",
-                tune::wins_needed(validation.len()),
-                validation.len()
-            );
-            progress(&format!("RL-LAC: {why}"));
-            let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: *best, prior_factor: *factor };
-            runs.push(("rl", judge(&cal, ukf_choice, &mut widenings, "rl")));
-            settings.insert(
-                "rl".into(),
-                serde_json::json!({"policy_file": null, "update_step": null, "delivered": why, "validation": choice,
-                    "setting": {"filter": best, "prior_factor": factor}}),
-            );
-        } else {
-            let (path, update, setting) = &meta[choice.index];
-            progress(&format!(
-                "RL-LAC: {}; validation EOD error {:.2} %",
-                choice.chosen,
-                choice.candidates.iter().find(|c| c.index == choice.index).map_or(f64::NAN, |c| c.eod_error_pct)
-            ));
-            runs.push(("rl", judge(&cands[choice.index].1, &choice, &mut widenings, "rl")));
-            settings.insert(
-                "rl".into(),
-                serde_json::json!({"policy_file": path, "update_step": update, "validation": choice,
-                    "setting": setting}),
-            );
-        }
+        let policy = raw(&cands[choice.index].1, &choice);
+        let mut rl_settings = serde_json::json!({"policy_file": path, "update_step": update, "validation": choice,
+            "setting": setting});
+        let delivered = match &ukf_runs {
+            // Online gate: each discharge gets the policy or the joint UKF chosen here, by their record on the
+            // discharges that ended before it (`tune::gate_runs`).
+            Some(filter) => {
+                let (r, gate) = tune::gate_runs(&policy, filter, &validation, &judged);
+                let served = served_cycles(&judged, &gate);
+                progress(&format!(
+                    "RL-LAC: the policy serves {} / {} / {} of {} judged discharges at 10 / 50 / 90 % (the joint \
+                     UKF the rest)",
+                    gate[0].iter().filter(|g| **g).count(),
+                    gate[1].iter().filter(|g| **g).count(),
+                    gate[2].iter().filter(|g| **g).count(),
+                    judged.len()
+                ));
+                let (best, factor, _) = ukf_best.as_ref().expect("its runs are");
+                let alone = MethodEntry::new("rl", score(&judged, &policy.judged));
+                rl_settings["gate"] = serde_json::json!({
+                    "what": format!("the readings of a judged discharge near a share of it (10 / 50 / 90 %, by the \
+                        filter's predicted end) are served by the policy when it beat the joint UKF chosen here at \
+                        that share on at least {:.0} % of the last {} discharges that ended before it (validation \
+                        cycles first) and in their mean (`policy_cycles`, per share), else by that filter",
+                        tune::MIN_WIN_SHARE * 100.0, tune::GATE_WINDOW),
+                    "policy_cycles": served, "filter": {"settings": best, "prior_factor": factor},
+                    "policy_alone": {"capacity_rmse_ah": alone.capacity_rmse_ah, "eod_error_pct": alone.eod_error_pct}});
+                r
+            }
+            None => policy,
+        };
+        deliver("rl", delivered, &mut rl_settings, &mut widenings, &mut runs);
+        settings.insert("rl".into(), rl_settings);
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
     }
-    if input.ukf {
-        let (best, factor, choice) = ukf_best.clone().expect("chosen above");
-        let t0 = Instant::now();
-        let cal = Streaming::Ukf { spec: spec.tracker.clone(), settings: best, prior_factor: factor };
-        let r = judge(&cal, &choice, &mut widenings, "ukf");
-        progress(&format!("joint UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
-        runs.push(("ukf", r));
+    if let (true, Some((best, factor, choice)), Some(r)) = (input.ukf, &ukf_best, &ukf_runs) {
         let mut top = choice.clone();
         top.candidates.truncate(5);
-        settings.insert("ukf".into(), serde_json::json!({"settings": best, "prior_factor": factor, "validation": top}));
+        let mut entry = serde_json::json!({"settings": best, "prior_factor": factor, "validation": top});
+        deliver("ukf", r.clone(), &mut entry, &mut widenings, &mut runs);
+        settings.insert("ukf".into(), entry);
     }
     if let Some((rule, cands, choice)) = &adaptive_best {
         let (best, factor, _) = ukf_best.clone().expect("chosen above");
         let t0 = Instant::now();
-        let r = judge(&cands[choice.index].1, choice, &mut widenings, "adaptive_ukf");
+        let r = raw(&cands[choice.index].1, choice);
         progress(&format!("adaptive UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
-        runs.push(("adaptive_ukf", r));
-        settings.insert(
-            "adaptive_ukf".into(),
-            serde_json::json!({"filter": best, "prior_factor": factor, "rule": rule, "validation": choice}),
-        );
+        let mut entry = serde_json::json!({"filter": best, "prior_factor": factor, "rule": rule, "validation": choice});
+        deliver("adaptive_ukf", r, &mut entry, &mut widenings, &mut runs);
+        settings.insert("adaptive_ukf".into(), entry);
     }
-    // The references: parameters (and extended-model values) pinned for the whole discharge, each with its
-    // own model and the knee every method gets, run on the validation cycles too (their errors start the
-    // references' intervals).
-    let pinned = |pins: &dyn Fn(&Before, &CellRecord, usize) -> (Degradation, ModelExtension),
-                  recs: &[CellRecord],
-                  bs: &[Before]|
-     -> Vec<CycleRun> {
-        let s = spec.tracker.clone();
-        let pins: Vec<(Degradation, ModelExtension)> =
-            bs.iter().zip(recs).enumerate().map(|(k, (b, r))| pins(b, r, k)).collect();
-        let b: Vec<Before> =
-            pins.iter().zip(bs).map(|((d, m), jb)| Before { prior: *d, model: m.clone(), ..jb.clone() }).collect();
-        run_all(recs, &b, cut, move |k| Streaming::Pinned { spec: s.clone(), d: pins[k].0 })
-    };
+    // The references, run on the validation cycles too (their errors start the references' intervals).
     let validation_fits: Vec<(Degradation, ModelExtension)> =
         validation_idx.iter().map(|&k| train_fits[k].clone()).collect();
     let trend = ParamTrend::fit(&train.iter().zip(&train_fits).map(|(r, f)| (r.cycle, f.0)).collect::<Vec<_>>());

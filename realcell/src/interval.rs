@@ -20,7 +20,7 @@
 use crate::predict::Predicted;
 use crate::record::CellRecord;
 use crate::run::CycleRun;
-use crate::score::{CAPACITY_FRACTIONS_PCT, EOD_FRACTIONS_PCT};
+use crate::score::{share_bin, CAPACITY_FRACTIONS_PCT, EOD_FRACTIONS_PCT};
 use serde::Serialize;
 
 /// How many of the latest complete discharges the error term is learned on.
@@ -189,15 +189,7 @@ pub fn calibrate_intervals(
         for s in &mut run.steps {
             let load_on = r.load_on_s;
             if let Some(v) = s.eod.value {
-                // The share of the discharge passed, as this reading predicts it (no look-ahead).
-                let passed_pct = 100.0 * (s.t_s - load_on) / (v - load_on).max(1.0);
-                let b = (0..EOD_FRACTIONS_PCT.len())
-                    .min_by(|&i, &j| {
-                        (f64::from(EOD_FRACTIONS_PCT[i]) - passed_pct)
-                            .abs()
-                            .total_cmp(&(f64::from(EOD_FRACTIONS_PCT[j]) - passed_pct).abs())
-                    })
-                    .unwrap_or(0);
+                let b = share_bin(load_on, s.t_s, v);
                 widen(&mut s.eod, &eod[b], |v| (v - load_on).max(1.0));
             }
             widen(&mut s.capacity, &cap, |v| v.abs().max(1e-6));

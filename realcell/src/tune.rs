@@ -7,7 +7,7 @@
 
 use crate::record::CellRecord;
 use crate::run::{run_sequence, Before, CycleRun, Streaming};
-use crate::score::{score, EOD_FRACTIONS_PCT};
+use crate::score::{score, share_bin, EOD_FRACTIONS_PCT};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -34,12 +34,16 @@ pub fn validation_records(train: &[CellRecord]) -> Vec<usize> {
 /// The objective every choice minimises: the mean absolute end-of-discharge error, % of the discharge,
 /// averaged over the fractions seen (10 / 50 / 90 %). Infinite when a prediction failed.
 pub fn objective(records: &[CellRecord], runs: &[CycleRun]) -> f64 {
+    objective_at(records, runs, &EOD_FRACTIONS_PCT)
+}
+
+/// [`objective`] over some of the fractions only.
+fn objective_at(records: &[CellRecord], runs: &[CycleRun], fractions: &[u32]) -> f64 {
     let s = score(records, runs);
     if s.failures > 0 {
         return f64::INFINITY;
     }
-    let v: Vec<f64> =
-        EOD_FRACTIONS_PCT.iter().filter_map(|f| s.eod_error_pct.get(&f.to_string())).map(|q| q.mean).collect();
+    let v: Vec<f64> = fractions.iter().filter_map(|f| s.eod_error_pct.get(&f.to_string())).map(|q| q.mean).collect();
     if v.is_empty() {
         return f64::INFINITY;
     }
@@ -48,7 +52,11 @@ pub fn objective(records: &[CellRecord], runs: &[CycleRun]) -> f64 {
 
 /// The per-discharge [`objective`] of `runs` along `records`, % (infinite where a prediction failed).
 pub fn per_cycle(records: &[CellRecord], runs: &[CycleRun]) -> Vec<f64> {
-    (0..records.len().min(runs.len())).map(|k| objective(&records[k..=k], &runs[k..=k])).collect()
+    per_cycle_at(records, runs, &EOD_FRACTIONS_PCT)
+}
+
+fn per_cycle_at(records: &[CellRecord], runs: &[CycleRun], fractions: &[u32]) -> Vec<f64> {
+    (0..records.len().min(runs.len())).map(|k| objective_at(&records[k..=k], &runs[k..=k], fractions)).collect()
 }
 
 /// Share of the validation cycles on which a learned calibrator must beat the joint UKF chosen there to be
@@ -74,23 +82,114 @@ pub struct Candidate {
     pub per_cycle_pct: Vec<f64>,
 }
 
-/// The first of `candidates` (best first) that beats `reference` (the per-cycle objective of the filter it
-/// must earn its place against) both in the mean and on at least [`MIN_WIN_SHARE`] of the cycles, as a
-/// position in `candidates`; None when none does. A mean over 10 validation cycles can be won on two or
-/// three of them, and policies chosen that way lost to the filter on most of the discharges that followed
-/// (docs/calibrator.md, "where along the life the policies lose").
-pub fn first_consistent(candidates: &[Candidate], reference: &[f64]) -> Option<usize> {
-    let n = reference.len();
-    if n == 0 {
-        return None;
+/// Whether a learned calibrator whose per-discharge [`objective`] was `mine` earns its place against the
+/// filter's `theirs` on the same discharges: it beats it in the mean and on at least [`MIN_WIN_SHARE`] of
+/// them (a tie is not a win). Nothing to judge on: no.
+pub fn earns(mine: &[f64], theirs: &[f64]) -> bool {
+    let n = theirs.len();
+    if n == 0 || mine.len() != n {
+        return false;
     }
-    let need = wins_needed(n);
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
-    candidates.iter().position(|c| {
-        c.per_cycle_pct.len() == n
-            && mean(&c.per_cycle_pct) < mean(reference)
-            && c.per_cycle_pct.iter().zip(reference).filter(|(a, b)| a < b).count() >= need
-    })
+    mean(mine) < mean(theirs) && mine.iter().zip(theirs).filter(|(a, b)| a < b).count() >= wins_needed(n)
+}
+
+/// The first of `candidates` (best first) that [`earns`] its place against `reference` (the per-cycle
+/// objective of the filter along the validation cycles), as a position in `candidates`; None when none
+/// does. A mean over 10 validation cycles can be won on two or three of them, and policies chosen that way
+/// lost to the filter on most of the discharges that followed (docs/calibrator.md, "where along the life
+/// the policies lose").
+pub fn first_consistent(candidates: &[Candidate], reference: &[f64]) -> Option<usize> {
+    candidates.iter().position(|c| earns(&c.per_cycle_pct, reference))
+}
+
+/// How many of the latest ended discharges [`online_gate`] judges on (as many as the intervals learn on).
+pub const GATE_WINDOW: usize = crate::interval::WINDOW;
+
+/// Per discharge of `judged` ((alternative, base) [`objective`] pairs, in order), whether the alternative (a
+/// policy, or the prior alone) serves it: when it [`earns`] its place against the base on the last
+/// [`GATE_WINDOW`] discharges that ended before it and were scored for both (`history`, the validation
+/// cycles, first), else the base does. The start of each discharge is all it looks at, so it runs as a cell's
+/// discharges come: a policy that predicts better only at some ages of the cell is used there
+/// (docs/calibrator.md, "where along the life the policies lose"). A discharge neither scored (cut short)
+/// does not count; until a full window has ended, the base.
+pub fn online_gate(history: &[(f64, f64)], judged: &[(f64, f64)]) -> Vec<bool> {
+    let scored = |p: &&(f64, f64)| p.0.is_finite() || p.1.is_finite();
+    let mut past: Vec<(f64, f64)> = history.iter().filter(scored).copied().collect();
+    let mut out = Vec::with_capacity(judged.len());
+    for pair in judged {
+        let recent = &past[past.len().saturating_sub(GATE_WINDOW)..];
+        let (mine, theirs): (Vec<f64>, Vec<f64>) = recent.iter().copied().unzip();
+        out.push(recent.len() == GATE_WINDOW && earns(&mine, &theirs));
+        if scored(&pair) {
+            past.push(*pair);
+        }
+    }
+    out
+}
+
+/// One calibrator's runs before their intervals are widened: along the validation cycles and the judged ones.
+#[derive(Clone, Debug, Default)]
+pub struct Runs {
+    pub validation: Vec<CycleRun>,
+    pub judged: Vec<CycleRun>,
+}
+
+/// Per share of the discharge ([`EOD_FRACTIONS_PCT`]), the discharges on which [`gate_runs`] served `alt`.
+pub type Served = [Vec<bool>; EOD_FRACTIONS_PCT.len()];
+
+/// `alt` where [`online_gate`] delivers it against `base`, else `base`, decided per share of the discharge
+/// (each reading goes by [`share_bin`], the share its `base` prediction puts it at), each on that share's
+/// EOD error: a correction can predict better at half the discharge and worse at a tenth (B0006), and a
+/// reading near the start is then served by the filter, one near the middle by the policy. Validation cycles
+/// are gated on the ones before them alone (they start the intervals), judged ones on every discharge that
+/// ended before. Each calibrator runs every discharge from its own prior, so choosing after the fact is
+/// what running the gate live would give.
+pub fn gate_runs(alt: &Runs, base: &Runs, validation: &[CellRecord], judged: &[CellRecord]) -> (Runs, Served) {
+    let mut val_gates: Served = Default::default();
+    let mut gates: Served = Default::default();
+    for (b, f) in EOD_FRACTIONS_PCT.iter().enumerate() {
+        let pairs = |records: &[CellRecord], a: &[CycleRun], o: &[CycleRun]| -> Vec<(f64, f64)> {
+            per_cycle_at(records, a, &[*f]).into_iter().zip(per_cycle_at(records, o, &[*f])).collect()
+        };
+        let history = pairs(validation, &alt.validation, &base.validation);
+        val_gates[b] = online_gate(&[], &history);
+        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged));
+    }
+    let runs = Runs {
+        validation: compose(validation, &val_gates, &alt.validation, &base.validation),
+        judged: compose(judged, &gates, &alt.judged, &base.judged),
+    };
+    (runs, gates)
+}
+
+/// Each discharge's readings from `alt` where its share's gate serves it, else from `base` (the same
+/// readings, so the steps pair up).
+fn compose(records: &[CellRecord], gates: &Served, alt: &[CycleRun], base: &[CycleRun]) -> Vec<CycleRun> {
+    records
+        .iter()
+        .zip(alt.iter().zip(base))
+        .enumerate()
+        .map(|(k, (r, (a, o)))| {
+            if gates.iter().all(|g| !g[k]) || a.steps.len() != o.steps.len() {
+                return o.clone();
+            }
+            let steps = a
+                .steps
+                .iter()
+                .zip(&o.steps)
+                .map(|(sa, so)| {
+                    let bin = so.eod.value.map_or(0, |v| share_bin(r.load_on_s, so.t_s, v));
+                    if gates[bin][k] {
+                        sa.clone()
+                    } else {
+                        so.clone()
+                    }
+                })
+                .collect();
+            CycleRun { cycle: o.cycle, steps }
+        })
+        .collect()
 }
 
 /// What the validation cycles chose for one calibrator.
@@ -183,5 +282,96 @@ mod tests {
         assert_eq!(first_consistent(&[worse], &filter), None);
         assert_eq!(first_consistent(&[candidate(0, filter.clone())], &filter), None);
         assert_eq!(first_consistent(&[steady], &[]), None);
+    }
+
+    /// The gate delivers the policy once it has won 8 of the last 10 ended discharges and the mean, takes
+    /// it back as soon as that stops holding, looks only at discharges that ended before, and skips the ones
+    /// neither method scored.
+    #[test]
+    fn the_gate_follows_the_policys_recent_record() {
+        let lose = (0.6, 0.5);
+        let win = (0.4, 0.5);
+        let unscored = (f64::INFINITY, f64::INFINITY);
+        // Validation: 7 wins of 10 (the losses oldest), not enough for the first judged discharge.
+        let history = [vec![lose; 3], vec![win; 7]].concat();
+        let judged = [vec![win; 3], vec![unscored], vec![lose; 4]].concat();
+        // Wins in the window before each judged discharge: 7, 8, 9, 10, 10 (the unscored one left out), 9, 8, 7.
+        assert_eq!(online_gate(&history, &judged), vec![false, true, true, true, true, true, true, false]);
+        // Eight wins but a mean lost to one bad discharge: not delivered.
+        let history = [vec![win; 8], vec![(9.0, 0.5); 2]].concat();
+        assert_eq!(online_gate(&history, &[win]), vec![false]);
+        // Fewer than a full window ended before: the filter.
+        assert_eq!(online_gate(&[], &[win; 11]), [vec![false; 10], vec![true]].concat());
+        // A policy whose prediction failed loses that discharge.
+        let history = [vec![win; 8], vec![(f64::INFINITY, 0.5); 2]].concat();
+        assert_eq!(online_gate(&history, &[win]), vec![false]);
+    }
+
+    /// A discharge of 100 s whose readings predict the end at `eod_at(t)`.
+    fn discharge(cycle: u32, eod_at: impl Fn(f64) -> f64) -> (CellRecord, CycleRun) {
+        use bcal_common::measured::scenario::{Request, Sample};
+        let samples: Vec<Sample> = (0..=100)
+            .map(|t| Sample {
+                t_s: f64::from(t),
+                voltage_v: 3.5,
+                current_a: 2.0,
+                temperature_k: 297.0,
+                request: Request::Unknown,
+            })
+            .collect();
+        let steps = samples
+            .iter()
+            .map(|s| crate::run::Step {
+                t_s: s.t_s,
+                estimate: bcal_common::battery::Degradation::default(),
+                interval: None,
+                eod: crate::predict::Predicted { value: Some(eod_at(s.t_s)), lo: None, hi: None },
+                capacity: crate::predict::Predicted { value: Some(1.0), lo: None, hi: None },
+            })
+            .collect();
+        let record = CellRecord {
+            cell: "T".into(),
+            cycle,
+            source: "t".into(),
+            load_on_s: 0.0,
+            eod_s: Some(100.0),
+            current_a: 2.0,
+            data_capacity_ah: Some(1.0),
+            stated_capacity_ah: None,
+            ambient_k: 297.0,
+            rest_before_s: None,
+            samples,
+        };
+        (record, CycleRun { cycle, steps })
+    }
+
+    /// A policy that predicts the end better mid-discharge and worse near its start and end serves only the
+    /// middle once it has done so on a full window; before that, and elsewhere, the filter does.
+    #[test]
+    fn the_gate_serves_each_share_of_a_discharge_by_its_own_record() {
+        let policy = |t: f64| if (30.0..=70.0).contains(&t) { 101.0 } else { 110.0 };
+        let filter = |_: f64| 102.0;
+        let build = |cycles: std::ops::Range<u32>, f: &dyn Fn(f64) -> f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles.map(|c| discharge(c, f)).unzip()
+        };
+        let (validation, pv) = build(1..11, &policy);
+        let (_, fv) = build(1..11, &filter);
+        let (judged, pj) = build(11..14, &policy);
+        let (_, fj) = build(11..14, &filter);
+        let (runs, served) = gate_runs(
+            &Runs { validation: pv, judged: pj.clone() },
+            &Runs { validation: fv.clone(), judged: fj.clone() },
+            &validation,
+            &judged,
+        );
+        assert_eq!(served, [vec![false; 3], vec![true; 3], vec![false; 3]]);
+        for (k, r) in runs.judged.iter().enumerate() {
+            for t in [5, 10, 50, 90, 100] {
+                let expect = if t == 50 { &pj[k] } else { &fj[k] };
+                assert_eq!(r.steps[t].eod.value, expect.steps[t].eod.value, "judged {k}, t {t}");
+            }
+        }
+        // Along the validation cycles themselves nothing ended before the first: the filter throughout.
+        assert!(runs.validation.iter().zip(&fv).all(|(a, b)| a.steps[50].eod.value == b.steps[50].eod.value));
     }
 }
