@@ -469,8 +469,22 @@ pub struct PolicyFile {
     pub params: Vec<f32>,
 }
 
-// Version 2: the policy carries a task (paper or measured) instead of a paper MDP.
-const POLICY_MAGIC: &[u8; 8] = b"BCALPOL2";
+// Version 3: the task travels as JSON inside the payload, so a task field added later (with its serde
+// default, as every config field has) leaves earlier files readable, and a file from a newer bcal names the
+// field this one does not know. Version 2 (task in bincode, readable only while the task format stands
+// still) still loads.
+const POLICY_MAGIC: &[u8; 8] = b"BCALPOL3";
+const POLICY_MAGIC_V2: &[u8; 8] = b"BCALPOL2";
+
+/// A policy file's payload (version 3): [`PolicyFile`] with its task as JSON.
+#[derive(Serialize, Deserialize)]
+struct Stored {
+    layout: PolicyLayout,
+    task_json: String,
+    experiment: crate::dataset::Experiment,
+    update_step: u64,
+    params: Vec<f32>,
+}
 
 /// A run folder's policy files: the latest weights (written at every checkpoint) ...
 pub const POLICY_LAST: &str = "policy.bcalpol";
@@ -493,10 +507,17 @@ pub enum PolicyFileError {
 }
 
 impl PolicyFile {
-    /// Atomic write ([`crate::fsutil`]): magic + CRC32 + bincode payload.
+    /// Atomic write ([`crate::fsutil`]): magic + CRC32 + bincode payload (the task inside it as JSON).
     pub fn save(&self, path: &std::path::Path) -> Result<(), PolicyFileError> {
         use std::io::Write;
-        let payload = bincode::serde::encode_to_vec(self, bincode::config::standard()).expect("policies serialise");
+        let stored = Stored {
+            layout: self.layout.clone(),
+            task_json: serde_json::to_string(&self.task).expect("tasks serialise"),
+            experiment: self.experiment,
+            update_step: self.update_step,
+            params: self.params.clone(),
+        };
+        let payload = bincode::serde::encode_to_vec(&stored, bincode::config::standard()).expect("policies serialise");
         crate::fsutil::write_atomic_with(path, |f| {
             f.write_all(POLICY_MAGIC)?;
             f.write_all(&crc32fast::hash(&payload).to_le_bytes())?;
@@ -516,20 +537,45 @@ impl PolicyFile {
         if bytes.len() >= 8 && &bytes[..8] == b"BCALPOL1" {
             return Err(corrupt("a policy file of an older bcal (no task recorded); retrain the run".into()));
         }
-        if bytes.len() < 12 || &bytes[..8] != POLICY_MAGIC {
-            return Err(corrupt("not a bcal policy file (bad magic or too short)".into()));
+        let version = match bytes.get(..8) {
+            Some(m) if m == POLICY_MAGIC => 3,
+            Some(m) if m == POLICY_MAGIC_V2 => 2,
+            _ => return Err(corrupt("not a bcal policy file (bad magic or too short)".into())),
+        };
+        if bytes.len() < 12 {
+            return Err(corrupt("not a bcal policy file (too short)".into()));
         }
         let crc = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
         if crc32fast::hash(&bytes[12..]) != crc {
             return Err(corrupt("checksum mismatch (truncated or damaged)".into()));
         }
-        let (pf, _): (PolicyFile, usize) = bincode::serde::decode_from_slice(&bytes[12..], bincode::config::standard())
-            .map_err(|e| {
+        let pf = if version == 3 {
+            let (st, _): (Stored, usize) = bincode::serde::decode_from_slice(&bytes[12..], bincode::config::standard())
+                .map_err(|e| corrupt(format!("undecodable ({e}): damaged")))?;
+            let task = serde_json::from_str(&st.task_json).map_err(|e| {
                 corrupt(format!(
-                    "undecodable ({e}): written by a bcal whose task format differs from this one's (the file \
-                     records no schema version), or damaged; run it with the bcal that trained it, or retrain"
+                    "its task does not read here ({e}): written by a newer bcal (a field this one does not know); \
+                     run it with that bcal"
                 ))
             })?;
+            PolicyFile {
+                layout: st.layout,
+                task,
+                experiment: st.experiment,
+                update_step: st.update_step,
+                params: st.params,
+            }
+        } else {
+            let (pf, _): (PolicyFile, usize) =
+                bincode::serde::decode_from_slice(&bytes[12..], bincode::config::standard()).map_err(|e| {
+                    corrupt(format!(
+                        "undecodable ({e}): a version-2 policy file (its task in a fixed binary layout) written by a \
+                         bcal whose task format differs from this one's, or damaged; run it with the bcal that \
+                         trained it, or retrain (policies written since carry their task as JSON and stay readable)"
+                    ))
+                })?;
+            pf
+        };
         if pf.layout.obs_dim != pf.task.obs_dim() || pf.layout.act_dim != pf.task.act_dim() {
             return Err(corrupt(format!(
                 "network shape {}->{} does not match its task {}->{}",
@@ -545,5 +591,68 @@ impl PolicyFile {
     /// The runnable network.
     pub fn net(&self) -> Result<PolicyNet, PolicyError> {
         PolicyNet::from_flat(self.layout.clone(), self.params.clone())
+    }
+}
+
+#[cfg(test)]
+mod file_tests {
+    use super::*;
+
+    fn measured_file() -> PolicyFile {
+        let task = crate::task::Task::Measured(crate::measured::env::MeasuredSpec::default());
+        let layout = PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: vec![4] };
+        let params = (0..layout.n_params()).map(|k| (k as f32 * 0.37).sin() * 0.1).collect();
+        PolicyFile { layout, task, experiment: crate::dataset::Experiment::Multi, update_step: 42, params }
+    }
+
+    /// Writes a version-3 file whose task JSON went through `edit` (as another bcal would have written it).
+    fn write_v3(path: &std::path::Path, pf: &PolicyFile, edit: impl Fn(&mut serde_json::Value)) {
+        let mut task = serde_json::to_value(&pf.task).unwrap();
+        edit(&mut task);
+        let stored = Stored {
+            layout: pf.layout.clone(),
+            task_json: task.to_string(),
+            experiment: pf.experiment,
+            update_step: pf.update_step,
+            params: pf.params.clone(),
+        };
+        let payload = bincode::serde::encode_to_vec(&stored, bincode::config::standard()).unwrap();
+        let bytes = [&POLICY_MAGIC[..], &crc32fast::hash(&payload).to_le_bytes(), &payload].concat();
+        std::fs::write(path, bytes).unwrap();
+    }
+
+    /// A policy file keeps its task through save and load; one written before a task field existed loads
+    /// with that field's default; one naming a field this bcal does not know is refused, naming it; a
+    /// version-2 file (task in bincode) still loads.
+    #[test]
+    fn policy_files_carry_their_task_across_versions() {
+        let dir = tempfile::tempdir().unwrap();
+        let pf = measured_file();
+        let path = dir.path().join("p.bcalpol");
+        pf.save(&path).unwrap();
+        assert_eq!(PolicyFile::load(&path).unwrap(), pf);
+
+        // An older bcal's file: no `correction` in its task (the field came later).
+        let mut changed = pf.clone();
+        if let crate::task::Task::Measured(m) = &mut changed.task {
+            m.correction.shift_max_sd = 3.0;
+        }
+        write_v3(&path, &changed, |t| {
+            t["Measured"].as_object_mut().unwrap().remove("correction");
+        });
+        assert_eq!(PolicyFile::load(&path).unwrap(), pf, "the missing field takes its default");
+
+        // A newer bcal's file: a field this one does not know.
+        write_v3(&path, &pf, |t| {
+            t["Measured"]["correction"]["a_later_option"] = serde_json::json!(0.5);
+        });
+        let err = PolicyFile::load(&path).unwrap_err().to_string();
+        assert!(err.contains("a_later_option") && err.contains("newer bcal"), "{err}");
+
+        // Version 2: the whole file in bincode.
+        let payload = bincode::serde::encode_to_vec(&pf, bincode::config::standard()).unwrap();
+        let bytes = [&POLICY_MAGIC_V2[..], &crc32fast::hash(&payload).to_le_bytes(), &payload].concat();
+        std::fs::write(&path, bytes).unwrap();
+        assert_eq!(PolicyFile::load(&path).unwrap(), pf);
     }
 }

@@ -571,7 +571,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         judged: pinned(&prior_pin, &judged, &judged_before),
     };
     // Every streaming calibrator is held to the prior it starts from (issue 18, item 5): the prior alone
-    // serves a discharge where it beat the calibrator on most of the last that ended (`tune::gate_runs`).
+    // serves a share of a discharge where it beat the calibrator there on most of the last that ended
+    // (`tune::gate_runs`).
     // Then its intervals are widened from its runs along the validation cycles and each judged discharge
     // that has ended.
     let deliver = |key: &'static str,
