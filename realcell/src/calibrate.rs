@@ -855,8 +855,15 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     ));
     settings.insert("uncalibrated".into(), serde_json::to_value(Degradation::default()).unwrap_or_default());
     for (key, pin) in &references {
-        let hist_runs = pinned(&|b, r, k| pin(b, r, k, false), &validation, &validation_before);
-        let mut r = pinned(&|b, r, k| pin(b, r, k, true), &judged, &judged_before);
+        // The prior's runs were made for the streaming calibrators' hold: not run twice.
+        let (hist_runs, mut r) = if *key == "prior" {
+            (prior_runs.validation.clone(), prior_runs.judged.clone())
+        } else {
+            (
+                pinned(&|b, r, k| pin(b, r, k, false), &validation, &validation_before),
+                pinned(&|b, r, k| pin(b, r, k, true), &judged, &judged_before),
+            )
+        };
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&hist_runs).collect();
         let w = calibrate_intervals(&hist, &judged, &mut r);
         widenings.insert(key.to_string(), serde_json::to_value(&w).unwrap_or_default());

@@ -236,39 +236,11 @@ mod tests {
             // A small LCG: deterministic, no dependency.
             x = x.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
             let u = (x >> 11) as f64 / (1u64 << 53) as f64;
-            let samples: Vec<bcal_common::measured::scenario::Sample> = (0..=100)
-                .map(|t| bcal_common::measured::scenario::Sample {
-                    t_s: f64::from(t),
-                    voltage_v: 4.0,
-                    current_a: 2.0,
-                    temperature_k: 297.0,
-                    request: bcal_common::measured::scenario::Request::Unknown,
-                })
-                .collect();
-            let steps = samples
-                .iter()
-                .map(|s| crate::run::Step {
-                    t_s: s.t_s,
-                    estimate: bcal_common::battery::Degradation::default(),
-                    interval: None,
-                    eod: Predicted { value: None, lo: None, hi: None },
-                    capacity: Predicted { value: Some(1.0), lo: Some(0.999), hi: Some(1.001) },
-                })
-                .collect();
-            records.push(CellRecord {
-                cell: "T".into(),
-                cycle: k as u32 + 1,
-                source: "t".into(),
-                load_on_s: 0.0,
-                eod_s: Some(100.0),
-                current_a: 2.0,
-                data_capacity_ah: Some(1.0 + 0.1 * (u - 0.5)),
-                stated_capacity_ah: None,
-                ambient_k: 297.0,
-                rest_before_s: None,
-                samples,
-            });
-            runs.push(CycleRun { cycle: k as u32 + 1, steps });
+            let none = Predicted { value: None, lo: None, hi: None };
+            let own = Predicted { value: Some(1.0), lo: Some(0.999), hi: Some(1.001) };
+            let (record, run) = crate::record::test_discharge(k as u32 + 1, 1.0 + 0.1 * (u - 0.5), |_| none, own);
+            records.push(record);
+            runs.push(run);
         }
         (records, runs)
     }

@@ -130,6 +130,51 @@ pub struct RecordSummary {
     pub refused: Vec<String>,
 }
 
+/// Test records: a discharge of 100 readings, 1 s apart, at 2 A from t = 0 to the cut-off at 100 s, and one
+/// calibrator's run on it with the given end-of-discharge and capacity predictions at every reading.
+#[cfg(test)]
+pub(crate) fn test_discharge(
+    cycle: u32,
+    data_capacity_ah: f64,
+    eod: impl Fn(f64) -> crate::predict::Predicted,
+    capacity: crate::predict::Predicted,
+) -> (CellRecord, crate::run::CycleRun) {
+    use bcal_common::measured::scenario::{Request, Sample};
+    let samples: Vec<Sample> = (0..=100)
+        .map(|t| Sample {
+            t_s: f64::from(t),
+            voltage_v: 4.0,
+            current_a: 2.0,
+            temperature_k: 297.0,
+            request: Request::Unknown,
+        })
+        .collect();
+    let steps = samples
+        .iter()
+        .map(|s| crate::run::Step {
+            t_s: s.t_s,
+            estimate: bcal_common::battery::Degradation::default(),
+            interval: None,
+            eod: eod(s.t_s),
+            capacity,
+        })
+        .collect();
+    let record = CellRecord {
+        cell: "T".into(),
+        cycle,
+        source: "t".into(),
+        load_on_s: 0.0,
+        eod_s: Some(100.0),
+        current_a: 2.0,
+        data_capacity_ah: Some(data_capacity_ah),
+        stated_capacity_ah: None,
+        ambient_k: 297.0,
+        rest_before_s: None,
+        samples,
+    };
+    (record, crate::run::CycleRun { cycle, steps })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -309,40 +309,9 @@ mod tests {
 
     /// A discharge of 100 s whose readings predict the end at `eod_at(t)`.
     fn discharge(cycle: u32, eod_at: impl Fn(f64) -> f64) -> (CellRecord, CycleRun) {
-        use bcal_common::measured::scenario::{Request, Sample};
-        let samples: Vec<Sample> = (0..=100)
-            .map(|t| Sample {
-                t_s: f64::from(t),
-                voltage_v: 3.5,
-                current_a: 2.0,
-                temperature_k: 297.0,
-                request: Request::Unknown,
-            })
-            .collect();
-        let steps = samples
-            .iter()
-            .map(|s| crate::run::Step {
-                t_s: s.t_s,
-                estimate: bcal_common::battery::Degradation::default(),
-                interval: None,
-                eod: crate::predict::Predicted { value: Some(eod_at(s.t_s)), lo: None, hi: None },
-                capacity: crate::predict::Predicted { value: Some(1.0), lo: None, hi: None },
-            })
-            .collect();
-        let record = CellRecord {
-            cell: "T".into(),
-            cycle,
-            source: "t".into(),
-            load_on_s: 0.0,
-            eod_s: Some(100.0),
-            current_a: 2.0,
-            data_capacity_ah: Some(1.0),
-            stated_capacity_ah: None,
-            ambient_k: 297.0,
-            rest_before_s: None,
-            samples,
-        };
-        (record, CycleRun { cycle, steps })
+        use crate::predict::Predicted;
+        let at = |t: f64| Predicted { value: Some(eod_at(t)), lo: None, hi: None };
+        crate::record::test_discharge(cycle, 1.0, at, Predicted { value: Some(1.0), lo: None, hi: None })
     }
 
     /// A policy that predicts the end better mid-discharge and worse near its start and end serves only the
