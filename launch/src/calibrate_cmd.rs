@@ -69,7 +69,8 @@ pub struct CalibrateArgs {
     /// (uncalibrated, previous cycle, prior, parameter trend) always run. Over a cell's discharges the
     /// policy serves each share of a discharge where it beat the joint UKF on 8 of the last 10 that ended,
     /// else the filter, and every streaming calibrator hands a share to its prior alone where the prior
-    /// did (docs/realcell.md, "who serves each discharge").
+    /// did; a discharge after a rest of more than a day goes to the filter (docs/realcell.md, "who serves
+    /// each discharge").
     /// Default `ukf,adaptive_ukf,fit`; with --follow one of ukf, adaptive_ukf, fit (the streaming window fit),
     /// uncalibrated or rl:FILE (default ukf).
     #[arg(long, value_delimiter = ',')]

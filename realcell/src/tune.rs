@@ -32,7 +32,8 @@ pub fn validation_records(train: &[CellRecord]) -> Vec<usize> {
 }
 
 /// The objective every choice minimises: the mean absolute end-of-discharge error, % of the discharge,
-/// averaged over the fractions seen (10 / 50 / 90 %). Infinite when a prediction failed.
+/// averaged over the fractions seen (10 / 50 / 90 %). Infinite when a prediction failed; NaN when no
+/// discharge reached the cut-off (nothing to judge: [`online_gate`] skips such a discharge).
 pub fn objective(records: &[CellRecord], runs: &[CycleRun]) -> f64 {
     objective_at(records, runs, &EOD_FRACTIONS_PCT)
 }
@@ -43,9 +44,14 @@ fn objective_at(records: &[CellRecord], runs: &[CycleRun], fractions: &[u32]) ->
     if s.failures > 0 {
         return f64::INFINITY;
     }
-    let v: Vec<f64> = fractions.iter().filter_map(|f| s.eod_error_pct.get(&f.to_string())).map(|q| q.mean).collect();
+    let v: Vec<f64> = fractions
+        .iter()
+        .filter_map(|f| s.eod_error_pct.get(&f.to_string()))
+        .filter(|q| q.n > 0)
+        .map(|q| q.mean)
+        .collect();
     if v.is_empty() {
-        return f64::INFINITY;
+        return f64::NAN;
     }
     v.iter().sum::<f64>() / v.len() as f64
 }
@@ -112,15 +118,19 @@ pub const GATE_WINDOW: usize = crate::interval::WINDOW;
 /// cycles, first), else the base does. The start of each discharge is all it looks at, so it runs as a cell's
 /// discharges come: a policy that predicts better only at some ages of the cell is used there
 /// (docs/calibrator.md, "where along the life the policies lose"). A discharge neither scored (cut short)
-/// does not count; until a full window has ended, the base.
-pub fn online_gate(history: &[(f64, f64)], judged: &[(f64, f64)]) -> Vec<bool> {
+/// does not count; until a full window has ended, the base. A discharge that follows a rest of more than a
+/// day (`after_long_rest`, one per judged discharge) goes to the base too: the window's record was made
+/// after ordinary rests and does not speak for it (a prior that carried well from one daily discharge to the
+/// next misses the capacity a long pause gives back; B0005, docs/realcell.md "who serves each discharge").
+pub fn online_gate(history: &[(f64, f64)], judged: &[(f64, f64)], after_long_rest: &[bool]) -> Vec<bool> {
     let scored = |p: &&(f64, f64)| p.0.is_finite() || p.1.is_finite();
     let mut past: Vec<(f64, f64)> = history.iter().filter(scored).copied().collect();
     let mut out = Vec::with_capacity(judged.len());
-    for pair in judged {
+    for (k, pair) in judged.iter().enumerate() {
         let recent = &past[past.len().saturating_sub(GATE_WINDOW)..];
         let (mine, theirs): (Vec<f64>, Vec<f64>) = recent.iter().copied().unzip();
-        out.push(recent.len() == GATE_WINDOW && earns(&mine, &theirs));
+        let unlike = after_long_rest.get(k).copied().unwrap_or(false);
+        out.push(!unlike && recent.len() == GATE_WINDOW && earns(&mine, &theirs));
         if scored(&pair) {
             past.push(*pair);
         }
@@ -153,14 +163,19 @@ pub fn gate_runs(alt: &Runs, base: &Runs, validation: &[CellRecord], judged: &[C
             per_cycle_at(records, a, &[*f]).into_iter().zip(per_cycle_at(records, o, &[*f])).collect()
         };
         let history = pairs(validation, &alt.validation, &base.validation);
-        val_gates[b] = online_gate(&[], &history);
-        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged));
+        val_gates[b] = online_gate(&[], &history, &after_long_rest(validation));
+        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &after_long_rest(judged));
     }
     let runs = Runs {
         validation: compose(validation, &val_gates, &alt.validation, &base.validation),
         judged: compose(judged, &gates, &alt.judged, &base.judged),
     };
     (runs, gates)
+}
+
+/// Per record, whether it follows a rest of more than a day ([`crate::prior::LONG_REST_S`]).
+fn after_long_rest(records: &[CellRecord]) -> Vec<bool> {
+    records.iter().map(|r| r.rest_before_s.is_some_and(|s| s > crate::prior::LONG_REST_S)).collect()
 }
 
 /// Each discharge's readings from `alt` where its share's gate serves it, else from `base` (the same
@@ -296,15 +311,18 @@ mod tests {
         let history = [vec![lose; 3], vec![win; 7]].concat();
         let judged = [vec![win; 3], vec![unscored], vec![lose; 4]].concat();
         // Wins in the window before each judged discharge: 7, 8, 9, 10, 10 (the unscored one left out), 9, 8, 7.
-        assert_eq!(online_gate(&history, &judged), vec![false, true, true, true, true, true, true, false]);
+        assert_eq!(online_gate(&history, &judged, &[]), vec![false, true, true, true, true, true, true, false]);
+        // The same, the third judged discharge after a rest of two days: the base serves it, the record goes on.
+        let rested = [false, false, true];
+        assert_eq!(online_gate(&history, &judged, &rested), vec![false, true, false, true, true, true, true, false]);
         // Eight wins but a mean lost to one bad discharge: not delivered.
         let history = [vec![win; 8], vec![(9.0, 0.5); 2]].concat();
-        assert_eq!(online_gate(&history, &[win]), vec![false]);
+        assert_eq!(online_gate(&history, &[win], &[]), vec![false]);
         // Fewer than a full window ended before: the filter.
-        assert_eq!(online_gate(&[], &[win; 11]), [vec![false; 10], vec![true]].concat());
+        assert_eq!(online_gate(&[], &[win; 11], &[]), [vec![false; 10], vec![true]].concat());
         // A policy whose prediction failed loses that discharge.
         let history = [vec![win; 8], vec![(f64::INFINITY, 0.5); 2]].concat();
-        assert_eq!(online_gate(&history, &[win]), vec![false]);
+        assert_eq!(online_gate(&history, &[win], &[]), vec![false]);
     }
 
     /// A discharge of 100 s whose readings predict the end at `eod_at(t)`.
@@ -342,5 +360,47 @@ mod tests {
         }
         // Along the validation cycles themselves nothing ended before the first: the filter throughout.
         assert!(runs.validation.iter().zip(&fv).all(|(a, b)| a.steps[50].eod.value == b.steps[50].eod.value));
+    }
+
+    /// A discharge cut short before the cut-off leaves the gate's window untouched, and one after a rest of
+    /// more than a day goes to the filter.
+    #[test]
+    fn the_gate_skips_cut_short_discharges_and_leaves_long_rests_to_the_filter() {
+        use crate::predict::Predicted;
+        let build = |first: u32, eod_s: &[f64]| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            let cap = Predicted { value: Some(1.0), lo: None, hi: None };
+            (first..)
+                .zip(eod_s)
+                .map(|(k, e)| {
+                    let eod = |_: f64| Predicted { value: Some(*e), lo: None, hi: None };
+                    crate::record::test_discharge(k, 1.0, eod, cap)
+                })
+                .unzip()
+        };
+        // Each discharge ends at 100 s; the filter predicts 102 s, the policy 101 s (a win) or 105 s (a loss).
+        let (win, loss, filter) = (101.0, 105.0, 102.0);
+        let policy_validation = [vec![win; 2], vec![loss; 2], vec![win; 6]].concat();
+        let (validation, pv) = build(1, &policy_validation);
+        let (_, fv) = build(1, &[filter; 10]);
+        let (mut judged, pj) = build(11, &[win; 5]);
+        let (_, fj) = build(11, &[filter; 5]);
+        // Judged discharge 2 was cut short (no end: not scored); discharge 4 followed two days of rest.
+        judged[1].eod_s = None;
+        judged[3].rest_before_s = Some(2.0 * 86_400.0);
+        let (_, served) = gate_runs(
+            &Runs { validation: pv.clone(), judged: pj.clone() },
+            &Runs { validation: fv.clone(), judged: fj.clone() },
+            &validation,
+            &judged,
+        );
+        // 8 wins in each window (the cut-short discharge left out: counted as a tie it would push out a win
+        // and leave 7 before discharge 3); discharge 4 to the filter; 9 wins before discharge 5.
+        for share in &served {
+            assert_eq!(share, &vec![true, true, true, false, true]);
+        }
+        // The roles swapped: never served.
+        let (_, served) =
+            gate_runs(&Runs { validation: fv, judged: fj }, &Runs { validation: pv, judged: pj }, &validation, &judged);
+        assert!(served.iter().all(|g| g.iter().all(|s| !s)));
     }
 }
