@@ -43,6 +43,12 @@ impl CellRecord {
         self.eod_s.map(|e| e - self.load_on_s)
     }
 
+    /// Whether the discharge follows a rest of more than a day ([`crate::prior::LONG_REST_S`]), after which a
+    /// NASA cell has regained capacity.
+    pub fn after_long_rest(&self) -> bool {
+        self.rest_before_s.is_some_and(|s| s > crate::prior::LONG_REST_S)
+    }
+
     /// Index of the first reading at or after `fraction` of the discharge (by time from the load-on).
     pub fn reading_at_fraction(&self, fraction: f64) -> Option<usize> {
         let t = self.load_on_s + fraction * self.discharge_s()?;

@@ -149,7 +149,7 @@ fn score_flat(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
                 s.failures += 1;
                 continue;
             };
-            let long_rest = f == 50 && r.rest_before_s.is_some_and(|x| x > crate::prior::LONG_REST_S);
+            let long_rest = f == 50 && r.after_long_rest();
             if long_rest {
                 after.cycles.push(r.cycle);
             }

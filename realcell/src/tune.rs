@@ -158,24 +158,21 @@ pub type Served = [Vec<bool>; EOD_FRACTIONS_PCT.len()];
 pub fn gate_runs(alt: &Runs, base: &Runs, validation: &[CellRecord], judged: &[CellRecord]) -> (Runs, Served) {
     let mut val_gates: Served = Default::default();
     let mut gates: Served = Default::default();
+    let rested = |records: &[CellRecord]| -> Vec<bool> { records.iter().map(CellRecord::after_long_rest).collect() };
+    let (val_rested, judged_rested) = (rested(validation), rested(judged));
     for (b, f) in EOD_FRACTIONS_PCT.iter().enumerate() {
         let pairs = |records: &[CellRecord], a: &[CycleRun], o: &[CycleRun]| -> Vec<(f64, f64)> {
             per_cycle_at(records, a, &[*f]).into_iter().zip(per_cycle_at(records, o, &[*f])).collect()
         };
         let history = pairs(validation, &alt.validation, &base.validation);
-        val_gates[b] = online_gate(&[], &history, &after_long_rest(validation));
-        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &after_long_rest(judged));
+        val_gates[b] = online_gate(&[], &history, &val_rested);
+        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &judged_rested);
     }
     let runs = Runs {
         validation: compose(validation, &val_gates, &alt.validation, &base.validation),
         judged: compose(judged, &gates, &alt.judged, &base.judged),
     };
     (runs, gates)
-}
-
-/// Per record, whether it follows a rest of more than a day ([`crate::prior::LONG_REST_S`]).
-fn after_long_rest(records: &[CellRecord]) -> Vec<bool> {
-    records.iter().map(|r| r.rest_before_s.is_some_and(|s| s > crate::prior::LONG_REST_S)).collect()
 }
 
 /// Each discharge's readings from `alt` where its share's gate serves it, else from `base` (the same
