@@ -23,7 +23,7 @@ use crate::{Calibrator, Interval};
 use bcal_common::battery::{BatteryModel, Degradation};
 use bcal_common::math::{idx, ModelState};
 use bcal_common::measured::cellmodel::{
-    interval_drive, ocv_v, switch_time_unknown, xn_from_rest_voltage, DriveKind, Settle,
+    interval_drive, start_xn_std, switch_time_unknown, xn_from_rest_voltage, DriveKind, Settle,
 };
 use bcal_common::measured::scenario::{rest_state, Sample};
 pub use bcal_common::measured::tracker::JointUkfSettings;
@@ -194,18 +194,9 @@ impl JointUkf {
         self.at_temperature();
         let xn = xn_from_rest_voltage(&self.model, s.voltage_v, self.t_k);
         let p = &self.model.params;
-        // The open-circuit slope maps the voltage noise to a mole-fraction uncertainty (floored: flat parts
-        // of the curve would otherwise claim certainty they do not have).
-        let h = 1e-3;
-        let slope = ((ocv_v(&self.model, (xn + h).min(p.xn_max), self.t_k)
-            - ocv_v(&self.model, (xn - h).max(p.xn_min), self.t_k))
-            / (2.0 * h))
-            .abs()
-            .max(1e-3);
-        // A rest at or above a full cell's open-circuit voltage is a full cell: the spread must not reach
-        // past the electrode's full point, where the points would be clamped and the mean pulled down.
-        let room = (p.xn_max - xn) / 3f64.sqrt();
-        let xn_std = (self.s.meas_std_v / slope).clamp(0.005, 0.1).min(room.max(0.001));
+        // The open-circuit slope maps the voltage noise to a mole-fraction uncertainty; near full the spread
+        // stays below the electrode's full point, where the points would be clamped and the mean pulled down.
+        let xn_std = start_xn_std(&self.model, xn, self.t_k, self.s.meas_std_v, 0.005);
         let prior = self.spec.to_z(&self.spec.prior);
         let mean3 = [xn, prior[0], prior[1]];
         let std3 = [xn_std, self.s.prior_std_z[0], self.s.prior_std_z[1]];

@@ -6,16 +6,18 @@
 //!
 //! Per reading: [`Tracker::ingest`] advances the model from the previous reading (the load read then held,
 //! a switch put at mid-interval: [`bcal_common::measured::cellmodel::interval_drive`]; the starting charge from the rest
-//! voltage until the load starts), adds the reading
+//! voltage until the load starts; with `fit_start` its uncertainty enters the fit's information, and a start
+//! no rest was read for is fitted with the parameters, moved by the fit's own step after every action), adds
+//! the reading
 //! to the window; [`Tracker::observe`] writes the observation; the policy's action moves the estimate by
 //! at most `step_max` of the range ([`Tracker::apply_action`]). The RL cost of that action is the window's
 //! RMS residual under the new estimate once the next reading is in ([`Tracker::cost`]): how well the
 //! estimate explains what was measured, with no true parameter and no true state.
 
-use crate::window::{FitPoint, FitStats, FitWindow};
+use crate::window::{FitPoint, FitStats, FitWindow, StartPrior};
 use crate::Interval;
 use bcal_common::battery::{BatteryModel, Degradation};
-use bcal_common::measured::cellmodel::{xn_from_rest_voltage, CellModel, Settle, REST_CURRENT_A};
+use bcal_common::measured::cellmodel::{start_xn_std, xn_from_rest_voltage, CellModel, Settle, REST_CURRENT_A};
 use bcal_common::measured::scenario::{Request, Sample};
 use bcal_common::measured::tracker::{ActionMode, TrackerSpec, OBS_DIM};
 
@@ -31,6 +33,10 @@ pub struct Tracker {
     rest_sum_v: f64,
     rest_n: u32,
     loaded: bool,
+    /// The starting charge's prior, set when the load starts (with `fit_start`).
+    start_prior: Option<StartPrior>,
+    /// The fit's step of the starting charge after the last action, applied before the next reading.
+    pending_start: f64,
     start_t_s: f64,
     /// Time since the previous reading, s (0 at the first).
     interval_s: f64,
@@ -51,6 +57,8 @@ impl Tracker {
             rest_sum_v: 0.0,
             rest_n: 0,
             loaded: false,
+            start_prior: None,
+            pending_start: 0.0,
             start_t_s: 0.0,
             interval_s: 0.0,
             readings: 0,
@@ -103,6 +111,11 @@ impl Tracker {
                 self.start_t_s = s.t_s;
             }
             (Some(cell), Some(prev)) => {
+                // The start moves before the model does: the track holds what the current moved, the same
+                // whatever the start, and the overpotentials follow from the moved start from here on.
+                let p = &cell.model.params;
+                cell.xn0 = (cell.xn0 + std::mem::take(&mut self.pending_start))
+                    .clamp(p.xn_min + 0.01 * (p.xn_max - p.xn_min), p.xn_max);
                 let t_k = if self.spec.use_measured_temperature { s.temperature_k } else { cell.track.t_k };
                 cell.advance_between(&prev, s, &d, t_k);
                 unsettled = self.settle.unsettled(&prev, s, self.spec.max_substep_s, self.spec.settle_s);
@@ -116,6 +129,21 @@ impl Tracker {
             self.rest_n += 1;
             cell.xn0 = xn_from_rest_voltage(&cell.model, self.rest_sum_v / f64::from(self.rest_n), cell.track.t_k);
         } else {
+            if !self.loaded && self.spec.fit_start {
+                // The rest readings' mean, known to their noise averaged over them (a discharge that starts
+                // under load has no rest reading: its start is as good as unknown).
+                let std = if self.rest_n == 0 {
+                    0.1
+                } else {
+                    let v_std = self.spec.noise_floor_v / f64::from(self.rest_n).sqrt();
+                    start_xn_std(&cell.model, cell.xn0, cell.track.t_k, v_std, 0.005)
+                };
+                // Read off a rest, the start is held (moving it cost qMobile accuracy on simulated cells, whose
+                // rest voltage is exact: the loaded readings then pull it off the truth through what the
+                // tracker's model approximates); a stream joined under load has no rest to hold it to.
+                let moves = self.rest_n == 0;
+                self.start_prior = Some(StartPrior { xn: cell.xn0, std, noise_v: self.spec.noise_floor_v, moves });
+            }
             self.loaded = true;
         }
         let ranges = self.spec.ranges();
@@ -126,7 +154,7 @@ impl Tracker {
         self.last = Some(*s);
         let prior = self.prior();
         let cell = self.cell.as_ref().expect("created above");
-        self.stats = self.window.stats(cell, &d, &ranges, prior);
+        self.stats = self.window.stats(cell, &d, &ranges, prior, self.start_prior);
     }
 
     /// The fit's prior: the prior estimate with `prior_std_z`, weighed as the sensor noise.
@@ -148,7 +176,10 @@ impl Tracker {
             *z = (*z + moved * m).clamp(0.0, 1.0);
         }
         if let Some(cell) = &self.cell {
-            self.stats = self.window.stats(cell, &self.spec.from_z(self.z), &self.spec.ranges(), self.prior());
+            self.stats =
+                self.window.stats(cell, &self.spec.from_z(self.z), &self.spec.ranges(), self.prior(), self.start_prior);
+            // The start follows the fit at the new estimate (at most 0.02 per reading, about 3 % of charge).
+            self.pending_start = self.stats.step_start.clamp(-0.02, 0.02);
         }
     }
 
@@ -156,7 +187,7 @@ impl Tracker {
     pub fn set_estimate(&mut self, d: &Degradation) {
         self.z = self.spec.to_z(d).map(|z| z.clamp(0.0, 1.0));
         if let Some(cell) = &self.cell {
-            self.stats = self.window.stats(cell, d, &self.spec.ranges(), self.prior());
+            self.stats = self.window.stats(cell, d, &self.spec.ranges(), self.prior(), self.start_prior);
         }
     }
 
@@ -274,5 +305,31 @@ mod tests {
         // 3 mV of sensor noise costs ln(1 + 3) = 1.39; a wrong estimate's tens of mV cost 3 and more.
         assert!(late < 2.0, "late cost {late}");
         assert!(tr.interval().is_some());
+    }
+
+    /// A discharge whose first reading is already under load (a stream joined mid-discharge): the rest
+    /// voltage the start is read from is a loaded one, about 0.1 V low. Held, that start's error stays in
+    /// qMobile to the end; fitted with its uncertainty, the fit finds the start and qMobile comes back.
+    #[test]
+    fn a_discharge_joined_under_load_finds_its_start_when_the_start_is_fitted() {
+        let cfg = ScenarioConfig {
+            load_kinds: vec![bcal_common::measured::scenario::LoadKind::Piecewise],
+            ..Default::default()
+        };
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(5);
+        let spec = draw_spec(&cfg, Split::Train, &mut rng);
+        let ep = simulate(&cfg, &spec).unwrap();
+        let first_loaded = ep.samples.iter().position(|s| s.current_a > 0.5).unwrap();
+        let run = |fit_start: bool| {
+            let mut fit =
+                crate::tracker_based::WindowFitCalibrator::new(&TrackerSpec { fit_start, ..Default::default() });
+            for s in &ep.samples[first_loaded..] {
+                crate::Calibrator::step(&mut fit, s);
+            }
+            (crate::Calibrator::estimate(&fit).q_mobile_c - spec.truth.q_mobile_c).abs()
+        };
+        let (held, fitted) = (run(false), run(true));
+        assert!(held > 100.0, "a loaded first reading makes a held start wrong: qMobile off by {held} C");
+        assert!(fitted < 0.5 * held, "fitted start: qMobile off by {fitted} C, held {held} C");
     }
 }

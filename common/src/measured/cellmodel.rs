@@ -76,7 +76,13 @@ impl CellModel {
     /// The full model state under parameters `d`.
     #[inline]
     pub fn state(&self, track: &Track, d: &Degradation) -> ModelState {
-        let mut x = rest_state(&self.model, d, self.xn0, track.t_k);
+        self.state_from(self.xn0, track, d)
+    }
+
+    /// The model state of `track` under `d` had the cell started at mole fraction `xn0` (the track is the
+    /// same for every start: it holds what the current moved, not where the charges began).
+    pub fn state_from(&self, xn0: f64, track: &Track, d: &Degradation) -> ModelState {
+        let mut x = rest_state(&self.model, d, xn0, track.t_k);
         for (k, q) in [idx::QP_S, idx::QP_B, idx::QN_B, idx::QN_S].into_iter().zip(track.dq_c) {
             x[k] += q;
         }
@@ -90,6 +96,12 @@ impl CellModel {
     #[inline]
     pub fn voltage_at(&self, track: &Track, d: &Degradation) -> f64 {
         self.model.voltage_v(&self.state(track, d), d)
+    }
+
+    /// Terminal voltage of `track` under `d` from the starting mole fraction `xn0`, V.
+    #[inline]
+    pub fn voltage_from(&self, xn0: f64, track: &Track, d: &Degradation) -> f64 {
+        self.model.voltage_v(&self.state_from(xn0, track, d), d)
     }
 
     /// Terminal voltage now under `d`, V.
@@ -282,6 +294,22 @@ pub fn xn_from_rest_voltage(model: &BatteryModel, v: f64, t_k: f64) -> f64 {
         }
     }
     0.5 * (lo + hi)
+}
+
+/// Standard deviation of the starting mole fraction read off a rest voltage known to `voltage_std_v`: the
+/// voltage's uncertainty through the open-circuit curve's slope at `xn`, kept within [0.005, 0.1] (flat
+/// parts of the curve would otherwise claim a certainty a relaxing cell does not give) and within what
+/// lies below a full electrode. The joint UKF's and the window fit's starting charge both use it.
+pub fn start_xn_std(model: &BatteryModel, xn: f64, t_k: f64, voltage_std_v: f64, floor: f64) -> f64 {
+    let p = &model.params;
+    let h = 1e-3;
+    let slope = ((ocv_v(model, (xn + h).min(p.xn_max), t_k) - ocv_v(model, (xn - h).max(p.xn_min), t_k)) / (2.0 * h))
+        .abs()
+        .max(1e-3);
+    // A rest at or above a full cell's open-circuit voltage is a full cell: the spread must not reach past
+    // the electrode's full point.
+    let room = (p.xn_max - xn) / 3f64.sqrt();
+    (voltage_std_v / slope).clamp(floor, 0.1).min(room.max(0.001))
 }
 
 #[cfg(test)]

@@ -45,6 +45,12 @@ pub struct TrackerSpec {
     pub cost_scale_v: f64,
     /// Residual floor of the intervals' width, V (the sensor's noise).
     pub noise_floor_v: f64,
+    /// The window fit weighs the starting charge with its uncertainty (the joint UKF's, from the rest
+    /// voltage) instead of holding the rest reading's value as exact: the uncertainty widens the fit's
+    /// information and interval, and a start no rest was read for (the first reading under load) is fitted
+    /// with the parameters. Policies written before it held the start as exact, and read as such.
+    #[serde(default = "legacy_fit_start")]
+    pub fit_start: bool,
     /// Factors on the fit's standard deviations of qMobile and Ro for their 90 % intervals, chosen on
     /// validation (1.645 for a Gaussian fit with independent residuals).
     pub interval_scale: [f64; 2],
@@ -77,12 +83,18 @@ impl Default for TrackerSpec {
             settle_s: 30.0,
             cost_scale_v: 0.001,
             noise_floor_v: 0.003,
+            fit_start: true,
             interval_scale: [1.645, 1.645],
             use_measured_temperature: false,
             cutoff_v: 3.0,
             model: ModelExtension::default(),
         }
     }
+}
+
+/// What a tracker spec written before `fit_start` existed did: hold the start.
+fn legacy_fit_start() -> bool {
+    false
 }
 
 impl TrackerSpec {
