@@ -55,6 +55,9 @@ class Estimate(TypedDict):
     """Predicted end of discharge, absolute time, s, at eod_current_a."""
     eod_current_a: Optional[float]
     """Mean discharge current of the readings so far, A."""
+    discharge: int
+    """The discharge the reading belongs to, from 0: a new one after a charge or a gap of more than
+    half an hour, started from the estimate the last one ended with."""
 
 def simulate(
     load_w: Optional[float] = None,
@@ -108,7 +111,9 @@ def diagnose(
 class Calibrator:
     """A calibrator fed one reading at a time, no look-ahead: estimates of qMobile (C) and Ro (ohm)
     with 90 % intervals, and the end of discharge predicted from the calibrated state. The same code
-    as `bcal calibrate --follow`: the same readings give the same estimates.
+    as `bcal calibrate --follow`: the same readings give the same estimates. Readings may span many
+    discharges: after a charge or a gap of more than half an hour a new one starts, calibrated anew
+    from the estimate the last one ended with.
 
     `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy; `policy` is
     its .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior).

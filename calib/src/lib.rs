@@ -23,6 +23,7 @@ pub mod direct;
 pub mod env;
 pub mod eod;
 pub mod joint_ukf;
+pub mod prior_width;
 pub mod rescue;
 pub mod stream;
 pub mod tracker;

@@ -11,7 +11,7 @@
 //! while the reader is blocked in a read.
 
 use anyhow::{bail, Context};
-use bcal_calib::stream::{build, resolve, CalibratorKind, Estimate, Reading, Stream};
+use bcal_calib::stream::{resolve, CalibratorKind, Estimate, Reading, Stream};
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::PolicyFile;
@@ -291,7 +291,7 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
         setup.spec.tracker.cutoff_v = v;
     }
     let spec = setup.spec.tracker.clone();
-    let mut stream = Stream::new(build(&setup, net.as_ref())?, &spec, a.ambient_c);
+    let mut stream = Stream::of(&setup, net.as_ref(), a.ambient_c)?;
     // The current's sign: positive discharges unless told otherwise (a stream cannot be read ahead to
     // decide, so `auto` takes the documented convention).
     let sign = if a.current_sign == CurrentSign::DischargeNegative { -1.0 } else { 1.0 };
@@ -361,7 +361,7 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
         }
     };
     drop(out);
-    eprintln!("{}", summary(&ended, stream.readings(), &skipped, last.as_ref(), &step_us));
+    eprintln!("{}", summary(&ended, &stream, &skipped, last.as_ref(), &step_us));
     Ok(())
 }
 
@@ -402,7 +402,8 @@ fn emit(out: &mut impl Write, line_no: u64, e: &Estimate) -> std::io::Result<()>
     out.flush()
 }
 
-fn summary(ended: &Ended, readings: u64, skipped: &[u64], last: Option<&Estimate>, step_us: &[f64]) -> String {
+fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estimate>, step_us: &[f64]) -> String {
+    let (readings, discharges) = (stream.readings(), stream.discharges());
     let why = match ended {
         Ended::EndOfInput => "end of input".to_string(),
         Ended::Signal => "stopped (Ctrl-C / SIGTERM)".to_string(),
@@ -417,6 +418,16 @@ fn summary(ended: &Ended, readings: u64, skipped: &[u64], last: Option<&Estimate
     if !skipped.is_empty() {
         let shown: Vec<String> = skipped.iter().take(20).map(u64::to_string).collect();
         s.push_str(&format!(" (lines {}{})", shown.join(", "), if skipped.len() > 20 { ", ..." } else { "" }));
+    }
+    s.push_str(&format!("; {discharges} discharge{}", if discharges == 1 { "" } else { "s" }));
+    if let Some(sd) = stream.prior_sd_z() {
+        let spec = stream.spec();
+        let span = |[lo, hi]: [f64; 2]| hi - lo;
+        s.push_str(&format!(
+            " (the last from a prior width learned from the ones before: sd q_mobile {:.0} C, r_o {:.4} ohm)",
+            sd[0] * span(spec.q_mobile_range_c),
+            sd[1] * span(spec.r_o_range_ohm)
+        ));
     }
     if let Some(e) = last {
         s.push_str(&format!(

@@ -5,7 +5,7 @@
 
 use crate::convert::{dict, from_serde};
 use crate::errors::{doctor_error, value_error};
-use bcal_calib::stream::{build, resolve, CalibratorKind, Estimate, Reading, Stream, StreamError};
+use bcal_calib::stream::{resolve, CalibratorKind, Estimate, Reading, Stream, StreamError};
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::math::idx;
 use bcal_common::measured::env::MeasuredSpec;
@@ -78,12 +78,24 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
     d.set_item("r_o_hi", e.r_o_hi)?;
     d.set_item("eod_s", e.eod_s)?;
     d.set_item("eod_current_a", e.eod_current_a)?;
+    d.set_item("discharge", e.discharge)?;
     Ok(d)
 }
 
 /// The columns `run` returns, in order.
-const RUN_COLUMNS: [&str; 10] =
-    ["time_s", "q_mobile", "q_mobile_lo", "q_mobile_hi", "r_o", "r_o_lo", "r_o_hi", "eod_s", "eod_current_a", "row"];
+const RUN_COLUMNS: [&str; 11] = [
+    "time_s",
+    "q_mobile",
+    "q_mobile_lo",
+    "q_mobile_hi",
+    "r_o",
+    "r_o_lo",
+    "r_o_hi",
+    "eod_s",
+    "eod_current_a",
+    "discharge",
+    "row",
+];
 
 impl Calibrator {
     fn with_stream<T>(&self, f: impl FnOnce(&mut Stream<'_>) -> T) -> T {
@@ -133,10 +145,7 @@ impl Calibrator {
                 bcal_common::simulate::positive(v).map_err(|why| value_error(format!("cutoff_v: {why}")))?;
         }
         let net = policy_file.as_ref().map(|p| p.net()).transpose().map_err(value_error)?;
-        let owned = Owned::try_new(net, |net| {
-            build(&setup, net.as_ref()).map(|cal| Stream::new(cal, &setup.spec.tracker, ambient_c))
-        })
-        .map_err(value_error)?;
+        let owned = Owned::try_new(net, |net| Stream::of(&setup, net.as_ref(), ambient_c)).map_err(value_error)?;
         Ok(Self { kind, stream: Mutex::new(owned) })
     }
 
@@ -162,7 +171,9 @@ impl Calibrator {
     /// Takes the next reading (time order; current positive while discharging) and returns the estimate:
     /// a dict of `time_s`, `q_mobile` (C), `q_mobile_lo`, `q_mobile_hi` (its 90 % interval), `r_o` (ohm),
     /// `r_o_lo`, `r_o_hi`, `eod_s` (predicted end of discharge, absolute time, s, at `eod_current_a`: the
-    /// mean discharge current so far). Interval and prediction are None while the calibrator cannot tell.
+    /// mean discharge current so far) and `discharge` (from 0: a new one after a charge or a gap of more
+    /// than half an hour, started from the last one's estimate). Interval and prediction are None while the
+    /// calibrator cannot tell.
     /// A reading that is not finite, not a cell's voltage or not later than the last raises ValueError and
     /// leaves the calibrator as it was.
     #[pyo3(signature = (time_s, voltage_v, current_a, temperature_c=None))]
@@ -253,6 +264,7 @@ impl Calibrator {
                     opt(e.r_o_hi),
                     opt(e.eod_s),
                     opt(e.eod_current_a),
+                    f64::from(e.discharge),
                     k as f64,
                 ];
                 for (col, v) in out.iter_mut().zip(row) {
@@ -267,8 +279,10 @@ impl Calibrator {
             data.set_item(*name, crate::convert::array(py, &values)?)?;
         }
         let frame = py.import("pandas")?.call_method1("DataFrame", (data,))?;
-        let rows = frame.get_item("row")?.call_method1("astype", ("int64",))?;
-        frame.set_item("row", rows)?;
+        for name in ["discharge", "row"] {
+            let ints = frame.get_item(name)?.call_method1("astype", ("int64",))?;
+            frame.set_item(name, ints)?;
+        }
         Ok(frame)
     }
 

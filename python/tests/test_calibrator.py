@@ -13,7 +13,8 @@ import bcal
 from conftest import generated_discharge, run_cli
 
 KINDS = ["ukf", "adaptive_ukf", "fit", "uncalibrated"]
-FIELDS = ["time_s", "q_mobile", "q_mobile_lo", "q_mobile_hi", "r_o", "r_o_lo", "r_o_hi", "eod_s", "eod_current_a"]
+FIELDS = ["time_s", "q_mobile", "q_mobile_lo", "q_mobile_hi", "r_o", "r_o_lo", "r_o_hi", "eod_s", "eod_current_a",
+          "discharge"]
 
 
 def make(kind: str, **kw) -> bcal.Calibrator:
@@ -68,6 +69,24 @@ def test_run_on_a_dataframe_equals_stepping(discharge):
             want = math.nan if e[f] is None else e[f]
             got = getattr(row, f)
             assert got == want or (math.isnan(got) and math.isnan(want)), (f, got, want)
+
+
+def test_two_discharges_in_one_stream_are_counted_and_the_second_starts_from_the_first(bcal_cli, discharge):
+    # The same discharge again three hours after the first ended (its charge unseen).
+    later = discharge.assign(time_s=discharge["time_s"] + discharge["time_s"].iloc[-1] + 3 * 3600.0)
+    both = pd.concat([discharge, later], ignore_index=True)
+    frame = make("ukf").run(both)
+    n = len(discharge)
+    assert frame["discharge"].tolist() == [0] * n + [1] * n
+    assert frame["q_mobile"].iloc[n] == frame["q_mobile"].iloc[n - 1], "the second starts where the first ended"
+    assert math.isnan(frame["eod_current_a"].iloc[n]) and frame["eod_current_a"].iloc[n + 5] > 1.0
+    out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", "ukf",
+                  stdin=both.to_csv(index=False, float_format="%.17g"))
+    assert out.returncode == 0, out.stderr
+    theirs = [json.loads(line) for line in out.stdout.splitlines()]
+    assert [b["discharge"] for b in theirs] == frame["discharge"].tolist()
+    assert [b["q_mobile"] for b in theirs] == frame["q_mobile"].tolist()
+    assert "; 2 discharges" in out.stderr
 
 
 def test_run_names_a_missing_column_and_a_bad_row(discharge):

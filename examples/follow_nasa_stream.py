@@ -1,0 +1,131 @@
+"""Many discharges of a real cell as one live stream: a NASA PCoE cell's discharge records joined end to end
+at their recorded start times (the charges between them are not in the data, so the stream jumps from the
+cut-off to a charged cell's rest across each gap), fed to `bcal calibrate --follow -`, and each discharge's
+end-of-discharge prediction at half its loaded time scored against the time the voltage first fell below
+the cut-off under load. Standard library only.
+
+    python examples/follow_nasa_stream.py [--data ../shared/data/nasa-pcoe] [--cell B0005] [--cycles 41..80]
+        [--kind ukf] [--cutoff-v 3.0] [--bcal PATH]
+
+Prints, per discharge, the prediction's error in % of the time from the load's start to the end of
+discharge, and the median and 90th percentile of its size, two ways: the stream as one (`--follow` starts
+each discharge from the last one's estimate, with a prior width learned from the discharges before), and
+each discharge alone from the calibrator's default prior (what `--follow` did with a stream per discharge).
+"""
+
+import argparse
+import csv
+import json
+import os
+import pathlib
+import shutil
+import statistics
+import subprocess
+from datetime import datetime, timezone
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
+HEADER = "time_s,voltage_v,current_a,temperature_c\n"
+
+
+def find_bcal() -> str:
+    for c in (os.environ.get("BCAL_BIN"), REPO / "target" / "release" / "bcal", REPO / "target" / "debug" / "bcal",
+              shutil.which("bcal")):
+        if c and pathlib.Path(c).is_file():
+            return str(c)
+    raise SystemExit("the bcal CLI is not built: cargo build --release -p bcal, or pass --bcal PATH")
+
+
+def start_s(vec: str) -> float:
+    """NASA's start_time, a MATLAB date vector printed by numpy, in seconds (UTC)."""
+    v = [float(x) for x in vec.strip("[]").split()]
+    whole = datetime(int(v[0]), int(v[1]), int(v[2]), int(v[3]), int(v[4]), tzinfo=timezone.utc)
+    return whole.timestamp() + v[5]
+
+
+def discharges(root: pathlib.Path, cell: str, first: int, last: int) -> list:
+    """The cell's discharge records `first..last` (1-based, in file order) as lists of CSV rows with
+    absolute times, NASA's sign (negative discharges)."""
+    meta = [r for r in csv.DictReader(open(root / "metadata.csv")) if r["battery_id"] == cell and r["type"] == "discharge"]
+    if len(meta) < last:
+        raise SystemExit(f"{cell} has {len(meta)} discharges in {root / 'metadata.csv'}; --cycles asks for {last}")
+    out, latest = [], float("-inf")
+    for r in meta[first - 1:last]:
+        path = root / "data" / r["filename"]
+        if not path.is_file():
+            raise SystemExit(f"{path}: missing (the folder holds only some cells' records)")
+        t0 = start_s(r["start_time"])
+        rows = []
+        for d in csv.DictReader(open(path)):
+            t = t0 + float(d["Time"])
+            if t <= latest:
+                continue  # a clock that steps back: keep time order, as the stream requires
+            latest = t
+            rows.append((t, float(d["Voltage_measured"]), float(d["Current_measured"]), float(d["Temperature_measured"])))
+        out.append(rows)
+    return out
+
+
+def follow(bcal: str, kind: str, rows: list, cutoff_v: float) -> list:
+    text = HEADER + "".join(f"{t!r},{v!r},{i!r},{c!r}\n" for t, v, i, c in rows)
+    p = subprocess.run([bcal, "calibrate", "--follow", "-", "--calibrator", kind, "--current-sign", "discharge-negative",
+                        "--cutoff-v", str(cutoff_v)], input=text, capture_output=True, text=True, check=False)
+    if p.returncode != 0:
+        raise SystemExit(f"bcal calibrate --follow failed: {p.stderr.strip()}")
+    return [json.loads(line) for line in p.stdout.splitlines()]
+
+
+def eod_error_pct(rows: list, est: list, cutoff_v: float):
+    """The prediction at half the loaded time to the end of discharge, in % of that time (None when the
+    discharge never reaches the cut-off under load or no prediction was made)."""
+    loaded = [(k, r) for k, r in enumerate(rows) if -r[2] > 0.5]
+    if not loaded:
+        return None
+    t_on = loaded[0][1][0]
+    eod = next((r[0] for _, r in loaded if r[1] < cutoff_v), None)
+    if eod is None:
+        return None
+    mid = t_on + 0.5 * (eod - t_on)
+    k = min(range(len(rows)), key=lambda j: abs(rows[j][0] - mid))
+    p = est[k]["eod_s"]
+    return None if p is None else 100.0 * (p - eod) / (eod - t_on)
+
+
+def summary(name: str, errors: list) -> None:
+    sizes = sorted(abs(e) for e in errors if e is not None)
+    if not sizes:
+        print(f"{name}: no discharge reached the cut-off with a prediction")
+        return
+    p90 = sizes[round(0.9 * (len(sizes) - 1))]
+    print(f"{name}: EOD at 50 % median {statistics.median(sizes):.2f} %, p90 {p90:.2f} % over {len(sizes)} discharges"
+          f" ({errors.count(None)} without a score)")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", default=str(REPO.parent / "shared" / "data" / "nasa-pcoe"))
+    p.add_argument("--cell", default="B0005")
+    p.add_argument("--cycles", default="41..80", help="discharges A..B, 1-based in file order")
+    p.add_argument("--kind", default="ukf")
+    p.add_argument("--cutoff-v", type=float, default=3.0)
+    p.add_argument("--bcal", default=None, help="the bcal executable (default: this clone's build)")
+    a = p.parse_args()
+    first, last = (int(x) for x in a.cycles.split(".."))
+    bcal = a.bcal or find_bcal()
+    records = discharges(pathlib.Path(a.data), a.cell, first, last)
+
+    stream = follow(bcal, a.kind, [r for rows in records for r in rows], a.cutoff_v)
+    joined, alone, k = [], [], 0
+    for n, rows in enumerate(records):
+        part = stream[k:k + len(rows)]
+        k += len(rows)
+        joined.append(eod_error_pct(rows, part, a.cutoff_v))
+        alone.append(eod_error_pct(rows, follow(bcal, a.kind, rows, a.cutoff_v), a.cutoff_v))
+        fmt = lambda e: "-" if e is None else f"{e:+.1f}"  # noqa: E731
+        print(f"discharge {first + n} (stream's #{part[-1]['discharge']}): EOD error at 50 % {fmt(joined[-1])} % "
+              f"as one stream, {fmt(alone[-1])} % alone")
+    summary(f"{a.cell} {a.cycles}, {a.kind}, one stream", joined)
+    summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone)
+
+
+if __name__ == "__main__":
+    main()
