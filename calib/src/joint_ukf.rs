@@ -574,4 +574,35 @@ mod tests {
         }
         assert!(within >= 2, "truth inside the final Ro interval in {within} of 4 discharges");
     }
+
+    /// Discharges fed from their first loaded reading (a stream joined mid-discharge): that reading is no
+    /// rest voltage, so the start read off it is off; the filter's charge states still find the cell (no
+    /// special start needed, unlike the window fit's: `tracker.rs`).
+    #[test]
+    fn a_discharge_joined_under_load_still_finds_the_cell() {
+        let cfg = ScenarioConfig {
+            load_kinds: vec![LoadKind::Piecewise],
+            sample_interval_s: vec![[1.0, 1.0]],
+            ..Default::default()
+        };
+        let spec = TrackerSpec::default();
+        let mut errors = Vec::new();
+        for seed in 0..12u64 {
+            let mut rng = rand::rngs::SmallRng::seed_from_u64(seed);
+            let ep_spec = draw_spec(&cfg, Split::Validation, &mut rng);
+            let ep = simulate(&cfg, &ep_spec).unwrap();
+            if ep.samples.len() < 900 {
+                continue;
+            }
+            let first_loaded = ep.samples.iter().position(|s| s.current_a > 0.5).unwrap();
+            let mut f = JointUkf::new(JointUkfSettings::default(), &spec);
+            for s in &ep.samples[first_loaded..] {
+                f.step(s);
+            }
+            errors.push((f.estimate().q_mobile_c / ep_spec.truth.q_mobile_c - 1.0).abs());
+        }
+        assert!(errors.len() >= 4);
+        let worst = errors.iter().cloned().fold(0.0, f64::max);
+        assert!(worst < 0.05, "qMobile off by up to {:.1} %: {errors:?}", 100.0 * worst);
+    }
 }

@@ -13,8 +13,10 @@
 //! sight): the calibrator is built anew on the same setting, its prior the estimate the last discharge
 //! ended with, and the EOD current starts over. The prior's width is learned from the stream's own
 //! history as `bcal calibrate` learns it from a cell's training cycles ([`RestWidth`]): the change from one
-//! discharge's final estimate to the next, growing with the rest before the discharge; until
-//! [`crate::prior_width::MIN_PAIRS`] such changes are known, the calibrator's own width. Until then
+//! discharge's final estimate to the next, growing with the rest before the discharge. Until
+//! [`crate::prior_width::MIN_PAIRS`] such changes are known, it is the last discharge's own posterior (its
+//! 90 % interval read as 1.645 standard deviations): what one filter would carry across, had it known the
+//! cell was recharged ([`WidthSource`]). Until then
 //! one filter ran on across the gap and read the charged cell's voltage as its own misfit: on B0005's
 //! discharges 41-46 joined end to end, the joint UKF's qMobile ran to the top of its range from the second
 //! discharge on.
@@ -269,8 +271,17 @@ pub struct Stream<'a> {
     ends: Vec<([f64; 2], Option<f64>)>,
     /// The rest before the current discharge, s (None for the first).
     rest_before_s: Option<f64>,
-    /// The current discharge's prior width learned from the history, z units (None: the calibrator's own).
-    prior_sd_z: Option<[f64; 2]>,
+    /// The current discharge's prior width, z units, and where it came from (None: the calibrator's own).
+    prior_width: Option<([f64; 2], WidthSource)>,
+}
+
+/// Where a discharge's prior width came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WidthSource {
+    /// The changes between the stream's earlier discharges ([`RestWidth`]).
+    Learned,
+    /// The last discharge's own posterior, while too few changes are known.
+    Posterior,
 }
 
 impl<'a> Stream<'a> {
@@ -295,7 +306,7 @@ impl<'a> Stream<'a> {
             last_loaded_t_s: None,
             ends: Vec::new(),
             rest_before_s: None,
-            prior_sd_z: None,
+            prior_width: None,
         }
     }
 
@@ -307,10 +318,11 @@ impl<'a> Stream<'a> {
         Ok(s)
     }
 
-    /// The width of the current discharge's prior learned from the stream's history (qMobile, Ro; z units
-    /// of the calibrator's ranges), None while the calibrator's own width holds.
-    pub fn prior_sd_z(&self) -> Option<[f64; 2]> {
-        self.prior_sd_z
+    /// The width of the current discharge's prior (qMobile, Ro; standard deviations in z units of the
+    /// calibrator's ranges) and where it came from; None while the calibrator's own width holds (the first
+    /// discharge, or a calibrator without an interval before it).
+    pub fn prior_width(&self) -> Option<([f64; 2], WidthSource)> {
+        self.prior_width
     }
 
     /// Discharges begun so far (0 before the first reading).
@@ -407,10 +419,21 @@ impl<'a> Stream<'a> {
             self.ends.windows(2).map(|w| (probe.h(w[1].1), [w[1].0[0] - w[0].0[0], w[1].0[1] - w[0].0[1]])).collect();
         let long = self.ends.iter().skip(1).filter(|e| e.1.is_some_and(|r| r > LONG_REST_S)).count();
         let width = RestWidth::fit(&changes, usual_rest_s, long);
-        self.prior_sd_z = width.fitted().then(|| width.sd_z(rest_s, 1));
+        self.prior_width = if width.fitted() {
+            Some((width.sd_z(rest_s, 1), WidthSource::Learned))
+        } else {
+            self.cal.interval().map(|iv| {
+                let (lo, hi) = (
+                    spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[0], r_o_ohm: iv.r_o_ohm[0] }),
+                    spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[1], r_o_ohm: iv.r_o_ohm[1] }),
+                );
+                let sd = |k: usize| ((hi[k] - lo[k]) / (2.0 * 1.645)).max(crate::prior_width::MIN_SD_Z);
+                ([sd(0), sd(1)], WidthSource::Posterior)
+            })
+        };
         let mut next = setup.clone();
         next.spec.tracker.prior = end;
-        if let Some(sd) = self.prior_sd_z {
+        if let Some((sd, _)) = self.prior_width {
             next.spec.ukf = Some(crate::JointUkfSettings { prior_std_z: sd, ..next.ukf() });
             next.spec.tracker.prior_std_z = sd[0].max(sd[1]);
         }
@@ -544,9 +567,10 @@ mod tests {
     }
 
     /// Seven discharges of one cell joined end to end, three hours apart (the charges between them unseen):
-    /// each starts from the estimate the one before ended with, its EOD current anew; from the sixth on the
-    /// prior's width is learned from the changes between the discharges' final estimates, narrower than the
-    /// filter's own where the cell does not change; and every discharge ends within the filter's own error of
+    /// each starts from the estimate the one before ended with, its EOD current anew, with the one before's
+    /// posterior as its width, and from the sixth on a width learned from the changes between the
+    /// discharges' final estimates, narrower than the filter's own where the cell does not change; and every
+    /// discharge ends within the filter's own error of
     /// the cell at this sampling (10-20 s, piecewise: up to 14 % here). That one filter run on across the
     /// gaps goes wrong on a real cell is `realcell/tests/stream_across_discharges.rs`.
     #[test]
@@ -578,7 +602,7 @@ mod tests {
         let (mut ours, mut widths, mut theirs) = (Vec::new(), Vec::new(), Vec::new());
         for r in &readings {
             ours.push(stream.step(r).unwrap());
-            widths.push(stream.prior_sd_z());
+            widths.push(stream.prior_width());
             theirs.push(plain.step(r).unwrap());
         }
         assert_eq!((stream.discharges(), plain.discharges()), (7, 1));
@@ -588,11 +612,13 @@ mod tests {
             assert_eq!(ours[n - 1].discharge + 1, ours[n].discharge);
             assert_eq!(ours[n].q_mobile, ours[n - 1].q_mobile, "discharge {k} starts where {} ended", k - 1);
             assert_eq!(ours[n].eod_current_a, None, "the EOD current starts over with the discharge");
-            assert_eq!(widths[n].is_some(), k >= 5, "discharge {k}: {:?}", widths[n]);
+            let source = if k >= 5 { WidthSource::Learned } else { WidthSource::Posterior };
+            assert_eq!(widths[n].map(|w| w.1), Some(source), "discharge {k}: {:?}", widths[n]);
             let q_end = ours[n - 1].q_mobile;
             assert!((q_end / truth - 1.0).abs() < 0.2, "discharge {} ends at {q_end} C, truth {truth} C", k - 1);
         }
-        let w = widths.last().unwrap().unwrap();
+        assert_eq!(widths[0], None, "the first discharge has the filter's own width");
+        let w = widths.last().unwrap().unwrap().0;
         let own = setup.ukf().prior_std_z;
         assert!(w[0] < own[0] && w[1] < own[1], "learned {w:?}, the filter's own {own:?}");
         assert_eq!(ours[..starts[1]], theirs[..starts[1]], "the first discharge is the same either way");

@@ -33,7 +33,10 @@ pub struct CalibrateArgs {
     /// on standard output (estimate, 90 % interval, predicted EOD) as soon as it is computed. A bad line is
     /// reported with its number and skipped; end of input, --idle-s or Ctrl-C ends with a summary. Runs one
     /// calibrator (--calibrator ukf by default; `fit` is then the streaming window fit) on a new cell's prior,
-    /// or on --config / --model.
+    /// or on --config / --model. A stream may hold many discharges: after a charge or a gap of more than
+    /// 30 min a new one starts (`discharge` counts them) from the estimate the last one ended with, with a
+    /// prior width learned from the discharges before, the last one's posterior until enough are known
+    /// (docs/follow.md).
     #[arg(long, value_name = "-|FILE", conflicts_with_all = ["data", "cycles", "quick"])]
     pub follow: Option<String>,
     /// With --follow: the cell's config (a `bcal cell-config` TOML) whose measured.tracker sets the

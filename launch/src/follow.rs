@@ -11,7 +11,7 @@
 //! while the reader is blocked in a read.
 
 use anyhow::{bail, Context};
-use bcal_calib::stream::{resolve, CalibratorKind, Estimate, Reading, Stream};
+use bcal_calib::stream::{resolve, CalibratorKind, Estimate, Reading, Stream, WidthSource};
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::PolicyFile;
@@ -420,11 +420,15 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
         s.push_str(&format!(" (lines {}{})", shown.join(", "), if skipped.len() > 20 { ", ..." } else { "" }));
     }
     s.push_str(&format!("; {discharges} discharge{}", if discharges == 1 { "" } else { "s" }));
-    if let Some(sd) = stream.prior_sd_z() {
+    if let Some((sd, source)) = stream.prior_width() {
         let spec = stream.spec();
         let span = |[lo, hi]: [f64; 2]| hi - lo;
+        let from = match source {
+            WidthSource::Learned => "learned from the changes between the ones before",
+            WidthSource::Posterior => "the one before's own posterior",
+        };
         s.push_str(&format!(
-            " (the last from a prior width learned from the ones before: sd q_mobile {:.0} C, r_o {:.4} ohm)",
+            " (the last from a prior width {from}: sd q_mobile {:.0} C, r_o {:.4} ohm)",
             sd[0] * span(spec.q_mobile_range_c),
             sd[1] * span(spec.r_o_range_ohm)
         ));
