@@ -269,6 +269,8 @@ pub struct Stream<'a> {
     last_loaded_t_s: Option<f64>,
     /// Each finished discharge's final estimate (z units) and the rest before it, s.
     ends: Vec<([f64; 2], Option<f64>)>,
+    /// The estimate the last finished discharge ended with.
+    carried: Option<Degradation>,
     /// The rest before the current discharge, s (None for the first).
     rest_before_s: Option<f64>,
     /// The current discharge's prior width, z units, and where it came from (None: the calibrator's own).
@@ -305,6 +307,7 @@ impl<'a> Stream<'a> {
             charging: false,
             last_loaded_t_s: None,
             ends: Vec::new(),
+            carried: None,
             rest_before_s: None,
             prior_width: None,
         }
@@ -404,12 +407,17 @@ impl<'a> Stream<'a> {
     }
 
     /// A new calibrator on the same setting from `start_s` on, its prior the estimate the last discharge
-    /// ended with, its width learned from the discharges before (the module's doc).
+    /// ended with, its width learned from the discharges before (the module's doc). A stretch that never
+    /// discharged (a charge after a gap) is no discharge to learn from or carry: the one before it is.
     fn new_discharge(&mut self, start_s: f64) {
         let Some((setup, net)) = &self.rebuild else { return };
         let spec = &setup.spec.tracker;
-        let end = self.cal.estimate();
-        self.ends.push((spec.to_z(&end), self.rest_before_s));
+        if self.loaded_n > 0 || self.carried.is_none() {
+            let end = self.cal.estimate();
+            self.ends.push((spec.to_z(&end), self.rest_before_s));
+            self.carried = Some(end);
+        }
+        let end = self.carried.expect("set above");
         // The rest: from the last reading that discharged (a charge seen in between is part of it).
         let rest_s = self.last_loaded_t_s.or(self.last_t_s).map(|t| (start_s - t).max(0.0));
         let mut rests: Vec<f64> = self.ends.iter().filter_map(|e| e.1).chain(rest_s).collect();
@@ -439,9 +447,9 @@ impl<'a> Stream<'a> {
         }
         // The same kind, setting and network built once already: it builds again.
         self.cal = build(&next, *net).expect("the stream's calibrator was built from this setting");
+        self.rest_before_s = rest_s;
         self.loaded_sum_a = 0.0;
         self.loaded_n = 0;
-        self.rest_before_s = rest_s;
         self.discharge += 1;
     }
 
@@ -624,5 +632,46 @@ mod tests {
         assert_eq!(ours[..starts[1]], theirs[..starts[1]], "the first discharge is the same either way");
         let q_end = ours.last().unwrap().q_mobile;
         assert!((q_end / truth - 1.0).abs() < 0.2, "the last discharge ends at {q_end} C, truth {truth} C");
+    }
+
+    /// A gap, then a charge the stream sees, then the next discharge: the charge is a stretch of its own (a
+    /// new one starts after the gap and again after the charge), but not a discharge to carry or learn from:
+    /// the next discharge starts from where the last discharge ended, not from where the charge left the
+    /// filter.
+    #[test]
+    fn a_charge_after_a_gap_is_not_carried_as_a_discharge() {
+        let cfg = ScenarioConfig::default();
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(4);
+        let spec = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
+        let samples = simulate(&cfg, &spec).unwrap().samples;
+        let as_reading = |s: &Sample, offset_s: f64| Reading {
+            time_s: s.t_s + offset_s,
+            voltage_v: s.voltage_v,
+            current_a: s.current_a,
+            temperature_c: None,
+        };
+        let mut readings: Vec<Reading> = samples.iter().map(|s| as_reading(s, 0.0)).collect();
+        let end_s = readings.last().unwrap().time_s;
+        // An hour later: 30 min of charging at 1.5 A, the voltage rising, then the same discharge again.
+        for k in 0..=90 {
+            let v = 3.9 + 0.3 * f64::from(k) / 90.0;
+            readings.push(Reading {
+                time_s: end_s + 3600.0 + 20.0 * f64::from(k),
+                voltage_v: v,
+                current_a: -1.5,
+                temperature_c: None,
+            });
+        }
+        let again_s = readings.last().unwrap().time_s + 600.0;
+        let n_before = readings.len();
+        readings.extend(samples.iter().map(|s| as_reading(s, again_s)));
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let est: Vec<Estimate> = readings.iter().map(|r| stream.step(r).unwrap()).collect();
+        let n_first = samples.len();
+        assert_eq!(stream.discharges(), 3, "the discharge, the charge, the discharge");
+        assert_eq!((est[n_first].discharge, est[n_before].discharge), (1, 2));
+        assert_eq!(est[n_before].q_mobile, est[n_first - 1].q_mobile, "carried from the discharge, not the charge");
+        assert_ne!(est[n_before - 1].q_mobile, est[n_first - 1].q_mobile, "the filter moved while charging");
     }
 }
