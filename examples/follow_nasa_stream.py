@@ -45,6 +45,8 @@ def start_s(vec: str) -> float:
 def discharges(root: pathlib.Path, cell: str, first: int, last: int) -> list:
     """The cell's discharge records `first..last` (1-based, in file order) as lists of CSV rows with
     absolute times, NASA's sign (negative discharges)."""
+    if not (root / "metadata.csv").is_file():
+        raise SystemExit(f"{root}: no metadata.csv (give the NASA PCoE folder with --data)")
     meta = [r for r in csv.DictReader(open(root / "metadata.csv")) if r["battery_id"] == cell and r["type"] == "discharge"]
     if len(meta) < last:
         raise SystemExit(f"{cell} has {len(meta)} discharges in {root / 'metadata.csv'}; --cycles asks for {last}")
@@ -109,7 +111,12 @@ def main() -> None:
     p.add_argument("--cutoff-v", type=float, default=3.0)
     p.add_argument("--bcal", default=None, help="the bcal executable (default: this clone's build)")
     a = p.parse_args()
-    first, last = (int(x) for x in a.cycles.split(".."))
+    try:
+        first, last = (int(x) for x in a.cycles.split(".."))
+    except ValueError:
+        raise SystemExit(f"--cycles {a.cycles!r}: give A..B, e.g. 41..80") from None
+    if not 1 <= first <= last:
+        raise SystemExit(f"--cycles {a.cycles!r}: need 1 <= A <= B")
     bcal = a.bcal or find_bcal()
     records = discharges(pathlib.Path(a.data), a.cell, first, last)
 
