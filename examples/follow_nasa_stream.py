@@ -128,7 +128,7 @@ def main() -> None:
         joined.append(eod_error_pct(rows, part, a.cutoff_v))
         alone.append(eod_error_pct(rows, follow(bcal, a.kind, rows, a.cutoff_v), a.cutoff_v))
         fmt = lambda e: "-" if e is None else f"{e:+.1f}"  # noqa: E731
-        print(f"discharge {first + n} (stream's #{part[-1]['discharge']}): EOD error at 50 % {fmt(joined[-1])} % "
+        print(f"discharge {first + n} (stream's #{part[-1].get('discharge', '-')}): EOD error at 50 % {fmt(joined[-1])} % "
               f"as one stream, {fmt(alone[-1])} % alone")
     summary(f"{a.cell} {a.cycles}, {a.kind}, one stream", joined)
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone)
