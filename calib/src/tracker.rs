@@ -270,13 +270,11 @@ impl Tracker {
 mod tests {
     use super::*;
     use bcal_common::dataset::Split;
-    use bcal_common::measured::scenario::{draw_spec, simulate, ScenarioConfig};
+    use bcal_common::measured::scenario::{draw_spec, simulate, Episode, EpisodeSpec, ScenarioConfig};
     use rand::SeedableRng;
 
-    /// Fed a simulated discharge and moved along its own fit step, the calibrator's estimate converges near
-    /// the hidden truth, its observation stays finite and its cost falls to about the sensor noise.
-    #[test]
-    fn following_the_fit_step_finds_the_hidden_parameters() {
+    /// One simulated training discharge under a piecewise load (seed 5): its plan and its readings.
+    fn piecewise_discharge() -> (EpisodeSpec, Episode) {
         let cfg = ScenarioConfig {
             load_kinds: vec![bcal_common::measured::scenario::LoadKind::Piecewise],
             ..Default::default()
@@ -284,6 +282,14 @@ mod tests {
         let mut rng = rand::rngs::SmallRng::seed_from_u64(5);
         let spec = draw_spec(&cfg, Split::Train, &mut rng);
         let ep = simulate(&cfg, &spec).unwrap();
+        (spec, ep)
+    }
+
+    /// Fed a simulated discharge and moved along its own fit step, the calibrator's estimate converges near
+    /// the hidden truth, its observation stays finite and its cost falls to about the sensor noise.
+    #[test]
+    fn following_the_fit_step_finds_the_hidden_parameters() {
+        let (spec, ep) = piecewise_discharge();
         let ts = TrackerSpec { action: ActionMode::Absolute, ..TrackerSpec::default() };
         let mut tr = Tracker::new(&ts);
         let mut obs = [0f32; OBS_DIM];
@@ -312,13 +318,7 @@ mod tests {
     /// qMobile to the end; fitted with its uncertainty, the fit finds the start and qMobile comes back.
     #[test]
     fn a_discharge_joined_under_load_finds_its_start_when_the_start_is_fitted() {
-        let cfg = ScenarioConfig {
-            load_kinds: vec![bcal_common::measured::scenario::LoadKind::Piecewise],
-            ..Default::default()
-        };
-        let mut rng = rand::rngs::SmallRng::seed_from_u64(5);
-        let spec = draw_spec(&cfg, Split::Train, &mut rng);
-        let ep = simulate(&cfg, &spec).unwrap();
+        let (spec, ep) = piecewise_discharge();
         let first_loaded = ep.samples.iter().position(|s| s.current_a > 0.5).unwrap();
         let run = |fit_start: bool| {
             let mut fit =

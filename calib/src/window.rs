@@ -377,22 +377,28 @@ mod tests {
         CellModel::at_rest(m, 0.55, t, 2.0)
     }
 
-    /// Readings made by the model itself under known parameters: the window's fit step points at them, and
-    /// the residual there is zero.
-    #[test]
-    fn the_gauss_newton_step_points_at_the_parameters_that_made_the_readings() {
+    /// 400 readings 3 s apart made by the model itself (qMobile 5600 C, Ro 0.13 ohm), the current stepping
+    /// between 3 and 1 A so that Ro is visible: the truth, the ranges, the cell after them and the window.
+    fn exact_readings() -> (Degradation, [[f64; 2]; 2], CellModel, FitWindow) {
         let truth = Degradation { q_mobile_c: 5600.0, r_o_ohm: 0.13 };
         let ranges = [[3500.0, 7500.0], [0.05, 0.25]];
         let mut c = cell();
         let mut w = FitWindow::new(64, 1200.0);
         let mut t = 0.0;
         for k in 0..400 {
-            // Steps between two currents so that Ro is visible.
             let i = if (k / 40) % 2 == 0 { 3.0 } else { 1.0 };
             c.advance(i, 3.0, &truth, c.track.t_k);
             t += 3.0;
             w.push(FitPoint::reading(t, c.track, c.voltage(&truth)), &c, &truth, &ranges);
         }
+        (truth, ranges, c, w)
+    }
+
+    /// Readings made by the model itself under known parameters: the window's fit step points at them, and
+    /// the residual there is zero.
+    #[test]
+    fn the_gauss_newton_step_points_at_the_parameters_that_made_the_readings() {
+        let (truth, ranges, c, w) = exact_readings();
         // Bins span 1200 / 64 = 18.75 s: 7 readings 3 s apart each, so 400 readings fill 58 of the 64.
         assert_eq!(w.len(), 58);
         assert_eq!(w.readings(), 400.0, "every reading counts, and nothing has left the window yet");
@@ -423,17 +429,7 @@ mod tests {
     /// to the true one and leaves the true parameters where they are, and says qMobile is less certain.
     #[test]
     fn a_fitted_start_takes_the_start_error_off_qmobile() {
-        let truth = Degradation { q_mobile_c: 5600.0, r_o_ohm: 0.13 };
-        let ranges = [[3500.0, 7500.0], [0.05, 0.25]];
-        let mut c = cell();
-        let mut w = FitWindow::new(64, 1200.0);
-        let mut t = 0.0;
-        for k in 0..400 {
-            let i = if (k / 40) % 2 == 0 { 3.0 } else { 1.0 };
-            c.advance(i, 3.0, &truth, c.track.t_k);
-            t += 3.0;
-            w.push(FitPoint::reading(t, c.track, c.voltage(&truth)), &c, &truth, &ranges);
-        }
+        let (truth, ranges, c, w) = exact_readings();
         // The calibrator's model of the same readings, started 0.03 low (about 5 % of the charge).
         let mut off = c.clone();
         off.xn0 = c.xn0 - 0.03;
