@@ -8,7 +8,8 @@ the cut-off under load. Standard library only.
         [--kind ukf] [--cutoff-v 3.0] [--bcal PATH]
 
 Prints, per discharge, the prediction's error in % of the time from the load's start to the end of
-discharge, and the median and 90th percentile of its size, two ways: the stream as one (`--follow` starts
+discharge (and whether the stream's 90 % interval held the end), and the median and 90th percentile of its
+size and the interval's coverage, two ways: the stream as one (`--follow` starts
 each discharge from the last one's estimate, with a prior width learned from the discharges before), and
 each discharge alone from the calibrator's default prior (what `--follow` did with a stream per discharge).
 """
@@ -78,28 +79,37 @@ def follow(bcal: str, kind: str, rows: list, cutoff_v: float) -> list:
 
 def eod_error_pct(rows: list, est: list, cutoff_v: float):
     """The prediction at half the loaded time to the end of discharge, in % of that time (None when the
-    discharge never reaches the cut-off under load or no prediction was made)."""
+    discharge never reaches the cut-off under load or no prediction was made), and whether its 90 % interval
+    holds the measured end (None without an interval: an older bcal, or before the stream has scored nine
+    discharges)."""
     loaded = [(k, r) for k, r in enumerate(rows) if -r[2] > 0.5]
     if not loaded:
-        return None
+        return None, None
     t_on = loaded[0][1][0]
     eod = next((r[0] for _, r in loaded if r[1] < cutoff_v), None)
     if eod is None:
-        return None
+        return None, None
     mid = t_on + 0.5 * (eod - t_on)
     k = min(range(len(rows)), key=lambda j: abs(rows[j][0] - mid))
-    p = est[k]["eod_s"]
-    return None if p is None else 100.0 * (p - eod) / (eod - t_on)
+    p, lo, hi = est[k]["eod_s"], est[k].get("eod_lo_s"), est[k].get("eod_hi_s")
+    # Whether the interval held the end, and its width (hi - lo) in % of the time to the end.
+    held = None if lo is None or hi is None else (lo <= eod <= hi, 100.0 * (hi - lo) / (eod - t_on))
+    return (None if p is None else 100.0 * (p - eod) / (eod - t_on)), held
 
 
-def summary(name: str, errors: list) -> None:
+def summary(name: str, scores: list) -> None:
+    errors = [e for e, _ in scores]
     sizes = sorted(abs(e) for e in errors if e is not None)
     if not sizes:
         print(f"{name}: no discharge reached the cut-off with a prediction")
         return
     p90 = sizes[round(0.9 * (len(sizes) - 1))]
+    held = [c for _, c in scores if c is not None]
+    cover = (f"; 90 % interval holds the end on {sum(h for h, _ in held)} of {len(held)} "
+             f"({100.0 * sum(h for h, _ in held) / len(held):.1f} %), median width "
+             f"{statistics.median(w for _, w in held):.1f} %" if held else "")
     print(f"{name}: EOD at 50 % median {statistics.median(sizes):.2f} %, p90 {p90:.2f} % over {len(sizes)} discharges"
-          f" ({errors.count(None)} without a score)")
+          f" ({errors.count(None)} without a score){cover}")
 
 
 def main() -> None:
@@ -128,8 +138,9 @@ def main() -> None:
         joined.append(eod_error_pct(rows, part, a.cutoff_v))
         alone.append(eod_error_pct(rows, follow(bcal, a.kind, rows, a.cutoff_v), a.cutoff_v))
         fmt = lambda e: "-" if e is None else f"{e:+.1f}"  # noqa: E731
-        print(f"discharge {first + n} (stream's #{part[-1].get('discharge', '-')}): EOD error at 50 % {fmt(joined[-1])} % "
-              f"as one stream, {fmt(alone[-1])} % alone")
+        held = "" if joined[-1][1] is None else [" (outside its interval)", " (in its interval)"][joined[-1][1][0]]
+        print(f"discharge {first + n} (stream's #{part[-1].get('discharge', '-')}): EOD error at 50 % {fmt(joined[-1][0])} %"
+              f"{held} as one stream, {fmt(alone[-1][0])} % alone")
     summary(f"{a.cell} {a.cycles}, {a.kind}, one stream", joined)
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone)
 

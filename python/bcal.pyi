@@ -55,6 +55,10 @@ class Estimate(TypedDict):
     """Predicted end of discharge, absolute time, s, at eod_current_a."""
     eod_current_a: Optional[float]
     """Mean discharge current of the readings so far, A."""
+    eod_lo_s: Optional[float]
+    eod_hi_s: Optional[float]
+    """The prediction's 90 % interval, absolute times, s: learned from how the stream's predictions fared
+    on its last 10 discharges followed to the cut-off; None until 9 of them are scored."""
     discharge: int
     """The discharge the reading belongs to, from 0: a new one after a charge or a gap of more than
     half an hour, started from the estimate the last one ended with."""

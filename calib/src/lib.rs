@@ -12,7 +12,9 @@
 //! - [`direct`]: the direct mapping's inference (a network trained elsewhere on true parameters);
 //! - [`eod`]: end-of-discharge prediction from a calibrated state; [`env`]: the RL environment and the
 //!   rollouts the learner's validation and the evaluator share; [`tune`]: choices made on validation cells;
-//!   [`stream`]: one calibrator on live readings (`bcal calibrate --follow`, the Python package).
+//!   [`stream`]: one calibrator on live readings (`bcal calibrate --follow`, the Python package);
+//!   [`prior_width`] and [`widening`]: a discharge's prior width and its prediction intervals, learned from
+//!   the discharges before it (for `bcal calibrate` and a live stream alike).
 //!
 //! No libtorch here (the learner and the direct mapping's training own it), and nothing prints.
 
@@ -29,6 +31,7 @@ pub mod stream;
 pub mod tracker;
 pub mod tracker_based;
 pub mod tune;
+pub mod widening;
 pub mod window;
 
 pub use adaptive::{AdaptiveRule, AdaptiveUkf, CovarianceMatching};

@@ -26,6 +26,7 @@ use crate::correction::CorrectionCalibrator;
 use crate::joint_ukf::JointUkf;
 use crate::prior_width::{RestWidth, LONG_REST_S};
 use crate::tracker_based::{RlCalibrator, Uncalibrated, WindowFitCalibrator};
+use crate::widening::{share_bin, Outcome, Widening, EOD_FRACTIONS_PCT, MIN_OUTCOMES, WINDOW};
 use crate::{predict_eod_s, Calibrator, EodQuery};
 use bcal_common::battery::{Degradation, Load, LoadProfile};
 use bcal_common::math::idx;
@@ -36,6 +37,7 @@ use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::policy::PolicyNet;
 use bcal_common::task::Task;
 use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
 
 /// A reading discharges the cell when its current exceeds this, A (the readers' and the records' threshold).
 pub const LOAD_THRESHOLD_A: f64 = 0.05;
@@ -98,6 +100,11 @@ pub struct Estimate {
     pub eod_s: Option<f64>,
     /// The current the prediction assumes: the mean of the loaded readings so far, A.
     pub eod_current_a: Option<f64>,
+    /// The prediction's 90 % interval (absolute times, s), learned from how the stream's own predictions
+    /// fared on the discharges it followed to their cut-off (None until [`MIN_OUTCOMES`] of them are scored
+    /// at the share of the discharge the prediction puts this reading at).
+    pub eod_lo_s: Option<f64>,
+    pub eod_hi_s: Option<f64>,
     /// The discharge the reading belongs to, from 0 (a new one after a charge or a long gap).
     pub discharge: u32,
 }
@@ -275,6 +282,26 @@ pub struct Stream<'a> {
     rest_before_s: Option<f64>,
     /// The current discharge's prior width, z units, and where it came from (None: the calibrator's own).
     prior_width: Option<([f64; 2], WidthSource)>,
+    /// The current discharge's end-of-discharge record (for its interval's scores).
+    eod_track: EodTrack,
+    /// The scored predictions of the last [`WINDOW`] discharges followed to their cut-off.
+    scored: VecDeque<Vec<Outcome>>,
+    /// The EOD interval's widening per share ([`EOD_FRACTIONS_PCT`]; None: too few scores at that share).
+    eod_widening: [Option<Widening>; 3],
+}
+
+/// One discharge's predictions and its measured end, so that its predictions can be scored once the
+/// voltage reaches the cut-off under load.
+#[derive(Clone, Debug, Default)]
+struct EodTrack {
+    /// The first loaded reading's time, s.
+    load_on_s: Option<f64>,
+    /// The last loaded reading above the cut-off (time s, voltage V), to interpolate the crossing.
+    above_cutoff: Option<(f64, f64)>,
+    /// Each loaded reading's prediction (time s, predicted end s) until the end.
+    predictions: Vec<(f64, f64)>,
+    /// The measured end of discharge, s: the interpolated time the voltage fell below the cut-off.
+    ended_s: Option<f64>,
 }
 
 /// Where a discharge's prior width came from.
@@ -310,6 +337,9 @@ impl<'a> Stream<'a> {
             carried: None,
             rest_before_s: None,
             prior_width: None,
+            eod_track: EodTrack::default(),
+            scored: VecDeque::new(),
+            eod_widening: [None; 3],
         }
     }
 
@@ -390,6 +420,18 @@ impl<'a> Stream<'a> {
             self.last_loaded_t_s = Some(r.time_s);
         }
         let eod_current_a = (self.loaded_n > 0).then(|| self.loaded_sum_a / self.loaded_n as f64);
+        let eod_s = eod_current_a.and_then(|i| self.predict_eod_s(i));
+        self.track_eod(r, eod_s);
+        let (eod_lo_s, eod_hi_s) = match (eod_s, self.eod_track.load_on_s) {
+            (Some(eod), Some(on)) => match self.eod_widening[share_bin(on, r.time_s, eod)] {
+                Some(w) => {
+                    let half = w.half(0.0, (eod - on).max(1.0));
+                    (Some((eod - half).max(r.time_s)), Some(eod + half))
+                }
+                None => (None, None),
+            },
+            _ => (None, None),
+        };
         let d = self.cal.estimate();
         let iv = self.cal.interval();
         Ok(Estimate {
@@ -400,8 +442,10 @@ impl<'a> Stream<'a> {
             r_o: d.r_o_ohm,
             r_o_lo: iv.map(|iv| iv.r_o_ohm[0]),
             r_o_hi: iv.map(|iv| iv.r_o_ohm[1]),
-            eod_s: eod_current_a.and_then(|i| self.predict_eod_s(i)),
+            eod_s,
             eod_current_a,
+            eod_lo_s,
+            eod_hi_s,
             discharge: self.discharge,
         })
     }
@@ -448,9 +492,62 @@ impl<'a> Stream<'a> {
         // The same kind, setting and network built once already: it builds again.
         self.cal = build(&next, *net).expect("the stream's calibrator was built from this setting");
         self.rest_before_s = rest_s;
+        self.eod_track = EodTrack::default();
         self.loaded_sum_a = 0.0;
         self.loaded_n = 0;
         self.discharge += 1;
+    }
+
+    /// Records the reading's prediction and, at the first loaded reading below the cut-off, scores the
+    /// discharge's predictions at each share of it against the interpolated crossing and learns the EOD
+    /// intervals again from the last [`WINDOW`] scored discharges (the discharge's own interval is never
+    /// set by its own outcome: a prediction is made before its end is known).
+    fn track_eod(&mut self, r: &Reading, eod_s: Option<f64>) {
+        let t = &mut self.eod_track;
+        if r.current_a <= LOAD_THRESHOLD_A || t.ended_s.is_some() {
+            return;
+        }
+        let on = *t.load_on_s.get_or_insert(r.time_s);
+        let cutoff_v = self.spec.cutoff_v;
+        if r.voltage_v >= cutoff_v {
+            t.above_cutoff = Some((r.time_s, r.voltage_v));
+            if let Some(e) = eod_s {
+                t.predictions.push((r.time_s, e));
+            }
+            return;
+        }
+        // A discharge joined below its cut-off has no span to score.
+        let Some((t0, v0)) = t.above_cutoff else { return };
+        let end_s = t0 + (v0 - cutoff_v) / (v0 - r.voltage_v) * (r.time_s - t0);
+        t.ended_s = Some(end_s);
+        let outcomes: Vec<Outcome> = EOD_FRACTIONS_PCT
+            .iter()
+            .filter_map(|&f| {
+                let at_s = on + f64::from(f) / 100.0 * (end_s - on);
+                // The last prediction made by then (none made yet: no score at this share).
+                let k = t.predictions.partition_point(|p| p.0 <= at_s).checked_sub(1)?;
+                let value = t.predictions[k].1;
+                let size = (value - on).max(1.0);
+                Some(Outcome { value, below: 0.0, above: 0.0, size, measured: end_s, fraction: f })
+            })
+            .collect();
+        t.predictions = Vec::new();
+        if self.scored.len() == WINDOW {
+            self.scored.pop_front();
+        }
+        self.scored.push_back(outcomes);
+        self.eod_widening = std::array::from_fn(|b| {
+            let at: Vec<Outcome> =
+                self.scored.iter().flatten().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
+            (at.len() >= MIN_OUTCOMES).then(|| Widening::learn(&at, self.scored.len()))
+        });
+    }
+
+    /// The EOD interval's relative half-width per share of the discharge ([`EOD_FRACTIONS_PCT`]: a fraction
+    /// of the predicted duration from the load-on) and the discharges it was learned on; None at a share
+    /// with too few scores yet.
+    pub fn eod_widening(&self) -> [Option<(f64, usize)>; 3] {
+        self.eod_widening.map(|w| w.map(|w| (w.model, w.learned_on)))
     }
 
     /// The end of discharge (absolute time, s) if the cell now draws `current_a` until the cut-off, from the
@@ -632,6 +729,81 @@ mod tests {
         assert_eq!(ours[..starts[1]], theirs[..starts[1]], "the first discharge is the same either way");
         let q_end = ours.last().unwrap().q_mobile;
         assert!((q_end / truth - 1.0).abs() < 0.2, "the last discharge ends at {q_end} C, truth {truth} C");
+    }
+
+    /// Twelve discharges of one cell joined end to end: each discharge's predictions are scored at 10, 50
+    /// and 90 % of it once its voltage crosses the cut-off under load, and from the tenth discharge (nine
+    /// scored) each prediction carries a 90 % interval whose half-width, as a share of the predicted
+    /// duration, is the conformal rank of the last ten scored errors at the share the prediction is at
+    /// (nine or ten of them: the largest), recomputed here from the estimates and the readings alone.
+    #[test]
+    fn eod_intervals_are_learned_from_the_discharges_the_stream_followed_to_their_cut_off() {
+        let cfg = ScenarioConfig::default();
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(7);
+        let first = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
+        let (mut readings, mut starts, mut offset_s) = (Vec::new(), Vec::new(), 0.0);
+        for k in 0..12u64 {
+            let spec = bcal_common::measured::scenario::EpisodeSpec {
+                soc0: 0.8 + 0.02 * (k % 10) as f64,
+                noise_seed: first.noise_seed + k,
+                ..first.clone()
+            };
+            starts.push(readings.len());
+            readings.extend(simulate(&cfg, &spec).unwrap().samples.iter().map(|s| Reading {
+                time_s: s.t_s + offset_s,
+                voltage_v: s.voltage_v,
+                current_a: s.current_a,
+                temperature_c: Some(s.temperature_k - KELVIN_0C),
+            }));
+            offset_s = readings.last().unwrap().time_s + 3.0 * 3600.0;
+        }
+        starts.push(readings.len());
+        // A cut-off above the simulator's (3.0 V, where an episode stops, its last noisy reading not always
+        // below it): every discharge crosses it under load.
+        let mut setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        setup.spec.tracker.cutoff_v = 3.1;
+        let cutoff_v = setup.spec.tracker.cutoff_v;
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let est: Vec<Estimate> = readings.iter().map(|r| stream.step(r).unwrap()).collect();
+        assert_eq!(stream.discharges(), 12);
+        // Each discharge's scores, from its readings: the load-on, the interpolated crossing, and the
+        // relative error of the last prediction made by each share.
+        let mut errors: Vec<[f64; 3]> = Vec::new();
+        for d in 0..12 {
+            let (r, e) = (&readings[starts[d]..starts[d + 1]], &est[starts[d]..starts[d + 1]]);
+            let loaded: Vec<usize> = (0..r.len()).filter(|&k| r[k].current_a > LOAD_THRESHOLD_A).collect();
+            let on = r[loaded[0]].time_s;
+            let cross = loaded.iter().position(|&k| r[k].voltage_v < cutoff_v).expect("every discharge ends");
+            let (a, b) = (&r[loaded[cross - 1]], &r[loaded[cross]]);
+            let end_s = a.time_s + (a.voltage_v - cutoff_v) / (a.voltage_v - b.voltage_v) * (b.time_s - a.time_s);
+            errors.push(EOD_FRACTIONS_PCT.map(|f| {
+                let at_s = on + f64::from(f) / 100.0 * (end_s - on);
+                let k = loaded[..cross].iter().rev().find(|&&k| r[k].time_s <= at_s && e[k].eod_s.is_some()).unwrap();
+                let p = e[*k].eod_s.unwrap();
+                ((end_s - p) / (p - on).max(1.0)).abs()
+            }));
+            // Readings from this discharge's own crossing on already learn from it.
+            let crossed = loaded[cross];
+            for (k, x) in e.iter().enumerate() {
+                let scored = if k >= crossed { d + 1 } else { d };
+                let (Some(p), Some(lo), Some(hi)) = (x.eod_s, x.eod_lo_s, x.eod_hi_s) else {
+                    assert!(scored < 9 || x.eod_s.is_none(), "discharge {d}, reading {k}: no interval");
+                    continue;
+                };
+                assert!(scored >= 9, "discharge {d}, reading {k}: an interval after {scored} scored discharges");
+                let bin = share_bin(on, x.time_s, p);
+                let expect = errors[scored.saturating_sub(WINDOW)..scored].iter().map(|e| e[bin]).fold(0.0, f64::max);
+                let half = expect * (p - on).max(1.0);
+                assert!((hi - p - half).abs() < 1e-6 * p, "discharge {d}, reading {k}: {hi} - {p} against {half}");
+                assert!((lo - (p - half).max(x.time_s)).abs() < 1e-6 * p, "discharge {d}, reading {k}");
+            }
+            if d >= 9 {
+                let n = e[..crossed].iter().filter(|x| x.eod_lo_s.is_some()).count();
+                assert!(n > crossed / 2, "discharge {d}: {n} of {crossed} readings before the end have an interval");
+            }
+        }
+        let w = stream.eod_widening();
+        assert!(w.iter().all(|w| w.is_some_and(|(a, n)| a > 0.0 && n == WINDOW)), "{w:?}");
     }
 
     /// A gap, then a charge the stream sees, then the next discharge: the charge is a stretch of its own (a

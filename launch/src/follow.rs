@@ -433,13 +433,27 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
             sd[1] * span(spec.r_o_range_ohm)
         ));
     }
+    let widening = stream.eod_widening();
+    if let Some(n) = widening.iter().flatten().map(|w| w.1).max() {
+        let shown: Vec<String> = bcal_calib::widening::EOD_FRACTIONS_PCT
+            .iter()
+            .zip(widening)
+            .map(|(f, w)| format!("{f} %: {}", w.map_or("-".to_string(), |w| format!("+-{:.1} %", 100.0 * w.0))))
+            .collect();
+        s.push_str(&format!(
+            "; EOD 90 % intervals learned on the last {n} discharges that reached the cut-off ({} of the predicted \
+             duration)",
+            shown.join(", ")
+        ));
+    }
     if let Some(e) = last {
         s.push_str(&format!(
-            "; last estimate at {} s: q_mobile {:.1} C, r_o {:.5} ohm, EOD {}",
+            "; last estimate at {} s: q_mobile {:.1} C, r_o {:.5} ohm, EOD {}{}",
             e.time_s,
             e.q_mobile,
             e.r_o,
-            e.eod_s.map_or("-".to_string(), |t| format!("{t:.0} s"))
+            e.eod_s.map_or("-".to_string(), |t| format!("{t:.0} s")),
+            e.eod_lo_s.zip(e.eod_hi_s).map_or(String::new(), |(lo, hi)| format!(" ({lo:.0}-{hi:.0} s)"))
         ));
     }
     if !step_us.is_empty() {

@@ -78,12 +78,14 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
     d.set_item("r_o_hi", e.r_o_hi)?;
     d.set_item("eod_s", e.eod_s)?;
     d.set_item("eod_current_a", e.eod_current_a)?;
+    d.set_item("eod_lo_s", e.eod_lo_s)?;
+    d.set_item("eod_hi_s", e.eod_hi_s)?;
     d.set_item("discharge", e.discharge)?;
     Ok(d)
 }
 
 /// The columns `run` returns, in order.
-const RUN_COLUMNS: [&str; 11] = [
+const RUN_COLUMNS: [&str; 13] = [
     "time_s",
     "q_mobile",
     "q_mobile_lo",
@@ -93,6 +95,8 @@ const RUN_COLUMNS: [&str; 11] = [
     "r_o_hi",
     "eod_s",
     "eod_current_a",
+    "eod_lo_s",
+    "eod_hi_s",
     "discharge",
     "row",
 ];
@@ -171,9 +175,10 @@ impl Calibrator {
     /// Takes the next reading (time order; current positive while discharging) and returns the estimate:
     /// a dict of `time_s`, `q_mobile` (C), `q_mobile_lo`, `q_mobile_hi` (its 90 % interval), `r_o` (ohm),
     /// `r_o_lo`, `r_o_hi`, `eod_s` (predicted end of discharge, absolute time, s, at `eod_current_a`: the
-    /// mean discharge current so far) and `discharge` (from 0: a new one after a charge or a gap of more
-    /// than half an hour, started from the last one's estimate). Interval and prediction are None while the
-    /// calibrator cannot tell.
+    /// mean discharge current so far), `eod_lo_s`, `eod_hi_s` (its 90 % interval, learned from the
+    /// stream's own discharges followed to the cut-off: from the ninth on) and `discharge` (from 0: a new
+    /// one after a charge or a gap of more than half an hour, started from the last one's estimate).
+    /// Intervals and prediction are None while the calibrator cannot tell.
     /// A reading that is not finite, not a cell's voltage or not later than the last raises ValueError and
     /// leaves the calibrator as it was.
     #[pyo3(signature = (time_s, voltage_v, current_a, temperature_c=None))]
@@ -264,6 +269,8 @@ impl Calibrator {
                     opt(e.r_o_hi),
                     opt(e.eod_s),
                     opt(e.eod_current_a),
+                    opt(e.eod_lo_s),
+                    opt(e.eod_hi_s),
                     f64::from(e.discharge),
                     k as f64,
                 ];

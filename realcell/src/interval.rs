@@ -15,97 +15,14 @@
 //! one pair per share of the discharge the scores read (10, 50, 90 %), each reading taking the one nearest
 //! the share it predicts has passed. No look-ahead: a
 //! discharge's own outcome never sets its interval. Methods without an interval of their own get the
-//! model-error term alone.
+//! model-error term alone. The learning itself is [`bcal_calib::widening`], which a live stream shares.
 
 use crate::predict::Predicted;
 use crate::record::CellRecord;
 use crate::run::CycleRun;
 use crate::score::{share_bin, CAPACITY_FRACTIONS_PCT, EOD_FRACTIONS_PCT};
+pub use bcal_calib::widening::{Outcome, Widening, COVER, OWN_FACTORS, WINDOW};
 use serde::Serialize;
-
-/// How many of the latest complete discharges the error term is learned on.
-pub const WINDOW: usize = 10;
-/// The coverage the intervals aim at.
-pub const COVER: f64 = 0.9;
-/// Factors tried on the calibrator's own half-width (0: the model-error term alone).
-pub const OWN_FACTORS: [f64; 5] = [0.0, 0.25, 0.5, 1.0, 2.0];
-
-/// One scored prediction of a finished discharge: its value, its own bounds, its size and the measurement.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct Outcome {
-    value: f64,
-    /// The calibrator's own half-widths below and above the value (0 without an interval).
-    below: f64,
-    above: f64,
-    size: f64,
-    measured: f64,
-    /// The share of the discharge it was scored at, % (one of the scores' fractions).
-    fraction: u32,
-}
-
-/// The widening of one prediction kind: own half-width times `own`, model error `model` times the size.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
-pub struct Widening {
-    pub own: f64,
-    pub model: f64,
-    /// The discharges it was learned on.
-    pub learned_on: usize,
-}
-
-impl Widening {
-    fn half(&self, own_half: f64, size: f64) -> f64 {
-        (self.own * own_half).hypot(self.model * size)
-    }
-
-    #[cfg(test)]
-    fn covers(&self, o: &Outcome) -> bool {
-        let e = o.measured - o.value;
-        if e >= 0.0 {
-            e <= self.half(o.above, o.size)
-        } else {
-            -e <= self.half(o.below, o.size)
-        }
-    }
-
-    /// The narrowest widening that covers the conformal share of `outcomes` (none: unchanged).
-    fn learn(outcomes: &[Outcome], discharges: usize) -> Self {
-        if outcomes.is_empty() {
-            return Self { own: 1.0, model: 0.0, learned_on: 0 };
-        }
-        let n = outcomes.len();
-        // Split conformal: the ceil((n + 1) COVER)-th smallest score covers COVER of a new one.
-        let need = (((n + 1) as f64 * COVER).ceil() as usize).min(n);
-        let mut best: Option<(f64, Self)> = None;
-        for own in OWN_FACTORS {
-            // The least model term that covers `need` outcomes: each outcome's own threshold, sorted.
-            let mut thresholds: Vec<f64> = outcomes
-                .iter()
-                .map(|o| {
-                    let e = o.measured - o.value;
-                    let w = own * if e >= 0.0 { o.above } else { o.below };
-                    if e.abs() <= w {
-                        0.0
-                    } else if o.size > 0.0 {
-                        (e * e - w * w).sqrt() / o.size
-                    } else {
-                        f64::INFINITY
-                    }
-                })
-                .collect();
-            thresholds.sort_by(f64::total_cmp);
-            let model = thresholds[need - 1];
-            if !model.is_finite() {
-                continue;
-            }
-            let cand = Self { own, model, learned_on: discharges };
-            let width: f64 = outcomes.iter().map(|o| cand.half(o.below, o.size) + cand.half(o.above, o.size)).sum();
-            if best.as_ref().is_none_or(|(w, _)| width < *w - 1e-12) {
-                best = Some((width, cand));
-            }
-        }
-        best.map_or(Self { own: 1.0, model: 0.0, learned_on: discharges }, |b| b.1)
-    }
-}
 
 /// The widenings one discharge ran with.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
@@ -205,26 +122,6 @@ pub fn calibrate_intervals(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn outcome(e: f64, own: f64) -> Outcome {
-        Outcome { value: 100.0, below: own, above: own, size: 100.0, measured: 100.0 + e, fraction: 50 }
-    }
-
-    #[test]
-    fn the_learned_widening_covers_the_conformal_share_and_no_more() {
-        // Errors of 1..=20 % of the size, own half-widths of 0.5: 19 of 20 need covering ((20 + 1) 0.9).
-        let o: Vec<Outcome> =
-            (1..=20).map(|k| outcome(f64::from(k) * if k % 2 == 0 { 1.0 } else { -1.0 }, 0.5)).collect();
-        let w = Widening::learn(&o, 10);
-        let covered = o.iter().filter(|x| w.covers(x)).count();
-        assert_eq!(covered, 19, "{w:?}");
-        // An own interval that already covers everything and is too wide is narrowed.
-        let wide: Vec<Outcome> = (1..=20).map(|k| outcome(0.1 * f64::from(k), 10.0)).collect();
-        let w = Widening::learn(&wide, 10);
-        assert!(w.own < 1.0 && wide.iter().filter(|x| w.covers(x)).count() >= 19, "{w:?}");
-        // Nothing learned yet: the calibrator's own interval.
-        assert_eq!(Widening::learn(&[], 0), Widening { own: 1.0, model: 0.0, learned_on: 0 });
-    }
 
     /// A synthetic sequence: every discharge predicts 1.0 Ah with an own interval of +-1 mAh (far too
     /// narrow), and the cell delivers 1.0 Ah plus an error spread evenly over +-50 mAh.

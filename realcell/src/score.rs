@@ -18,16 +18,7 @@ use std::collections::BTreeMap;
 
 /// Fractions of each discharge from which capacity is predicted, %.
 pub const CAPACITY_FRACTIONS_PCT: [u32; 3] = [25, 50, 100];
-/// Fractions of each discharge at which the end of discharge is predicted, %.
-pub const EOD_FRACTIONS_PCT: [u32; 3] = [10, 50, 90];
-
-/// Which of [`EOD_FRACTIONS_PCT`] (its index) a reading at `t_s` is nearest to, by the share of the
-/// discharge passed as the reading's own predicted end `eod_s` puts it (no look-ahead).
-pub fn share_bin(load_on_s: f64, t_s: f64, eod_s: f64) -> usize {
-    let passed_pct = 100.0 * (t_s - load_on_s) / (eod_s - load_on_s).max(1.0);
-    let off = |i: usize| (f64::from(EOD_FRACTIONS_PCT[i]) - passed_pct).abs();
-    (0..EOD_FRACTIONS_PCT.len()).min_by(|&i, &j| off(i).total_cmp(&off(j))).unwrap_or(0)
-}
+pub use bcal_calib::widening::{share_bin, EOD_FRACTIONS_PCT};
 
 /// Error statistics of one prediction against one measurement kind.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]

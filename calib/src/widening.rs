@@ -1,0 +1,145 @@
+//! Prediction intervals learned from how a method's predictions fared on the discharges that have ended
+//! (issue 18 item 6): a 90 % half-width, per side, of `sqrt((s w)^2 + (a x)^2)`, `w` the calibrator's own
+//! half-width on that side (0 without one), `x` the size of the prediction (the predicted duration from the
+//! load-on for an end of discharge, the predicted capacity for a capacity), and `(s, a)` the pair that covers
+//! [`COVER`] of the last [`WINDOW`] discharges' scored predictions, with the finite-sample rank of split
+//! conformal prediction, with the narrowest intervals. `bcal calibrate` learns it on a cell's validation
+//! cycles and then each judged discharge (`bcal_realcell::interval`); a live stream on the discharges it
+//! has followed to their cut-off ([`crate::stream`]). Pure arithmetic: nothing here reads or prints.
+
+use serde::Serialize;
+
+/// How many of the latest complete discharges the error term is learned on.
+pub const WINDOW: usize = 10;
+/// The coverage the intervals aim at.
+pub const COVER: f64 = 0.9;
+/// Factors tried on the calibrator's own half-width (0: the model-error term alone).
+pub const OWN_FACTORS: [f64; 5] = [0.0, 0.25, 0.5, 1.0, 2.0];
+/// Shares of each discharge at which the end of discharge is predicted and scored, %.
+pub const EOD_FRACTIONS_PCT: [u32; 3] = [10, 50, 90];
+/// The fewest scored predictions whose conformal rank reaches [`COVER`]: with n of them the
+/// `ceil((n + 1) COVER)`-th smallest error must exist, so n >= 9. With fewer, the largest error so far covers
+/// only n / (n + 1) of a new one.
+pub const MIN_OUTCOMES: usize = 9;
+
+/// Which of [`EOD_FRACTIONS_PCT`] (its index) a reading at `t_s` is nearest to, by the share of the
+/// discharge passed as the reading's own predicted end `eod_s` puts it (no look-ahead).
+pub fn share_bin(load_on_s: f64, t_s: f64, eod_s: f64) -> usize {
+    let passed_pct = 100.0 * (t_s - load_on_s) / (eod_s - load_on_s).max(1.0);
+    let off = |i: usize| (f64::from(EOD_FRACTIONS_PCT[i]) - passed_pct).abs();
+    (0..EOD_FRACTIONS_PCT.len()).min_by(|&i, &j| off(i).total_cmp(&off(j))).unwrap_or(0)
+}
+
+/// One scored prediction of a finished discharge: its value, its own bounds, its size and the measurement.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Outcome {
+    pub value: f64,
+    /// The calibrator's own half-widths below and above the value (0 without an interval).
+    pub below: f64,
+    pub above: f64,
+    pub size: f64,
+    pub measured: f64,
+    /// The share of the discharge it was scored at, % (one of the scores' fractions).
+    pub fraction: u32,
+}
+
+/// The widening of one prediction kind: own half-width times `own`, model error `model` times the size.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Widening {
+    pub own: f64,
+    pub model: f64,
+    /// The discharges it was learned on.
+    pub learned_on: usize,
+}
+
+impl Widening {
+    /// The half-width on a side whose own half-width is `own_half`, for a prediction of size `size`.
+    pub fn half(&self, own_half: f64, size: f64) -> f64 {
+        (self.own * own_half).hypot(self.model * size)
+    }
+
+    pub fn covers(&self, o: &Outcome) -> bool {
+        let e = o.measured - o.value;
+        if e >= 0.0 {
+            e <= self.half(o.above, o.size)
+        } else {
+            -e <= self.half(o.below, o.size)
+        }
+    }
+
+    /// The narrowest widening that covers the conformal share of `outcomes` (none: unchanged), learned on
+    /// `discharges` discharges.
+    pub fn learn(outcomes: &[Outcome], discharges: usize) -> Self {
+        if outcomes.is_empty() {
+            return Self { own: 1.0, model: 0.0, learned_on: 0 };
+        }
+        let n = outcomes.len();
+        // Split conformal: the ceil((n + 1) COVER)-th smallest score covers COVER of a new one.
+        let need = (((n + 1) as f64 * COVER).ceil() as usize).min(n);
+        let mut best: Option<(f64, Self)> = None;
+        for own in OWN_FACTORS {
+            // The least model term that covers `need` outcomes: each outcome's own threshold, sorted.
+            let mut thresholds: Vec<f64> = outcomes
+                .iter()
+                .map(|o| {
+                    let e = o.measured - o.value;
+                    let w = own * if e >= 0.0 { o.above } else { o.below };
+                    if e.abs() <= w {
+                        0.0
+                    } else if o.size > 0.0 {
+                        (e * e - w * w).sqrt() / o.size
+                    } else {
+                        f64::INFINITY
+                    }
+                })
+                .collect();
+            thresholds.sort_by(f64::total_cmp);
+            let model = thresholds[need - 1];
+            if !model.is_finite() {
+                continue;
+            }
+            let cand = Self { own, model, learned_on: discharges };
+            let width: f64 = outcomes.iter().map(|o| cand.half(o.below, o.size) + cand.half(o.above, o.size)).sum();
+            if best.as_ref().is_none_or(|(w, _)| width < *w - 1e-12) {
+                best = Some((width, cand));
+            }
+        }
+        best.map_or(Self { own: 1.0, model: 0.0, learned_on: discharges }, |b| b.1)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn outcome(e: f64, own: f64) -> Outcome {
+        Outcome { value: 100.0, below: own, above: own, size: 100.0, measured: 100.0 + e, fraction: 50 }
+    }
+
+    #[test]
+    fn the_learned_widening_covers_the_conformal_share_and_no_more() {
+        // Errors of 1..=20 % of the size, own half-widths of 0.5: 19 of 20 need covering ((20 + 1) 0.9).
+        let o: Vec<Outcome> =
+            (1..=20).map(|k| outcome(f64::from(k) * if k % 2 == 0 { 1.0 } else { -1.0 }, 0.5)).collect();
+        let w = Widening::learn(&o, 10);
+        let covered = o.iter().filter(|x| w.covers(x)).count();
+        assert_eq!(covered, 19, "{w:?}");
+        // An own interval that already covers everything and is too wide is narrowed.
+        let wide: Vec<Outcome> = (1..=20).map(|k| outcome(0.1 * f64::from(k), 10.0)).collect();
+        let w = Widening::learn(&wide, 10);
+        assert!(w.own < 1.0 && wide.iter().filter(|x| w.covers(x)).count() >= 19, "{w:?}");
+        // Nothing learned yet: the calibrator's own interval.
+        assert_eq!(Widening::learn(&[], 0), Widening { own: 1.0, model: 0.0, learned_on: 0 });
+        // Nine outcomes are the fewest whose conformal rank is not the largest error's.
+        let nine: Vec<Outcome> = (1..=9).map(|k| outcome(f64::from(k), 0.0)).collect();
+        assert_eq!(Widening::learn(&nine[..MIN_OUTCOMES], 9).model, 0.09);
+    }
+
+    #[test]
+    fn a_reading_takes_the_share_its_own_prediction_says_has_passed() {
+        // Load on at 100 s, end predicted at 1100 s: 150 s is 5 % in, 600 s 50 %, 1000 s 90 %.
+        assert_eq!([150.0, 600.0, 1000.0].map(|t| share_bin(100.0, t, 1100.0)), [0, 1, 2]);
+        // A prediction already passed (the model is at its cut-off now) reads as late in the discharge.
+        assert_eq!(share_bin(100.0, 1200.0, 1200.0), 2);
+    }
+}
