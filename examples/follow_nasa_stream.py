@@ -10,7 +10,7 @@ the cut-off under load. Standard library only.
 Prints, per discharge, the prediction's error in % of the time from the load's start to the end of
 discharge (and whether the stream's 90 % interval held the end), and the median and 90th percentile of its
 size and the interval's coverage, two ways: the stream as one (`--follow` starts
-each discharge from the last one's estimate, with a prior width learned from the discharges before), and
+each discharge from what the last one told, with a prior width learned from the discharges before), and
 each discharge alone from the calibrator's default prior (what `--follow` did with a stream per discharge).
 """
 

@@ -61,7 +61,8 @@ class Estimate(TypedDict):
     on its last 10 discharges followed to the cut-off; None until 9 of them are scored."""
     discharge: int
     """The discharge the reading belongs to, from 0: a new one after a charge or a gap of more than
-    half an hour, started from the estimate the last one ended with."""
+    half an hour, started from what the last one told (the charge its end measured where it reached
+    the cut-off, else the estimate it ended with)."""
 
 def simulate(
     load_w: Optional[float] = None,
@@ -117,7 +118,8 @@ class Calibrator:
     with 90 % intervals, and the end of discharge predicted from the calibrated state. The same code
     as `bcal calibrate --follow`: the same readings give the same estimates. Readings may span many
     discharges: after a charge or a gap of more than half an hour a new one starts, calibrated anew
-    from the estimate the last one ended with.
+    from what the last one told (the charge its end measured, else the estimate it ended with), and
+    the end of discharge gets a 90 % interval learned from the discharges followed to their cut-off.
 
     `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy; `policy` is
     its .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior).

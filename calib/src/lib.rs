@@ -22,6 +22,7 @@ pub mod adaptive;
 pub mod correction;
 pub mod cost;
 pub mod direct;
+pub mod end_fit;
 pub mod env;
 pub mod eod;
 pub mod joint_ukf;

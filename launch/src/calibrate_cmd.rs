@@ -34,9 +34,10 @@ pub struct CalibrateArgs {
     /// reported with its number and skipped; end of input, --idle-s or Ctrl-C ends with a summary. Runs one
     /// calibrator (--calibrator ukf by default; `fit` is then the streaming window fit) on a new cell's prior,
     /// or on --config / --model. A stream may hold many discharges: after a charge or a gap of more than
-    /// 30 min a new one starts (`discharge` counts them) from the estimate the last one ended with, with a
-    /// prior width learned from the discharges before, the last one's posterior until enough are known
-    /// (docs/follow.md).
+    /// 30 min a new one starts (`discharge` counts them) from what the last one told (the charge its end
+    /// measured where it reached the cut-off, else its final estimate), with a prior width learned from the
+    /// discharges before, the last one's posterior until enough are known; the end of discharge gets a 90 %
+    /// interval learned from the discharges followed to their cut-off (docs/follow.md).
     #[arg(long, value_name = "-|FILE", conflicts_with_all = ["data", "cycles", "quick"])]
     pub follow: Option<String>,
     /// With --follow: the cell's config (a `bcal cell-config` TOML) whose measured.tracker sets the

@@ -177,7 +177,7 @@ impl Calibrator {
     /// `r_o_lo`, `r_o_hi`, `eod_s` (predicted end of discharge, absolute time, s, at `eod_current_a`: the
     /// mean discharge current so far), `eod_lo_s`, `eod_hi_s` (its 90 % interval, learned from the
     /// stream's own discharges followed to the cut-off: from the ninth on) and `discharge` (from 0: a new
-    /// one after a charge or a gap of more than half an hour, started from the last one's estimate).
+    /// one after a charge or a gap of more than half an hour, started from what the last one told: the charge its end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
     /// A reading that is not finite, not a cell's voltage or not later than the last raises ValueError and
     /// leaves the calibrator as it was.

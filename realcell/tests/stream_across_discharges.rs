@@ -26,7 +26,7 @@ fn ends(estimates: &[Estimate]) -> Vec<f64> {
     by.into_values().collect()
 }
 
-/// Each discharge starts a new calibrator from the last one's estimate and stays on the cell (B0005's
+/// Each discharge starts a new calibrator from what the last one told and stays on the cell (B0005's
 /// capacity moves by 1.5 % over these six discharges); one joint UKF run on across the gaps reads every
 /// recharge as its own misfit and ends each later discharge far off (at the top of qMobile's range).
 #[test]
