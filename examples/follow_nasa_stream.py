@@ -5,7 +5,7 @@ end-of-discharge prediction at half its loaded time scored against the time the 
 the cut-off under load. Standard library only.
 
     python examples/follow_nasa_stream.py [--data ../shared/data/nasa-pcoe] [--cell B0005] [--cycles 41..80]
-        [--kind ukf] [--cutoff-v 3.0] [--bcal PATH]
+        [--kind ukf] [--cutoff-v 3.0] [--model diagnosis.json] [--bcal PATH]
 
 Prints, per discharge, the prediction's error in % of the time from the load's start to the end of
 discharge (and whether the stream's 90 % interval held the end), and the median and 90th percentile of its
@@ -68,10 +68,10 @@ def discharges(root: pathlib.Path, cell: str, first: int, last: int) -> list:
     return out
 
 
-def follow(bcal: str, kind: str, rows: list, cutoff_v: float) -> list:
+def follow(bcal: str, kind: str, rows: list, cutoff_v: float, extra: list) -> list:
     text = HEADER + "".join(f"{t!r},{v!r},{i!r},{c!r}\n" for t, v, i, c in rows)
     p = subprocess.run([bcal, "calibrate", "--follow", "-", "--calibrator", kind, "--current-sign", "discharge-negative",
-                        "--cutoff-v", str(cutoff_v)], input=text, capture_output=True, text=True, check=False)
+                        "--cutoff-v", str(cutoff_v)] + extra, input=text, capture_output=True, text=True, check=False)
     if p.returncode != 0:
         raise SystemExit(f"bcal calibrate --follow failed: {p.stderr.strip()}")
     return [json.loads(line) for line in p.stdout.splitlines()]
@@ -120,6 +120,7 @@ def main() -> None:
     p.add_argument("--kind", default="ukf")
     p.add_argument("--cutoff-v", type=float, default=3.0)
     p.add_argument("--bcal", default=None, help="the bcal executable (default: this clone's build)")
+    p.add_argument("--model", default=None, help="the doctor's diagnosis.json to calibrate on (default: the base model)")
     a = p.parse_args()
     try:
         first, last = (int(x) for x in a.cycles.split(".."))
@@ -128,15 +129,18 @@ def main() -> None:
     if not 1 <= first <= last:
         raise SystemExit(f"--cycles {a.cycles!r}: need 1 <= A <= B")
     bcal = a.bcal or find_bcal()
+    if a.model and not pathlib.Path(a.model).is_file():
+        raise SystemExit(f"--model {a.model}: no such file (bcal diagnose --out DIR writes DIR/diagnosis.json)")
+    extra = ["--model", a.model] if a.model else []
     records = discharges(pathlib.Path(a.data), a.cell, first, last)
 
-    stream = follow(bcal, a.kind, [r for rows in records for r in rows], a.cutoff_v)
+    stream = follow(bcal, a.kind, [r for rows in records for r in rows], a.cutoff_v, extra)
     joined, alone, k = [], [], 0
     for n, rows in enumerate(records):
         part = stream[k:k + len(rows)]
         k += len(rows)
         joined.append(eod_error_pct(rows, part, a.cutoff_v))
-        alone.append(eod_error_pct(rows, follow(bcal, a.kind, rows, a.cutoff_v), a.cutoff_v))
+        alone.append(eod_error_pct(rows, follow(bcal, a.kind, rows, a.cutoff_v, extra), a.cutoff_v))
         fmt = lambda e: "-" if e is None else f"{e:+.1f}"  # noqa: E731
         held = "" if joined[-1][1] is None else [" (outside its interval)", " (in its interval)"][joined[-1][1][0]]
         print(f"discharge {first + n} (stream's #{part[-1].get('discharge', '-')}): EOD error at 50 % {fmt(joined[-1][0])} %"

@@ -1,6 +1,8 @@
 //! Reading back the model a diagnosis chose (`diagnosis.json`'s `extended` part): its causes and the
 //! shared parameters fitted on the training cycles. `bcal calibrate --model` and `bcal cell-config
-//! --model` run the calibrators on it; the per-cycle parameters are calibrated again on every cycle.
+//! --model` run the calibrators on it; the per-cycle parameters are calibrated again on every cycle. A live
+//! stream (`--follow`, the Python package) has no offline fit of the cycle before: it runs the per-cycle
+//! parameters at the median of the last training cycles' fits ([`DiagnosedModel::latest`]).
 //! [`load_lifetime`] reads the capacity lifetime model (recovery after rest) a calibrator's prior can use.
 //!
 //! A calibrator's model carries only some of the doctor's causes
@@ -34,15 +36,26 @@ pub struct DiagnosedModel {
     pub dropped: Vec<Cause>,
     /// The shared parameters (per-cycle ones at their neutral values), with what the causes switch on.
     pub shared: ExtParams,
+    /// The shared parameters with the per-cycle ones at the median of the last [`LATEST_CYCLES`] training
+    /// cycles' fits (as `shared` when the diagnosis holds no per-cycle fit).
+    pub latest: ExtParams,
+    /// The training cycles `latest` took its per-cycle values from.
+    pub latest_cycles: Vec<u32>,
     /// The cycles the diagnosis fitted or judged (its model has seen them).
     pub cycles: Vec<u32>,
 }
 
+/// How many of the last training cycles give a live stream its per-cycle values (their median: one odd
+/// fit does not set the model).
+pub const LATEST_CYCLES: usize = 5;
+
 impl DiagnosedModel {
-    /// The model as a calibrator runs it: the causes with their shared values and the per-cycle ones
-    /// neutral, its Arrhenius reference `reference_k` (None: the first reading's temperature).
+    /// The model as a live stream runs it: the causes with their shared values and the per-cycle ones at
+    /// the last training cycles' ([`Self::latest`]), its Arrhenius reference `reference_k` (None: the first
+    /// reading's temperature). Neutral per-cycle values would make a model whose causes are all per cycle
+    /// (B0005's electrode balance and charge transfer) the base model under another name.
     pub fn extension(&self, reference_k: Option<f64>) -> ModelExtension {
-        extension_of(&self.causes, &self.shared, reference_k)
+        extension_of(&self.causes, &self.latest, reference_k)
     }
 
     /// What the calibrators run instead of the diagnosis's model, when they cannot carry all of it: one
@@ -100,6 +113,16 @@ struct Record {
 struct Extended {
     causes: Vec<String>,
     params: BTreeMap<String, f64>,
+    #[serde(default)]
+    train_cycles: Vec<TrainCycle>,
+}
+
+/// One training cycle's fit: its per-cycle parameters.
+#[derive(Deserialize)]
+struct TrainCycle {
+    cycle: u32,
+    #[serde(default)]
+    extra: BTreeMap<String, f64>,
 }
 
 /// Reads `path` (a `diagnosis.json` written by `bcal diagnose`, or the folder holding one).
@@ -141,7 +164,24 @@ pub fn load_model(path: &Path) -> Result<DiagnosedModel, DoctorError> {
     for c in &dropped {
         shared.disable(*c);
     }
-    Ok(DiagnosedModel { cell: f.cell, path: file, causes, dropped, shared, cycles })
+    // The per-cycle parameters of the carried causes: each at its median over the last training cycles.
+    let mut fitted: Vec<&TrainCycle> = f.extended.train_cycles.iter().filter(|t| !t.extra.is_empty()).collect();
+    fitted.sort_by_key(|t| t.cycle);
+    let last = &fitted[fitted.len().saturating_sub(LATEST_CYCLES)..];
+    let mut latest = shared;
+    let per_cycle: std::collections::BTreeSet<&String> = last.iter().flat_map(|t| t.extra.keys()).collect();
+    for name in per_cycle {
+        let carried = causes.iter().flat_map(|c| c.cycle_params()).any(|s| s.name == name);
+        let mut values: Vec<f64> = last.iter().filter_map(|t| t.extra.get(name).copied()).collect();
+        if values.iter().any(|v| !v.is_finite()) {
+            return Err(bad(format!("training cycle parameter `{}` is not a finite number", shown(name, 40))));
+        }
+        if let (true, Some(m)) = (carried, bcal_common::stats::median(&mut values)) {
+            latest.set(name, m);
+        }
+    }
+    let latest_cycles = last.iter().map(|t| t.cycle).collect();
+    Ok(DiagnosedModel { cell: f.cell, path: file, causes, dropped, shared, latest, latest_cycles, cycles })
 }
 
 /// The capacity lifetime model of a diagnosis (`diagnosis.json`'s `lifetime`, see [`crate::lifetime`]), for a
@@ -228,6 +268,7 @@ mod tests {
         assert_eq!(m.causes, vec![Cause::ElectrodeBalance, Cause::ChargeTransfer, Cause::Thermal]);
         assert!(m.shared.temperature_driven && m.shared.ro_activation_k == 4015.08);
         assert_eq!((m.shared.xp_shift, m.shared.kinetics_scale), (0.0, 1.0));
+        assert_eq!((m.latest, m.latest_cycles.len()), (m.shared, 0), "no per-cycle fit: the shared values");
         assert_eq!(m.cycles, vec![1, 2]);
         assert!(m.dropped.is_empty() && m.carrying_note().is_none());
         // A diagnosis naming causes a calibrator cannot carry: those leave the model, the rest keep their values.
@@ -246,6 +287,28 @@ mod tests {
         let note = m.carrying_note().unwrap();
         assert!(note.contains("ocv + voltage_offset") && note.contains("base + diffusion"), "{note}");
         assert!(m.extension(None).check("m").is_ok());
+        // Per-cycle parameters: a stream runs the median of the last five training cycles' fits (cycle 1's
+        // outlier is not among them; a dropped cause's values stay neutral).
+        let cycle = |c: u32, xp: f64| {
+            serde_json::json!({"cycle": c, "q_mobile_c": 6500.0, "r_o_ohm": 0.07,
+                "extra": {"xp_shift": xp, "kinetics_scale": 0.3 + 0.01 * f64::from(c), "voltage_offset_v": 0.01}})
+        };
+        let cycles: Vec<_> = [(1, 0.25), (2, 0.02), (3, 0.04), (4, 0.03), (5, 0.05), (6, 0.01)]
+            .into_iter()
+            .map(|(c, x)| cycle(c, x))
+            .collect();
+        let file = serde_json::json!({"cell": "B0005", "extended": {"causes": ["electrode_balance", "charge_transfer",
+            "voltage_offset"], "params": {}, "train_cycles": cycles}});
+        std::fs::write(&p, file.to_string()).unwrap();
+        let m = load_model(&p).unwrap();
+        assert_eq!(m.latest_cycles, vec![2, 3, 4, 5, 6]);
+        assert_eq!(
+            (m.latest.xp_shift, m.latest.kinetics_scale, m.latest.voltage_offset_v),
+            (0.03, 0.3 + 0.01 * 4.0, 0.0)
+        );
+        assert_eq!((m.shared.xp_shift, m.shared.kinetics_scale), (0.0, 1.0), "calibrate's per-cycle start is neutral");
+        let ext = m.extension(None);
+        assert_eq!((ext.xp_shift, ext.kinetics_scale), (0.03, 0.3 + 0.01 * 4.0));
         std::fs::write(&p, r#"{"cell":"B0005","extended":{"causes":["gremlins"],"params":{}}}"#).unwrap();
         let e = load_model(&p).unwrap_err().to_string();
         assert!(e.contains("gremlins") && e.contains("diagnosis.json"), "{e}");

@@ -283,6 +283,10 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     if let Some(note) = diagnosed.as_ref().and_then(|m| m.carrying_note()) {
         eprintln!("--model: {note}");
     }
+    if let Some(m) = diagnosed.as_ref().filter(|m| !m.latest_cycles.is_empty()) {
+        let (first, last) = (m.latest_cycles[0], m.latest_cycles[m.latest_cycles.len() - 1]);
+        eprintln!("--model: its per-cycle parameters at the median of training cycles {first}-{last}'s fits");
+    }
     let model = diagnosed.map(|m| m.extension(reference_k));
     let policy_name = policy_path.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
     let mut setup =

@@ -33,7 +33,8 @@ self_cell::self_cell!(
 ///
 /// `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy: `policy` is its
 /// .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior, never moved).
-/// `model`: the doctor's extended model (diagnosis.json of `bcal diagnose`, or its folder). `config`: a
+/// `model`: the doctor's extended model (diagnosis.json of `bcal diagnose`, or its folder; its per-cycle
+/// parameters at the median of the last five training cycles' fits). `config`: a
 /// bcal config TOML (`bcal cell-config` writes one per cell) whose `measured.tracker` sets ranges, prior
 /// and cut-off. `ambient_c`: the temperature of readings that give none, deg C (default the model's
 /// 18.95 C). `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0). The
