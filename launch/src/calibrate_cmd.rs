@@ -261,15 +261,34 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         Some(c) => parse_cycle_range(c)?,
         None => (*train_range.end() + 1)..=u32::MAX,
     };
+    let shown = |r: &std::ops::RangeInclusive<u32>| {
+        if *r.end() == u32::MAX {
+            format!("{}..", r.start())
+        } else {
+            format!("{}..{}", r.start(), r.end())
+        }
+    };
     if judged_range.start() <= train_range.end() {
         bail!(
-            "--cycles {judged_range:?} must come after --train-cycles {train_range:?}: the calibrators are set up on \
-             earlier discharges and judged on later ones, as a cell ages"
+            "--cycles {} must come after --train-cycles {}: the calibrators are set up on earlier discharges and \
+             judged on later ones, as a cell ages",
+            shown(&judged_range),
+            shown(&train_range)
         );
     }
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
     let (train, mut starts) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
     let (mut judged, judged_starts) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
+    if judged.is_empty() {
+        let last = train.iter().map(|d| d.cycle).max().unwrap_or(0);
+        bail!(
+            "{cell}: no discharge to judge in cycles {} (its discharges end at cycle {last}, within --train-cycles {}); \
+             give fewer training cycles, e.g. --train-cycles 1..{} (the first third)",
+            shown(&judged_range),
+            shown(&train_range),
+            (last / 3).max(2)
+        );
+    }
     starts.extend(judged_starts);
     // Read off the training records only, as cell-config does: the judged ones are not looked at.
     let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &data, &cell, &train)?;

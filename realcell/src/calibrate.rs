@@ -76,14 +76,21 @@ pub enum CalibrateError {
     Ensemble { path: String, first: String },
     #[error("no usable judged discharge: {0}")]
     NothingToJudge(String),
+    /// Not the error's source as well: the message holds it, and a chain would print it twice.
     #[error("the doctor's fit failed: {0}")]
-    Fit(#[from] bcal_doctor::DoctorError),
+    Fit(bcal_doctor::DoctorError),
     #[error("{0}")]
     Validation(String),
     #[error("policy: {0}")]
     Policy(#[from] bcal_common::policy::PolicyError),
     #[error("{path}: {why}")]
     Model { path: String, why: String },
+}
+
+impl From<bcal_doctor::DoctorError> for CalibrateError {
+    fn from(e: bcal_doctor::DoctorError) -> Self {
+        Self::Fit(e)
+    }
 }
 
 /// Records that can be calibrated, and the refusals (each naming the record and what to do).
@@ -127,6 +134,19 @@ pub fn fits(
         .collect();
     if recs.len() != ds.len() {
         return Err(CalibrateError::NothingToJudge("a record without a load window reached the fit".into()));
+    }
+    // A load that switches about as often as it is sampled (B0025's 20 s square wave at 10-20 s samples)
+    // leaves no sampled voltage whose load is known: the fit has nothing, and says why.
+    if let Some(r) = recs.first().filter(|_| recs.iter().all(|r| r.used.len() < 5)) {
+        let why = format!(
+            "in every record the loaded samples follow a load step by less than {} s (cycle {}: {} of {}): the load \
+             switches about as often as it is sampled, so no sampled voltage can be fitted and no calibrator set up",
+            cfg.settle_s,
+            ds[0].cycle,
+            r.w.fit_len() - r.used.len(),
+            r.w.fit_len()
+        );
+        return Err(CalibrateError::Fit(bcal_doctor::DoctorError::NothingSelected { why }));
     }
     let f = refit_cycles(cfg, &recs, causes, shared, None)?;
     Ok(f.per_cycle
@@ -394,7 +414,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let (mut train, train_kept) = prepare_all(&input.train, cut, &mut summary);
     let (mut judged, judged_kept) = prepare_all(&input.judged, cut, &mut summary);
     if judged.is_empty() {
-        return Err(CalibrateError::NothingToJudge(summary.refused.join("; ")));
+        let why = if input.judged.is_empty() {
+            "no record was given to judge".to_string()
+        } else {
+            format!("every one of the {} was refused: {}", input.judged.len(), summary.refused.join("; "))
+        };
+        return Err(CalibrateError::NothingToJudge(why));
     }
     // The rest before each discharge, from the records' start times.
     let all_records: Vec<&Discharge> = input.train.iter().chain(&input.judged).collect();
