@@ -26,6 +26,8 @@ from datetime import datetime, timezone
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 HEADER = "time_s,voltage_v,current_a,temperature_c\n"
+# Scored predictions at half a discharge that were the prior alone's (the stream's gate), one entry each.
+PRIOR_SERVED: list = []
 
 
 def find_bcal() -> str:
@@ -92,6 +94,8 @@ def eod_error_pct(rows: list, est: list, cutoff_v: float):
     mid = t_on + 0.5 * (eod - t_on)
     k = min(range(len(rows)), key=lambda j: abs(rows[j][0] - mid))
     p, lo, hi = est[k]["eod_s"], est[k].get("eod_lo_s"), est[k].get("eod_hi_s")
+    if est[k].get("eod_from_prior"):
+        PRIOR_SERVED.append(True)
     # Whether the interval held the end, and its width (hi - lo) in % of the time to the end.
     held = None if lo is None or hi is None else (lo <= eod <= hi, 100.0 * (hi - lo) / (eod - t_on))
     return (None if p is None else 100.0 * (p - eod) / (eod - t_on)), held
@@ -145,7 +149,9 @@ def main() -> None:
         held = "" if joined[-1][1] is None else [" (outside its interval)", " (in its interval)"][joined[-1][1][0]]
         print(f"discharge {first + n} (stream's #{part[-1].get('discharge', '-')}): EOD error at 50 % {fmt(joined[-1][0])} %"
               f"{held} as one stream, {fmt(alone[-1][0])} % alone")
+    served = len(PRIOR_SERVED)
     summary(f"{a.cell} {a.cycles}, {a.kind}, one stream", joined)
+    print(f"  (the prior alone predicted at half of {served} of the {len(records)} discharges)")
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone)
 
 

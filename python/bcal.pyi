@@ -59,6 +59,10 @@ class Estimate(TypedDict):
     eod_hi_s: Optional[float]
     """The prediction's 90 % interval, absolute times, s: learned from how the stream's predictions fared
     on its last 10 discharges followed to the cut-off; None until 9 of them are scored."""
+    eod_from_prior: bool
+    """Whether eod_s is the prior alone's prediction (the estimate the discharge started from, never moved
+    by its readings): where the prior beat the calibrator on at least 8 of the last 10 discharges followed
+    to the cut-off and in their mean, except after a rest of more than a day."""
     discharge: int
     """The discharge the reading belongs to, from 0: a new one after a charge or a gap of more than
     half an hour, started from what the last one told (the charge its end measured where it reached

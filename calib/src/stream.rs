@@ -108,6 +108,11 @@ pub struct Estimate {
     /// at the share of the discharge the prediction puts this reading at).
     pub eod_lo_s: Option<f64>,
     pub eod_hi_s: Option<f64>,
+    /// Whether the prediction is the prior alone's (the estimate the discharge started from, never moved by
+    /// its readings): at a share of the discharge where the prior beat the calibrator on at least 8 of the
+    /// last 10 discharges followed to the cut-off and in their mean, unless the rest before this discharge
+    /// was longer than a day.
+    pub eod_from_prior: bool,
     /// The discharge the reading belongs to, from 0 (a new one after a charge or a long gap).
     pub discharge: u32,
 }
@@ -262,6 +267,13 @@ pub fn build<'a>(setup: &Setup, net: Option<&'a PolicyNet>) -> Result<Box<dyn Ca
     })
 }
 
+/// The prior alone of `setup`: its model never calibrated (its state from the readings), to hold the
+/// calibrator to where it starts (issue 18 item 5); None for the uncalibrated kind, which is it.
+fn prior_alone<'a>(setup: &Setup) -> Option<Box<dyn Calibrator + Send + 'a>> {
+    (setup.kind != CalibratorKind::Uncalibrated)
+        .then(|| Box::new(Uncalibrated::new(&setup.spec.tracker)) as Box<dyn Calibrator + Send + 'a>)
+}
+
 /// A calibrator with its stream bookkeeping.
 pub struct Stream<'a> {
     cal: Box<dyn Calibrator + Send + 'a>,
@@ -286,12 +298,16 @@ pub struct Stream<'a> {
     rest_before_s: Option<f64>,
     /// The current discharge's prior width, z units, and where it came from (None: the calibrator's own).
     prior_width: Option<([f64; 2], WidthSource)>,
-    /// The current discharge's end-of-discharge record (for its interval's scores).
+    /// The current discharge's end-of-discharge record (for its predictions' scores).
     eod_track: EodTrack,
-    /// The scored predictions of the last [`WINDOW`] discharges followed to their cut-off.
-    scored: VecDeque<Vec<Outcome>>,
-    /// The EOD interval's widening per share ([`EOD_FRACTIONS_PCT`]; None: too few scores at that share).
-    eod_widening: [Option<Widening>; 3],
+    /// The predictions of the calibrator ([`METHOD`]) and of its prior alone ([`PRIOR`]), with their scores.
+    sources: [EodSource; 2],
+    /// The prior alone: the same setting never calibrated, from what the last discharge told (streams made
+    /// by [`Stream::of`] of a calibrating kind).
+    prior_cal: Option<Box<dyn Calibrator + Send + 'a>>,
+    /// Per share ([`EOD_FRACTIONS_PCT`]): whether the prior alone predicts the end there ([`crate::tune::earns`]
+    /// on the last [`WINDOW`] discharges scored).
+    prior_serves: [bool; 3],
     /// The current discharge's readings (streams made by [`Stream::of`]: for its end fit).
     samples: Vec<Sample>,
     /// The current discharge's end fit: qMobile putting the model's end at the measured one, at the
@@ -299,18 +315,71 @@ pub struct Stream<'a> {
     end_fit: Option<Degradation>,
 }
 
-/// One discharge's predictions and its measured end, so that its predictions can be scored once the
-/// voltage reaches the cut-off under load.
+/// One discharge's load-on and measured end, so that its predictions can be scored once the voltage
+/// reaches the cut-off under load.
 #[derive(Clone, Debug, Default)]
 struct EodTrack {
     /// The first loaded reading's time, s.
     load_on_s: Option<f64>,
     /// The last loaded reading above the cut-off (time s, voltage V), to interpolate the crossing.
     above_cutoff: Option<(f64, f64)>,
-    /// Each loaded reading's prediction (time s, predicted end s) until the end.
-    predictions: Vec<(f64, f64)>,
     /// The measured end of discharge, s: the interpolated time the voltage fell below the cut-off.
     ended_s: Option<f64>,
+}
+
+/// Index of the calibrator's own predictions in [`Stream::sources`].
+const METHOD: usize = 0;
+/// Index of the prior alone's.
+const PRIOR: usize = 1;
+
+/// One source of end-of-discharge predictions: its predictions in the current discharge, the scores of
+/// the last discharges followed to their cut-off, and the interval learned from them.
+#[derive(Clone, Debug, Default)]
+struct EodSource {
+    /// Each loaded reading's prediction (time s, predicted end s) until the end.
+    predictions: Vec<(f64, f64)>,
+    /// The scored predictions of the last [`WINDOW`] discharges (one entry per discharge, aligned across
+    /// the sources).
+    scored: VecDeque<Vec<Outcome>>,
+    /// The interval's widening per share ([`EOD_FRACTIONS_PCT`]; None: too few scores at that share).
+    widening: [Option<Widening>; 3],
+}
+
+impl EodSource {
+    /// Scores the discharge's predictions (load-on `on_s`, measured end `end_s`) at each share of it, and
+    /// learns the interval again from the last [`WINDOW`] discharges.
+    fn score(&mut self, on_s: f64, end_s: f64) {
+        let p = std::mem::take(&mut self.predictions);
+        let outcomes: Vec<Outcome> = EOD_FRACTIONS_PCT
+            .iter()
+            .filter_map(|&f| {
+                let at_s = on_s + f64::from(f) / 100.0 * (end_s - on_s);
+                // The last prediction made by then (none made yet: no score at this share).
+                let k = p.partition_point(|x| x.0 <= at_s).checked_sub(1)?;
+                let value = p[k].1;
+                let size = (value - on_s).max(1.0);
+                Some(Outcome { value, below: 0.0, above: 0.0, size, measured: end_s, fraction: f })
+            })
+            .collect();
+        if self.scored.len() == WINDOW {
+            self.scored.pop_front();
+        }
+        self.scored.push_back(outcomes);
+        self.widening = std::array::from_fn(|b| {
+            let at: Vec<Outcome> =
+                self.scored.iter().flatten().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
+            (at.len() >= MIN_OUTCOMES).then(|| Widening::learn(&at, self.scored.len()))
+        });
+    }
+
+    /// The relative error of each of the last discharges at share `fraction` (None where it made no
+    /// prediction by then).
+    fn errors_at(&self, fraction: u32) -> Vec<Option<f64>> {
+        self.scored
+            .iter()
+            .map(|d| d.iter().find(|o| o.fraction == fraction).map(|o| (o.measured - o.value).abs() / o.size))
+            .collect()
+    }
 }
 
 /// Where a discharge's prior width came from.
@@ -347,8 +416,9 @@ impl<'a> Stream<'a> {
             rest_before_s: None,
             prior_width: None,
             eod_track: EodTrack::default(),
-            scored: VecDeque::new(),
-            eod_widening: [None; 3],
+            sources: Default::default(),
+            prior_cal: None,
+            prior_serves: [false; 3],
             samples: Vec::new(),
             end_fit: None,
         }
@@ -359,6 +429,7 @@ impl<'a> Stream<'a> {
     pub fn of(setup: &Setup, net: Option<&'a PolicyNet>, ambient_c: Option<f64>) -> Result<Self, StreamError> {
         let mut s = Self::new(build(setup, net)?, &setup.spec.tracker, ambient_c);
         s.rebuild = Some((setup.clone(), net));
+        s.prior_cal = prior_alone(setup);
         Ok(s)
     }
 
@@ -423,6 +494,9 @@ impl<'a> Stream<'a> {
         }
         self.charging = charging;
         self.cal.step(&s);
+        if let Some(p) = self.prior_cal.as_mut() {
+            p.step(&s);
+        }
         self.last_t_s = Some(r.time_s);
         self.readings += 1;
         if r.current_a > LOAD_THRESHOLD_A {
@@ -431,19 +505,27 @@ impl<'a> Stream<'a> {
             self.last_loaded_t_s = Some(r.time_s);
         }
         let eod_current_a = (self.loaded_n > 0).then(|| self.loaded_sum_a / self.loaded_n as f64);
-        let eod_s = eod_current_a.and_then(|i| self.predict_eod_s(i));
+        let eod_method_s = eod_current_a.and_then(|i| self.predict_eod_s(i));
+        let eod_prior_s = eod_current_a.and_then(|i| self.prior_cal.as_deref().and_then(|p| self.predict_from(p, i)));
         if self.rebuild.is_some() {
             self.samples.push(s);
         }
-        self.track_eod(r, eod_s);
-        let (eod_lo_s, eod_hi_s) = match (eod_s, self.eod_track.load_on_s) {
-            (Some(eod), Some(on)) => match self.eod_widening[share_bin(on, r.time_s, eod)] {
-                Some(w) => {
-                    let half = w.half(0.0, (eod - on).max(1.0));
-                    (Some((eod - half).max(r.time_s)), Some(eod + half))
-                }
-                None => (None, None),
-            },
+        self.track_eod(r, [eod_method_s, eod_prior_s]);
+        // Who predicts: the prior alone at a share of the discharge where it has earned it, except after a
+        // rest of more than a day (the record of ordinary rests does not speak for it; `bcal calibrate`'s rule).
+        let on = self.eod_track.load_on_s;
+        let bin = on.zip(eod_method_s.or(eod_prior_s)).map(|(on, e)| share_bin(on, r.time_s, e));
+        let long_rest = self.rest_before_s.is_some_and(|x| x > LONG_REST_S);
+        let source = match bin {
+            Some(b) if self.prior_serves[b] && eod_prior_s.is_some() && !long_rest => PRIOR,
+            _ => METHOD,
+        };
+        let eod_s = if source == PRIOR { eod_prior_s } else { eod_method_s };
+        let (eod_lo_s, eod_hi_s) = match (eod_s, on, bin.and_then(|b| self.sources[source].widening[b])) {
+            (Some(eod), Some(on), Some(w)) => {
+                let half = w.half(0.0, (eod - on).max(1.0));
+                (Some((eod - half).max(r.time_s)), Some(eod + half))
+            }
             _ => (None, None),
         };
         let d = self.cal.estimate();
@@ -460,6 +542,7 @@ impl<'a> Stream<'a> {
             eod_current_a,
             eod_lo_s,
             eod_hi_s,
+            eod_from_prior: source == PRIOR,
             discharge: self.discharge,
         })
     }
@@ -505,6 +588,7 @@ impl<'a> Stream<'a> {
         }
         // The same kind, setting and network built once already: it builds again.
         self.cal = build(&next, *net).expect("the stream's calibrator was built from this setting");
+        self.prior_cal = prior_alone(&next);
         self.rest_before_s = rest_s;
         self.eod_track = EodTrack::default();
         self.samples.clear();
@@ -514,11 +598,12 @@ impl<'a> Stream<'a> {
         self.discharge += 1;
     }
 
-    /// Records the reading's prediction and, at the first loaded reading below the cut-off, scores the
-    /// discharge's predictions at each share of it against the interpolated crossing and learns the EOD
-    /// intervals again from the last [`WINDOW`] scored discharges (the discharge's own interval is never
-    /// set by its own outcome: a prediction is made before its end is known).
-    fn track_eod(&mut self, r: &Reading, eod_s: Option<f64>) {
+    /// Records the reading's predictions (the calibrator's and the prior's) and, at the first loaded
+    /// reading below the cut-off, scores the discharge's predictions at each share of it against the
+    /// interpolated crossing, learns the EOD intervals again from the last [`WINDOW`] scored discharges (a
+    /// discharge's own interval is never set by its own outcome: a prediction is made before its end is
+    /// known), and decides again at which shares the prior alone predicts.
+    fn track_eod(&mut self, r: &Reading, eod_s: [Option<f64>; 2]) {
         let t = &mut self.eod_track;
         if r.current_a <= LOAD_THRESHOLD_A || t.ended_s.is_some() {
             return;
@@ -527,8 +612,10 @@ impl<'a> Stream<'a> {
         let cutoff_v = self.spec.cutoff_v;
         if r.voltage_v >= cutoff_v {
             t.above_cutoff = Some((r.time_s, r.voltage_v));
-            if let Some(e) = eod_s {
-                t.predictions.push((r.time_s, e));
+            for (src, e) in self.sources.iter_mut().zip(eod_s) {
+                if let Some(e) = e {
+                    src.predictions.push((r.time_s, e));
+                }
             }
             return;
         }
@@ -536,26 +623,18 @@ impl<'a> Stream<'a> {
         let Some((t0, v0)) = t.above_cutoff else { return };
         let end_s = t0 + (v0 - cutoff_v) / (v0 - r.voltage_v) * (r.time_s - t0);
         t.ended_s = Some(end_s);
-        let outcomes: Vec<Outcome> = EOD_FRACTIONS_PCT
-            .iter()
-            .filter_map(|&f| {
-                let at_s = on + f64::from(f) / 100.0 * (end_s - on);
-                // The last prediction made by then (none made yet: no score at this share).
-                let k = t.predictions.partition_point(|p| p.0 <= at_s).checked_sub(1)?;
-                let value = t.predictions[k].1;
-                let size = (value - on).max(1.0);
-                Some(Outcome { value, below: 0.0, above: 0.0, size, measured: end_s, fraction: f })
-            })
-            .collect();
-        t.predictions = Vec::new();
-        if self.scored.len() == WINDOW {
-            self.scored.pop_front();
+        for src in &mut self.sources {
+            src.score(on, end_s);
         }
-        self.scored.push_back(outcomes);
-        self.eod_widening = std::array::from_fn(|b| {
-            let at: Vec<Outcome> =
-                self.scored.iter().flatten().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
-            (at.len() >= MIN_OUTCOMES).then(|| Widening::learn(&at, self.scored.len()))
+        self.prior_serves = std::array::from_fn(|b| {
+            let f = EOD_FRACTIONS_PCT[b];
+            let (mine, theirs): (Vec<f64>, Vec<f64>) = self.sources[PRIOR]
+                .errors_at(f)
+                .into_iter()
+                .zip(self.sources[METHOD].errors_at(f))
+                .filter_map(|(p, m)| p.zip(m))
+                .unzip();
+            self.prior_cal.is_some() && mine.len() == WINDOW && crate::tune::earns(&mine, &theirs)
         });
         // The charge the cell held, measured by its end: what the next discharge starts from.
         if self.rebuild.is_some() {
@@ -567,10 +646,19 @@ impl<'a> Stream<'a> {
     }
 
     /// The EOD interval's relative half-width per share of the discharge ([`EOD_FRACTIONS_PCT`]: a fraction
-    /// of the predicted duration from the load-on) and the discharges it was learned on; None at a share
-    /// with too few scores yet.
+    /// of the predicted duration from the load-on; that of the prior alone where it predicts) and the
+    /// discharges it was learned on; None at a share with too few scores yet.
     pub fn eod_widening(&self) -> [Option<(f64, usize)>; 3] {
-        self.eod_widening.map(|w| w.map(|w| (w.model, w.learned_on)))
+        std::array::from_fn(|b| {
+            let source = if self.prior_serves[b] { PRIOR } else { METHOD };
+            self.sources[source].widening[b].map(|w| (w.model, w.learned_on))
+        })
+    }
+
+    /// Per share of the discharge ([`EOD_FRACTIONS_PCT`]): whether the prior alone predicts the end there
+    /// now (it beat the calibrator on at least 8 of the last 10 discharges scored and in their mean).
+    pub fn prior_serves(&self) -> [bool; 3] {
+        self.prior_serves
     }
 
     /// The end of discharge (absolute time, s) if the cell now draws `current_a` until the cut-off, from the
@@ -578,8 +666,13 @@ impl<'a> Stream<'a> {
     /// doctor's Arrhenius factors when the model has them). None before the first reading, or when the model
     /// does not reach the cut-off within [`PREDICT_MAX_S`].
     pub fn predict_eod_s(&self, current_a: f64) -> Option<f64> {
-        let (x, t_now_s) = (self.cal.state()?, self.last_t_s?);
-        let d = self.cal.estimate();
+        self.predict_from(self.cal.as_ref(), current_a)
+    }
+
+    /// [`Self::predict_eod_s`] from the state and estimate of `cal`.
+    fn predict_from(&self, cal: &(dyn Calibrator + Send + 'a), current_a: f64) -> Option<f64> {
+        let (x, t_now_s) = (cal.state()?, self.last_t_s?);
+        let d = cal.estimate();
         let t_k = x[idx::T_B];
         let ext = &self.spec.model;
         let (model, ro_factor) = ext.model_at(t_k, ext.reference_k.unwrap_or(t_k)).ok()?;
@@ -839,6 +932,69 @@ mod tests {
         }
         let w = stream.eod_widening();
         assert!(w.iter().all(|w| w.is_some_and(|(a, n)| a > 0.0 && n == WINDOW)), "{w:?}");
+    }
+
+    /// Fourteen constant-current discharges of a cell that carries what the doctor finds in B0005 (shifted
+    /// electrode balance, slower charge transfer), through the joint UKF on the base model: the readings
+    /// pull the filter off the charge each end measured, and the prior alone (the carried end fit, never
+    /// moved by the readings) predicts the end at half of the discharge better (0.05-0.75 % against
+    /// 0.6-3.5 % of the time to the end on discharges 5-14). From the eleventh discharge (ten scored for
+    /// both) it predicts where it beat the filter on at least 8 of the last 10; never before.
+    #[test]
+    fn the_prior_alone_predicts_where_it_has_beaten_the_calibrator() {
+        let cfg = ScenarioConfig::default();
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(4);
+        let first = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
+        let (mut readings, mut starts, mut offset_s) = (Vec::new(), Vec::new(), 0.0);
+        for k in 0..14u64 {
+            // A cycler's protocol: a constant 2 A after a 30 s rest, read every 10-20 s.
+            let spec = bcal_common::measured::scenario::EpisodeSpec {
+                soc0: 0.85 + 0.01 * (k % 10) as f64,
+                noise_seed: first.noise_seed + k,
+                kind: bcal_common::measured::scenario::LoadKind::ConstantCurrent,
+                profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (30.0, Load::CurrentA(2.0))]),
+                rest_s: 30.0,
+                interval_s: [10.0, 20.0],
+                // What the doctor finds in B0005: the electrodes' balance shifted, slower charge transfer.
+                cell_error: bcal_common::measured::scenario::CellError {
+                    xp_shift: 0.03,
+                    xn_shift: -0.06,
+                    kinetics_scale: 0.3,
+                    ..Default::default()
+                },
+                ..first.clone()
+            };
+            let samples = simulate(&cfg, &spec).unwrap().samples;
+            starts.push(readings.len());
+            readings.extend(samples.iter().map(|s| Reading {
+                time_s: s.t_s + offset_s,
+                voltage_v: s.voltage_v,
+                current_a: s.current_a,
+                temperature_c: Some(s.temperature_k - KELVIN_0C),
+            }));
+            // The episode ends where the cell's true voltage crossed 3.0 V: its last reading reads it.
+            let last = readings.last_mut().unwrap();
+            last.voltage_v = last.voltage_v.min(2.99);
+            offset_s = readings.last().unwrap().time_s + 3.0 * 3600.0;
+        }
+        starts.push(readings.len());
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let mut served_from = None;
+        for d in 0..14 {
+            for r in &readings[starts[d]..starts[d + 1]] {
+                let e = stream.step(r).unwrap();
+                if e.eod_from_prior {
+                    served_from.get_or_insert(d);
+                }
+            }
+        }
+        assert_eq!(served_from, Some(10), "the prior predicts from the eleventh discharge");
+        assert!(stream.prior_serves()[1], "at half of the discharge: {:?}", stream.prior_serves());
+        // With no prior to fall back on, the uncalibrated kind never hands over.
+        let plain = resolve(CalibratorKind::Uncalibrated, None, None, None).unwrap();
+        let mut un = Stream::of(&plain, None, None).unwrap();
+        assert!(readings.iter().all(|r| !un.step(r).unwrap().eod_from_prior));
     }
 
     /// A gap, then a charge the stream sees, then the next discharge: the charge is a stretch of its own (a

@@ -267,3 +267,24 @@ pub fn tune_adaptive(
         validation_episodes: validation.len(),
     }
 }
+
+/// Share of the validation cycles on which a learned calibrator must beat the joint UKF chosen there to be
+/// delivered (`bcal_realcell::tune::first_consistent`; a live stream's prior holds a share of a discharge by the same rule, `crate::stream`): 8 of 10 (were the two equally good, that would happen 5 times in 100).
+pub const MIN_WIN_SHARE: f64 = 0.75;
+
+/// The wins of [`MIN_WIN_SHARE`] of `n` validation cycles.
+pub fn wins_needed(n: usize) -> usize {
+    (MIN_WIN_SHARE * n as f64).ceil() as usize
+}
+
+/// Whether a learned calibrator whose per-discharge objective (`bcal_realcell::tune::objective`) was `mine` earns its place against the
+/// filter's `theirs` on the same discharges: it beats it in the mean and on at least [`MIN_WIN_SHARE`] of
+/// them (a tie is not a win). Nothing to judge on: no.
+pub fn earns(mine: &[f64], theirs: &[f64]) -> bool {
+    let n = theirs.len();
+    if n == 0 || mine.len() != n {
+        return false;
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    mean(mine) < mean(theirs) && mine.iter().zip(theirs).filter(|(a, b)| a < b).count() >= wins_needed(n)
+}

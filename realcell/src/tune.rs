@@ -65,14 +65,7 @@ fn per_cycle_at(records: &[CellRecord], runs: &[CycleRun], fractions: &[u32]) ->
     (0..records.len().min(runs.len())).map(|k| objective_at(&records[k..=k], &runs[k..=k], fractions)).collect()
 }
 
-/// Share of the validation cycles on which a learned calibrator must beat the joint UKF chosen there to be
-/// delivered ([`first_consistent`]): 8 of 10 (were the two equally good, that would happen 5 times in 100).
-pub const MIN_WIN_SHARE: f64 = 0.75;
-
-/// The wins of [`MIN_WIN_SHARE`] of `n` validation cycles.
-pub fn wins_needed(n: usize) -> usize {
-    (MIN_WIN_SHARE * n as f64).ceil() as usize
-}
+pub use bcal_calib::tune::{earns, wins_needed, MIN_WIN_SHARE};
 
 /// One candidate's validation figures.
 #[derive(Clone, Debug, Serialize)]
@@ -86,18 +79,6 @@ pub struct Candidate {
     /// [`per_cycle`] along the validation cycles.
     #[serde(skip)]
     pub per_cycle_pct: Vec<f64>,
-}
-
-/// Whether a learned calibrator whose per-discharge [`objective`] was `mine` earns its place against the
-/// filter's `theirs` on the same discharges: it beats it in the mean and on at least [`MIN_WIN_SHARE`] of
-/// them (a tie is not a win). Nothing to judge on: no.
-pub fn earns(mine: &[f64], theirs: &[f64]) -> bool {
-    let n = theirs.len();
-    if n == 0 || mine.len() != n {
-        return false;
-    }
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
-    mean(mine) < mean(theirs) && mine.iter().zip(theirs).filter(|(a, b)| a < b).count() >= wins_needed(n)
 }
 
 /// The first of `candidates` (best first) that [`earns`] its place against `reference` (the per-cycle
