@@ -6,7 +6,7 @@
 //! of the figures (it waits for the process to start). The baseline is the same stream stepped in this
 //! process on the same readings (no pipes, no parsing, no printing).
 
-use bcal_calib::stream::{build, resolve, CalibratorKind, Reading, Stream};
+use bcal_calib::stream::{resolve, CalibratorKind, Reading, Stream};
 use bcal_common::battery::{BatteryModel, Degradation, Load};
 use serde::{Deserialize, Serialize};
 use std::io::{BufRead, BufReader, Write};
@@ -64,9 +64,10 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
 }
 
 fn in_process_us(kind: &str, rs: &[Reading]) -> anyhow::Result<f64> {
-    // The follow loop's own setup: the kind alone (no config, policy or model).
+    // The follow loop's own setup and stream: the kind alone (no config, policy or model), with its prior
+    // alone beside it, as `--follow` runs it.
     let setup = resolve(kind.parse::<CalibratorKind>()?, None, None, None)?;
-    let mut s = Stream::new(build(&setup, None)?, &setup.spec.tracker, None);
+    let mut s = Stream::of(&setup, None, None)?;
     let mut us: Vec<f64> = rs
         .iter()
         .map(|r| {

@@ -14,7 +14,8 @@
 //!   rollouts the learner's validation and the evaluator share; [`tune`]: choices made on validation cells;
 //!   [`stream`]: one calibrator on live readings (`bcal calibrate --follow`, the Python package);
 //!   [`prior_width`] and [`widening`]: a discharge's prior width and its prediction intervals, learned from
-//!   the discharges before it (for `bcal calibrate` and a live stream alike).
+//!   the discharges before it (for `bcal calibrate` and a live stream alike); [`end_fit`]: the qMobile a
+//!   discharge's measured end gives, which a live stream hands on.
 //!
 //! No libtorch here (the learner and the direct mapping's training own it), and nothing prints.
 
