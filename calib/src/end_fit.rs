@@ -70,8 +70,8 @@ mod tests {
     use bcal_common::measured::scenario::{draw_spec, simulate, ScenarioConfig};
     use rand::SeedableRng;
 
-    /// Simulated discharges (the simulator's own integrator and sampling, 3 mV noise, loads of every
-    /// kind) ended where the cell's true voltage crossed the cut-off (the knee: before it, a flat voltage
+    /// Simulated discharges (the simulator's own integrator and sampling, 3 mV noise, four validation
+    /// draws, piecewise power and constant current among them) ended where the cell's true voltage crossed the cut-off (the knee: before it, a flat voltage
     /// curve tells little of the charge): the fitted qMobile lies within 2 % of the cell's, off the
     /// candidates' grid; readings without the rest before the load give none.
     #[test]

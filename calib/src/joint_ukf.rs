@@ -536,16 +536,21 @@ mod tests {
     use bcal_common::measured::scenario::{draw_spec, simulate, LoadKind, ScenarioConfig};
     use rand::SeedableRng;
 
+    /// Piecewise loads read every second: the cells these tests follow.
+    fn piecewise_1s() -> ScenarioConfig {
+        ScenarioConfig {
+            load_kinds: vec![LoadKind::Piecewise],
+            sample_interval_s: vec![[1.0, 1.0]],
+            ..Default::default()
+        }
+    }
+
     /// On simulated piecewise discharges of at least 15 min (enough charge drawn for qMobile to show) with
     /// 3 mV noise the filter starts at the prior and ends near the hidden parameters, with the truth inside
     /// its final 90 % interval most of the time.
     #[test]
     fn converges_on_a_simulated_discharge() {
-        let cfg = ScenarioConfig {
-            load_kinds: vec![LoadKind::Piecewise],
-            sample_interval_s: vec![[1.0, 1.0]],
-            ..Default::default()
-        };
+        let cfg = piecewise_1s();
         let spec = TrackerSpec::default();
         let mut within = 0;
         let long = (0..40u64)
@@ -580,11 +585,7 @@ mod tests {
     /// special start needed, unlike the window fit's: `tracker.rs`).
     #[test]
     fn a_discharge_joined_under_load_still_finds_the_cell() {
-        let cfg = ScenarioConfig {
-            load_kinds: vec![LoadKind::Piecewise],
-            sample_interval_s: vec![[1.0, 1.0]],
-            ..Default::default()
-        };
+        let cfg = piecewise_1s();
         let spec = TrackerSpec::default();
         let mut errors = Vec::new();
         for seed in 0..12u64 {

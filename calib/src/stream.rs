@@ -687,7 +687,7 @@ impl<'a> Stream<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use bcal_common::measured::scenario::{draw_spec, simulate, ScenarioConfig};
+    use bcal_common::measured::scenario::{draw_spec, simulate, CellError, EpisodeSpec, LoadKind, ScenarioConfig};
     use rand::SeedableRng;
 
     fn episode() -> Vec<Reading> {
@@ -787,6 +787,23 @@ mod tests {
         assert!(at_4a < at_2a, "{at_4a} vs {at_2a}");
     }
 
+    /// Simulated discharges joined end to end, each 3 h after the last one's final reading (the charges
+    /// between them unseen): the readings and where each discharge starts.
+    fn joined(cfg: &ScenarioConfig, specs: impl IntoIterator<Item = EpisodeSpec>) -> (Vec<Reading>, Vec<usize>) {
+        let (mut readings, mut starts, mut offset_s) = (Vec::new(), Vec::new(), 0.0);
+        for spec in specs {
+            starts.push(readings.len());
+            readings.extend(simulate(cfg, &spec).unwrap().samples.iter().map(|s| Reading {
+                time_s: s.t_s + offset_s,
+                voltage_v: s.voltage_v,
+                current_a: s.current_a,
+                temperature_c: Some(s.temperature_k - KELVIN_0C),
+            }));
+            offset_s = readings.last().unwrap().time_s + 3.0 * 3600.0;
+        }
+        (readings, starts)
+    }
+
     /// Seven discharges of one cell joined end to end, three hours apart (the charges between them unseen):
     /// each starts from what the one before told: the charge its end measured (within 3 % of the cell's
     /// qMobile) where its readings reached the cut-off, else the estimate it ended with; its EOD current
@@ -800,24 +817,14 @@ mod tests {
         let cfg = ScenarioConfig::default();
         let mut rng = rand::rngs::SmallRng::seed_from_u64(4);
         let first = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
-        let reading = |s: &Sample, offset_s: f64| Reading {
-            time_s: s.t_s + offset_s,
-            voltage_v: s.voltage_v,
-            current_a: s.current_a,
-            temperature_c: Some(s.temperature_k - KELVIN_0C),
-        };
-        let (mut readings, mut starts, mut offset_s) = (Vec::new(), Vec::new(), 0.0);
-        for k in 0..7u64 {
-            let spec = bcal_common::measured::scenario::EpisodeSpec {
+        let (readings, starts) = joined(
+            &cfg,
+            (0..7u64).map(|k| EpisodeSpec {
                 soc0: [0.95, 0.8, 0.9, 1.0, 0.85, 0.95, 0.9][k as usize],
                 noise_seed: first.noise_seed + k,
                 ..first.clone()
-            };
-            let samples = simulate(&cfg, &spec).unwrap().samples;
-            starts.push(readings.len());
-            readings.extend(samples.iter().map(|s| reading(s, offset_s)));
-            offset_s = readings.last().unwrap().time_s + 3.0 * 3600.0;
-        }
+            }),
+        );
         let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         let mut stream = Stream::of(&setup, None, None).unwrap();
         let mut plain = Stream::new(build(&setup, None).unwrap(), &setup.spec.tracker, None);
@@ -869,22 +876,14 @@ mod tests {
         let cfg = ScenarioConfig::default();
         let mut rng = rand::rngs::SmallRng::seed_from_u64(7);
         let first = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
-        let (mut readings, mut starts, mut offset_s) = (Vec::new(), Vec::new(), 0.0);
-        for k in 0..12u64 {
-            let spec = bcal_common::measured::scenario::EpisodeSpec {
+        let (readings, mut starts) = joined(
+            &cfg,
+            (0..12u64).map(|k| EpisodeSpec {
                 soc0: 0.8 + 0.02 * (k % 10) as f64,
                 noise_seed: first.noise_seed + k,
                 ..first.clone()
-            };
-            starts.push(readings.len());
-            readings.extend(simulate(&cfg, &spec).unwrap().samples.iter().map(|s| Reading {
-                time_s: s.t_s + offset_s,
-                voltage_v: s.voltage_v,
-                current_a: s.current_a,
-                temperature_c: Some(s.temperature_k - KELVIN_0C),
-            }));
-            offset_s = readings.last().unwrap().time_s + 3.0 * 3600.0;
-        }
+            }),
+        );
         starts.push(readings.len());
         // A cut-off above the simulator's (3.0 V, where an episode stops, its last noisy reading not always
         // below it): every discharge crosses it under load.
@@ -945,39 +944,27 @@ mod tests {
         let cfg = ScenarioConfig::default();
         let mut rng = rand::rngs::SmallRng::seed_from_u64(4);
         let first = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
-        let (mut readings, mut starts, mut offset_s) = (Vec::new(), Vec::new(), 0.0);
-        for k in 0..14u64 {
-            // A cycler's protocol: a constant 2 A after a 30 s rest, read every 10-20 s.
-            let spec = bcal_common::measured::scenario::EpisodeSpec {
+        // A cycler's protocol: a constant 2 A after a 30 s rest, read every 10-20 s.
+        let (mut readings, mut starts) = joined(
+            &cfg,
+            (0..14u64).map(|k| EpisodeSpec {
                 soc0: 0.85 + 0.01 * (k % 10) as f64,
                 noise_seed: first.noise_seed + k,
-                kind: bcal_common::measured::scenario::LoadKind::ConstantCurrent,
+                kind: LoadKind::ConstantCurrent,
                 profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (30.0, Load::CurrentA(2.0))]),
                 rest_s: 30.0,
                 interval_s: [10.0, 20.0],
                 // What the doctor finds in B0005: the electrodes' balance shifted, slower charge transfer.
-                cell_error: bcal_common::measured::scenario::CellError {
-                    xp_shift: 0.03,
-                    xn_shift: -0.06,
-                    kinetics_scale: 0.3,
-                    ..Default::default()
-                },
+                cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
                 ..first.clone()
-            };
-            let samples = simulate(&cfg, &spec).unwrap().samples;
-            starts.push(readings.len());
-            readings.extend(samples.iter().map(|s| Reading {
-                time_s: s.t_s + offset_s,
-                voltage_v: s.voltage_v,
-                current_a: s.current_a,
-                temperature_c: Some(s.temperature_k - KELVIN_0C),
-            }));
-            // The episode ends where the cell's true voltage crossed 3.0 V: its last reading reads it.
-            let last = readings.last_mut().unwrap();
-            last.voltage_v = last.voltage_v.min(2.99);
-            offset_s = readings.last().unwrap().time_s + 3.0 * 3600.0;
-        }
+            }),
+        );
         starts.push(readings.len());
+        // Each episode ends where the cell's true voltage crossed 3.0 V: its last reading reads it.
+        for end in &starts[1..] {
+            let last = &mut readings[end - 1];
+            last.voltage_v = last.voltage_v.min(2.99);
+        }
         let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         let mut stream = Stream::of(&setup, None, None).unwrap();
         let mut served_from = None;
