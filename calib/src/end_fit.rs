@@ -42,8 +42,10 @@ pub fn q_mobile_to_end(spec: &TrackerSpec, samples: &[Sample], end_s: f64, r_o_o
         }
         let last = &samples[upto - 1];
         cell.advance(last.current_a, end_s - last.t_s, &d, temperature_k(last));
+        // An emptied electrode surface is the model's end (its voltage stops falling there, about 3.0 V at
+        // 2 A, as `crate::predict_eod_s` reads it): below any cut-off.
         let v = cell.voltage(&d) - spec.cutoff_v;
-        if v.is_finite() {
+        if v.is_finite() && !cell.model.surface_empty(&cell.state(&cell.track, &d), &d) {
             v
         } else {
             -1.0
@@ -71,13 +73,15 @@ mod tests {
     use rand::SeedableRng;
 
     /// Simulated discharges (the simulator's own integrator and sampling, 3 mV noise, four validation
-    /// draws, piecewise power and constant current among them) ended where the cell's true voltage crossed the cut-off (the knee: before it, a flat voltage
-    /// curve tells little of the charge): the fitted qMobile lies within 2 % of the cell's, off the
-    /// candidates' grid; readings without the rest before the load give none.
+    /// draws, piecewise power and constant current among them) ended where the cell's true voltage crossed
+    /// the cut-off (the knee: before it, a flat voltage curve tells little of the charge): the fitted qMobile
+    /// lies within 2 % of the cell's, off the candidates' grid, for that cut-off and for one the model never
+    /// reaches; readings without the rest before the load give none.
     #[test]
     fn the_end_of_a_simulated_discharge_gives_back_its_q_mobile() {
         let cfg = ScenarioConfig::default();
         let spec = TrackerSpec::default();
+        let mut emptied = 0;
         for seed in [3u64, 11, 19, 27] {
             let mut rng = rand::rngs::SmallRng::seed_from_u64(seed);
             let ep_spec = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
@@ -90,8 +94,19 @@ mod tests {
             let truth = ep_spec.truth;
             let q = q_mobile_to_end(&spec, &samples[..k], end_s, truth.r_o_ohm).expect("a fit");
             assert!((q / truth.q_mobile_c - 1.0).abs() < 0.02, "seed {seed}: {q} C against {} C", truth.q_mobile_c);
+            // A cut-off below the voltage where the model's electrode surface empties (NASA's 2.5 V and 2.2 V
+            // cells): the simulated cell's end is its emptying above that cut-off, and the model's end is read
+            // the same way, so its end gives back its charge.
+            let deep_cfg = ScenarioConfig { cutoff_v: 2.5, ..cfg.clone() };
+            let deep = simulate(&deep_cfg, &ep_spec).unwrap();
+            let end_s = deep.eod_s.expect("the cell empties");
+            emptied += usize::from(*deep.true_voltage_v.last().unwrap() > deep_cfg.cutoff_v);
+            let deep_spec = TrackerSpec { cutoff_v: deep_cfg.cutoff_v, ..spec.clone() };
+            let q_deep = q_mobile_to_end(&deep_spec, &deep.samples, end_s, truth.r_o_ohm).expect("a fit below 3 V");
+            assert!((q_deep / truth.q_mobile_c - 1.0).abs() < 0.02, "seed {seed}, 2.5 V: {q_deep} C");
             let loaded: Vec<Sample> = samples[..k].iter().filter(|s| s.current_a > REST_CURRENT_A).copied().collect();
             assert_eq!(q_mobile_to_end(&spec, &loaded, end_s, truth.r_o_ohm), None, "no rest, no start");
         }
+        assert!(emptied > 0, "no cell emptied above 2.5 V: the deep cut-off went untested");
     }
 }
