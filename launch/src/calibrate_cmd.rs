@@ -416,7 +416,7 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     // prior at that width after the usual rest.
     let neutral = bcal_realcell::calibrate::extension_of(&causes, &shared, records[0].ambient_k);
     let owned: Vec<Discharge> = kept.iter().map(|d| (*d).clone()).collect();
-    let history = CellHistory::read(&spec.tracker, &owned, &starts, &mut records, &fits, cut);
+    let history = CellHistory::read(&spec.tracker, &owned, &starts, &mut records, &fits, &neutral, cut);
     let grid = JointUkfGrid::real_cells().candidates();
     let too_few = || {
         anyhow::anyhow!(
@@ -429,7 +429,7 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
         history.factors().len()
     );
     let (mut ukf, factor, choice) =
-        choose_cell_ukf(&spec.tracker, &records, &fits, &neutral, &history, &grid, cut).ok_or_else(too_few)?;
+        choose_cell_ukf(&spec.tracker, &records, &history, &grid, cut).ok_or_else(too_few)?;
     eprintln!(
         "joint UKF of {cell}: {ukf:?}, prior width factor {factor:?}; validation EOD error {:.2} %",
         choice.candidates[0].eod_error_pct
@@ -439,8 +439,7 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let rules = AdaptiveGrid::default().candidates();
     eprintln!("choosing the filter's covariance-matching rule among {} and none on the same cycles ...", rules.len());
     let (rule, choice) =
-        choose_cell_rule(&spec.tracker, &records, &fits, &neutral, &history, (ukf, factor), &rules, cut)
-            .ok_or_else(too_few)?;
+        choose_cell_rule(&spec.tracker, &records, &history, (ukf, factor), &rules, cut).ok_or_else(too_few)?;
     eprintln!("rule under the correction: {rule:?}; validation EOD error {:.2} %", choice.candidates[0].eod_error_pct);
     spec.correction.adaptive = rule;
     if let Some(sd) = history.usual_sd_z(factor) {

@@ -13,12 +13,13 @@
 //! per-cycle parameters (electrode balance, charge-transfer factor) from discharge to discharge: each
 //! discharge runs on the values the doctor fitted on the discharge before it, once that one had ended.
 
+use crate::carry::{before, end_fits, Carrying};
 use crate::cellspec::{cell_spec, CellFacts};
 use crate::interval::calibrate_intervals;
-use crate::prior::{learn_width, rests_before, PriorWalk, RestWidth};
+use crate::prior::{rests_before, PriorWalk, RestWidth};
 use crate::record::{prepare, CellRecord, RecordSummary};
 use crate::report::{CalibrationReport, MethodEntry};
-use crate::run::{knee_c, knees_before, run_all, run_sequence, Before, CycleRun, ParamTrend, Streaming};
+use crate::run::{knee_c, run_all, run_sequence, Before, CycleRun, ParamTrend, Streaming};
 use crate::score::{score, EOD_FRACTIONS_PCT};
 use crate::tune;
 use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
@@ -173,36 +174,6 @@ pub fn lifetime_model(train: &[Discharge], starts: &[RecordStart], cutoff_v: f64
     Some((model, life.verdict))
 }
 
-/// What each record's calibration knows before it starts (no look-ahead: only discharges that ended): the
-/// prior from the walk (which has seen every discharge before `records`), the model values fitted on the
-/// record before it (the first takes `first`'s), at this record's ambient, and the model's knee over the
-/// discharges before it (`earlier_knees` those before `records`). The walk observes each record's fit.
-fn before(
-    walk: &mut PriorWalk,
-    records: &[CellRecord],
-    fits: &[(Degradation, ModelExtension)],
-    first: &(Degradation, ModelExtension),
-    earlier_knees: &[f64],
-    cutoff_v: f64,
-) -> Vec<Before> {
-    let knees: Vec<Option<f64>> = records.iter().zip(fits).map(|(r, f)| knee_c(r, f, cutoff_v)).collect();
-    let mut out = Vec::with_capacity(records.len());
-    for (k, (r, knee_c)) in records.iter().zip(knees_before(earlier_knees, &knees)).enumerate() {
-        let prev = if k == 0 { first.clone() } else { fits[k - 1].clone() };
-        let p = walk.prior(r, r.rest_before_s, &first.0);
-        out.push(Before {
-            prior: p.mean,
-            prior_sd_z: p.sd_z,
-            previous: p.previous,
-            model: ModelExtension { reference_k: Some(r.ambient_k), ..prev.1 },
-            knee_c,
-            rest_before_s: r.rest_before_s,
-        });
-        walk.observe(r, r.rest_before_s, &fits[k].0);
-    }
-    out
-}
-
 /// The joint UKF chosen among `grid` (settings, prior width factor) by [`tune::choose`] on the validation
 /// records, each starting from its [`Before`].
 pub fn choose_ukf(
@@ -227,11 +198,14 @@ pub fn choose_ukf(
 }
 
 /// What a cell's training cycles say of the discharges to come, as `bcal calibrate` reads them: the
-/// lifetime model (fade, recovery after rest) and the prior width learned from consecutive fits. Sets each
-/// record's rest before it from the records' start times.
+/// lifetime model (fade, recovery after rest), the fit each discharge hands on ([`crate::carry`]: its end
+/// fit) and the prior width learned from consecutive ones. Sets each record's rest before it
+/// from the records' start times.
 pub struct CellHistory {
     pub life: Option<LifetimeModel>,
     pub width: RestWidth,
+    /// The carried fits and priors along the training records.
+    pub carrying: Carrying,
 }
 
 impl CellHistory {
@@ -241,6 +215,7 @@ impl CellHistory {
         starts: &[RecordStart],
         train: &mut [CellRecord],
         train_fits: &[(Degradation, ModelExtension)],
+        neutral: &ModelExtension,
         cutoff_v: f64,
     ) -> Self {
         let refs: Vec<&Discharge> = train_ds.iter().collect();
@@ -249,12 +224,8 @@ impl CellHistory {
             r.rest_before_s = rests.get(&r.cycle).copied();
         }
         let life = lifetime_model(train_ds, starts, cutoff_v).map(|l| l.0);
-        let width = if train.is_empty() {
-            RestWidth::fallback()
-        } else {
-            learn_width(spec, life.as_ref(), train, train_fits, &rests)
-        };
-        Self { life, width }
+        let carrying = Carrying::end_fits(spec, life.as_ref(), train, train_fits, neutral, &rests, cutoff_v);
+        Self { life, width: carrying.width, carrying }
     }
 
     /// The prior widths a streaming calibrator is tried with: factors on the learned width, or (without a
@@ -288,13 +259,11 @@ fn prior_factors(width: &RestWidth) -> Vec<Option<f64>> {
 pub fn choose_cell_ukf(
     spec: &TrackerSpec,
     train: &[CellRecord],
-    train_fits: &[(Degradation, ModelExtension)],
-    neutral: &ModelExtension,
     history: &CellHistory,
     grid: &[JointUkfSettings],
     cutoff_v: f64,
 ) -> Option<(JointUkfSettings, Option<f64>, tune::Choice)> {
-    let (validation, validation_before) = cell_validation(spec, train, train_fits, neutral, history, cutoff_v);
+    let (validation, validation_before) = cell_validation(train, history);
     let mut cands: Vec<(JointUkfSettings, Option<f64>)> = Vec::new();
     for g in grid {
         for f in history.factors() {
@@ -315,14 +284,12 @@ pub fn choose_cell_ukf(
 pub fn choose_cell_rule(
     spec: &TrackerSpec,
     train: &[CellRecord],
-    train_fits: &[(Degradation, ModelExtension)],
-    neutral: &ModelExtension,
     history: &CellHistory,
     (ukf, prior_factor): (JointUkfSettings, Option<f64>),
     rules: &[AdaptiveRule],
     cutoff_v: f64,
 ) -> Option<(Option<AdaptiveRule>, tune::Choice)> {
-    let (validation, validation_before) = cell_validation(spec, train, train_fits, neutral, history, cutoff_v);
+    let (validation, validation_before) = cell_validation(train, history);
     if validation.is_empty() {
         return None;
     }
@@ -382,20 +349,8 @@ fn served_cycles(judged: &[CellRecord], gates: &tune::Served) -> serde_json::Val
 }
 
 /// The validation cycles among a cell's training cycles, each with the prior `bcal calibrate` gives it.
-fn cell_validation(
-    spec: &TrackerSpec,
-    train: &[CellRecord],
-    train_fits: &[(Degradation, ModelExtension)],
-    neutral: &ModelExtension,
-    history: &CellHistory,
-    cutoff_v: f64,
-) -> (Vec<CellRecord>, Vec<Before>) {
-    let mut walk = PriorWalk::new(spec, history.life.as_ref(), history.width);
-    let train_before = before(&mut walk, train, train_fits, &(spec.prior, neutral.clone()), &[], cutoff_v);
-    let validation_idx = tune::validation_records(train);
-    let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
-    let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
-    (validation, validation_before)
+fn cell_validation(train: &[CellRecord], history: &CellHistory) -> (Vec<CellRecord>, Vec<Before>) {
+    tune::validation_records(train).iter().map(|&k| (train[k].clone(), history.carrying.before[k].clone())).unzip()
 }
 
 /// What a calibration produced: the report and the runs the figures and per-reading files need.
@@ -509,13 +464,22 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // What every discharge starts from: the prior from the cell's history (its lifetime model and the
     // spread of consecutive fits against the rest between them).
     let life = lifetime_model(&input.train, &input.starts, cut);
-    let width = if train.is_empty() {
-        RestWidth::fallback()
-    } else {
-        learn_width(&spec.tracker, life.as_ref().map(|l| &l.0), &train, &train_fits, &rests)
+    let life_model = life.as_ref().map(|l| &l.0);
+    // Each discharge hands on its end fit to the next ([`crate::carry`]).
+    let carrying = Carrying::end_fits(&spec.tracker, life_model, &train, &train_fits, &neutral, &rests, cut);
+    let (judged_carried, judged_kept) = end_fits(&spec.tracker, &judged, &judged_fits, cut);
+    let width = carrying.width;
+    let end_knee_median = {
+        let mut v = carrying.knees.clone();
+        bcal_common::stats::median(&mut v).unwrap_or(0.0)
     };
     progress(&format!(
-        "prior: {}; width learned on {} consecutive training fits ({} after a rest of more than a day): {}",
+        "prior: each discharge hands on its end fit (the qMobile that puts the model's end at the measured one; {} \
+         of {} discharges kept their voltage fit, cut short or out of range; knee against it {:.4} Ah); {}; width \
+         learned on {} consecutive training fits ({} after a rest of more than a day): {}",
+        carrying.kept_voltage_fit + judged_kept,
+        train.len() + judged.len(),
+        end_knee_median / 3600.0,
         life.as_ref().map_or("no lifetime model (the previous fit carried as it is)".into(), |l| format!(
             "lifetime model {}",
             l.1
@@ -534,25 +498,40 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             "too few pairs: each calibrator's own prior width".into()
         }
     ));
-    let mut walk = PriorWalk::new(&spec.tracker, life.as_ref().map(|l| &l.0), width);
-    let train_before = before(&mut walk, &train, &train_fits, &(spec.tracker.prior, neutral.clone()), &[], cut);
-    let first_judged = train_fits.last().cloned().unwrap_or((spec.tracker.prior, neutral.clone()));
-    let judged_before = before(&mut walk, &judged, &judged_fits, &first_judged, &train_knees, cut);
+    // What each judged discharge starts from, the walk having seen the training ones: the end fits (the prior
+    // and every streaming calibrator) and the voltage fits (the references that carry a fit: the previous
+    // cycle's, the oracle's, with the knee against it).
+    let judged_along = |train_carried: &[(Degradation, ModelExtension)],
+                        judged_carried: &[(Degradation, ModelExtension)],
+                        knees: &[f64]| {
+        let mut walk = PriorWalk::new(&spec.tracker, life_model, width);
+        before(&mut walk, &train, train_carried, &(spec.tracker.prior, neutral.clone()), &[], cut);
+        let first = train_carried.last().cloned().unwrap_or((spec.tracker.prior, neutral.clone()));
+        before(&mut walk, &judged, judged_carried, &first, knees, cut)
+    };
+    let train_before = carrying.before.clone();
+    let judged_before = judged_along(&carrying.fits, &judged_carried, &carrying.knees);
+    let voltage = Carrying::along(&spec.tracker, life_model, &train, train_fits.clone(), &neutral, &rests, cut);
+    let train_ref_before = voltage.before;
+    let judged_ref_before = judged_along(&train_fits, &judged_fits, &train_knees);
 
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
     settings.insert("cell_setting".into(), serde_json::to_value(&facts).unwrap_or_default());
     settings.insert(
         "model_knee_c".into(),
-        serde_json::json!({"training_median": knee_median, "window": crate::run::KNEE_WINDOW,
-            "what": "the charge a complete discharge delivered between the model's end of discharge under the \
-            record's offline fit (from a full cell) and the measured cut-off, C; each discharge adds the median over \
-            the last `window` discharges before it to every capacity, and that charge over the current assumed to \
-            every end of discharge"}),
+        serde_json::json!({"training_median": knee_median, "training_median_end_fit": end_knee_median,
+            "window": crate::run::KNEE_WINDOW,
+            "what": "the charge a complete discharge delivered between the model's end of discharge under a fit \
+            (from a full cell) and the measured cut-off, C: `training_median` under the record's offline voltage fit \
+            (the references that carry it), `training_median_end_fit` under its end fit (the prior and the streaming \
+            calibrators); each discharge adds the median over the last `window` discharges before it to every \
+            capacity, and that charge over the current assumed to every end of discharge"}),
     );
     settings.insert(
         "prior".into(),
-        serde_json::json!({"width": width, "lifetime": life.as_ref().map(|l| serde_json::json!({"model": l.0,
+        serde_json::json!({"carried": "end_fit", "kept_voltage_fit": carrying.kept_voltage_fit + judged_kept,
+            "width": width, "lifetime": life.as_ref().map(|l| serde_json::json!({"model": l.0,
             "verdict": l.1})), "judged": judged_before.iter().zip(&judged).map(|(b, r)| serde_json::json!({
             "cycle": r.cycle, "rest_before_s": b.rest_before_s, "q_mobile_c": b.prior.q_mobile_c,
             "r_o_ohm": b.prior.r_o_ohm, "sd_z": b.prior_sd_z})).collect::<Vec<_>>()}),
@@ -562,6 +541,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let validation_idx = tune::validation_records(&train);
     let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
     let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
+    let validation_ref_before: Vec<Before> = validation_idx.iter().map(|&k| train_ref_before[k].clone()).collect();
     if (input.ukf || input.adaptive_ukf || !input.policies.is_empty()) && validation.is_empty() {
         return Err(CalibrateError::Validation(format!(
             "the streaming calibrators' settings are chosen on the last training cycles, and {} of the training \
@@ -885,8 +865,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             (prior_runs.validation.clone(), prior_runs.judged.clone())
         } else {
             (
-                pinned(&|b, r, k| pin(b, r, k, false), &validation, &validation_before),
-                pinned(&|b, r, k| pin(b, r, k, true), &judged, &judged_before),
+                pinned(&|b, r, k| pin(b, r, k, false), &validation, &validation_ref_before),
+                pinned(&|b, r, k| pin(b, r, k, true), &judged, &judged_ref_before),
             )
         };
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&hist_runs).collect();

@@ -7,6 +7,7 @@
 //! the references a prognostics engineer would compare with. The library never prints.
 
 pub mod calibrate;
+pub mod carry;
 pub mod cellspec;
 pub mod interval;
 pub mod predict;

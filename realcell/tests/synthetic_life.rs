@@ -211,11 +211,10 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
     let refs: Vec<&Discharge> = train.iter().collect();
     let fits = fits(&refs, &bcal_doctor::fit::FitConfig::default(), &causes, &shared).expect("fits");
     let spec = bcal_realcell::cellspec::cell_spec(&records, &fits, CUTOFF_V).0;
-    let history = CellHistory::read(&spec.tracker, &train, &[], &mut records, &fits, CUTOFF_V);
     let neutral = extension_of(&causes, &shared, records[0].ambient_k);
+    let history = CellHistory::read(&spec.tracker, &train, &[], &mut records, &fits, &neutral, CUTOFF_V);
     let grid = JointUkfGrid::real_cells_quick().candidates();
-    let (ukf, factor, _) =
-        choose_cell_ukf(&spec.tracker, &records, &fits, &neutral, &history, &grid, CUTOFF_V).expect("validation");
+    let (ukf, factor, _) = choose_cell_ukf(&spec.tracker, &records, &history, &grid, CUTOFF_V).expect("validation");
     let chosen = &cal.report.settings["ukf"];
     let mut ukf_json = serde_json::to_value(ukf).unwrap();
     let mut calibrate_json = chosen["settings"].clone();
