@@ -462,8 +462,9 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
             100.0 * j.q_mobile_frac[1]
         );
     }
-    // The cell's own recorded training discharges join the simulated ones in training (beside the config).
-    let set = bcal_realcell::recorded::recorded_set(&cell, &records, &fits);
+    // The cell's own recorded training discharges join the simulated ones in training (beside the config),
+    // each starting from the fit the one before it hands on, as `bcal calibrate` starts it.
+    let set = bcal_realcell::recorded::recorded_set(&cell, &records, &history.carrying.fits);
     let recorded_path = a.out.with_extension("recorded.bin");
     bcal_common::fsutil::write_atomic(&recorded_path, &set.to_bytes())
         .with_context(|| format!("cannot write {}", recorded_path.display()))?;

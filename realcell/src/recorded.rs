@@ -2,8 +2,8 @@
 //! the correction policy then learns, from the predictive cost alone, what the cell's model gets wrong on
 //! this cell, beside the simulated cells around its diagnosed model. Each episode holds the discharge's
 //! readings up to the cut-off, the measured voltage as the cell's own future (what the cost compares
-//! with), the measured end of discharge, the measured current as the load, and the offline fit of the
-//! discharge before it as its prior (where `bcal calibrate` starts it). There is no true parameter: the
+//! with), the measured end of discharge, the measured current as the load, and the fit the discharge
+//! before it hands on as its prior (its end fit, [`crate::carry`], where `bcal calibrate` starts it). There is no true parameter: the
 //! cost needs none, and validation scores that read the truth leave these episodes out.
 
 use crate::record::CellRecord;
@@ -45,8 +45,8 @@ pub fn episode_of(r: &CellRecord, prior: Option<Degradation>) -> Option<Episode>
     })
 }
 
-/// The recorded set of a cell's training discharges (`records`, in cycle order, with their offline fits):
-/// each starts from the fit of the one before it; the last training cycles (the validation cycles every
+/// The recorded set of a cell's training discharges (`records`, in cycle order, with the fits they hand
+/// on): each starts from the fit of the one before it; the last training cycles (the validation cycles every
 /// real-cell choice is made on) form its validation part.
 pub fn recorded_set(cell: &str, records: &[CellRecord], fits: &[(Degradation, ModelExtension)]) -> RecordedSet {
     let validation: Vec<usize> = validation_records(records);
