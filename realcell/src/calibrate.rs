@@ -203,8 +203,7 @@ pub fn choose_ukf(
 /// from the records' start times.
 pub struct CellHistory {
     pub life: Option<LifetimeModel>,
-    pub width: RestWidth,
-    /// The carried fits and priors along the training records.
+    /// The carried fits, the prior width learned from them and the priors along the training records.
     pub carrying: Carrying,
 }
 
@@ -225,19 +224,20 @@ impl CellHistory {
         }
         let life = lifetime_model(train_ds, starts, cutoff_v).map(|l| l.0);
         let carrying = Carrying::end_fits(spec, life.as_ref(), train, train_fits, neutral, &rests, cutoff_v);
-        Self { life, width: carrying.width, carrying }
+        Self { life, carrying }
     }
 
     /// The prior widths a streaming calibrator is tried with: factors on the learned width, or (without a
     /// history to learn it from) the settings' own.
     pub fn factors(&self) -> Vec<Option<f64>> {
-        prior_factors(&self.width)
+        prior_factors(&self.carrying.width)
     }
 
     /// The learned prior standard deviations after the usual rest times `factor`, z; None without them.
     pub fn usual_sd_z(&self, factor: Option<f64>) -> Option<[f64; 2]> {
         let f = factor?;
-        self.width.fitted().then(|| self.width.a_z2.map(|a| f * a.sqrt()))
+        let w = &self.carrying.width;
+        w.fitted().then(|| w.a_z2.map(|a| f * a.sqrt()))
     }
 }
 
