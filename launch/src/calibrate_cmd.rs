@@ -410,7 +410,7 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let fits = bcal_realcell::calibrate::fits(&kept, &bcal_doctor::fit::FitConfig::default(), &causes, &shared)?;
     let (mut spec, facts) = cell_spec(&records, &fits, cut);
     // The filter the correction policy trains on is the one `bcal calibrate` runs on this cell: chosen on the
-    // same validation cycles, each starting from the same prior (the previous fit moved by the cell's
+    // same validation cycles, each starting from the same prior (the previous end fit moved by the cell's
     // lifetime model, the width learned from its history times the chosen factor), so a zero action is that
     // baseline in training and on the judged cycles. Simulated and recorded training discharges start from a
     // prior at that width after the usual rest.

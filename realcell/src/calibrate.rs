@@ -252,7 +252,7 @@ fn prior_factors(width: &RestWidth) -> Vec<Option<f64>> {
 }
 
 /// A cell's joint UKF chosen among `grid` and `history`'s prior widths on its training cycles' validation
-/// cycles, each starting from the prior `bcal calibrate` gives it (the previous discharge's fit moved by
+/// cycles, each starting from the prior `bcal calibrate` gives it (the previous discharge's end fit moved by
 /// the lifetime model, the learned width times the factor): the filter and width `bcal calibrate` chooses
 /// from the same cycles, so the policy trains on top of the baseline it is judged against. None without
 /// validation cycles.

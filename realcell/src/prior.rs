@@ -1,11 +1,12 @@
 //! Across discharges (issue 18 item 5): what each discharge of a real cell starts from, as a prior with an
 //! honest width learned from the cell's own history.
 //!
-//! - **Mean.** The previous discharge's offline fit (the doctor's, once that discharge had ended), moved by
+//! - **Mean.** The fit the previous discharge hands on ([`crate::carry`]: its end fit, once that discharge
+//!   had ended), moved by
 //!   the change the cell's lifetime model expects since then: the capacity fade, and the capacity a rest
 //!   gives back (NASA cells regain capacity after long rests and lose it again over the next discharges;
 //!   [`bcal_doctor::lifetime`]). qMobile follows the expected relative change of the capacity; Ro is carried.
-//! - **Width.** Fitted on the training cycles: each consecutive pair of offline fits gives a residual, the
+//! - **Width.** Fitted on the training cycles: each consecutive pair of carried fits gives a residual, the
 //!   fit of discharge k minus its prior mean from discharge k - 1, in each parameter (z units of the
 //!   calibrator's ranges). Its variance is modelled as `a + b h(rest)`, `h(rest) = ln(max(rest, usual) /
 //!   usual)` (zero after the usual rest, growing with a longer one), fitted by least squares on the squared

@@ -270,7 +270,8 @@ pub struct Before {
     pub prior: Degradation,
     /// Its standard deviation per parameter, z units of the calibrator's ranges (None: no history).
     pub prior_sd_z: Option<[f64; 2]>,
-    /// The previous discharge's offline fit as it was (the previous-cycle reference).
+    /// The fit the previous discharge handed on, as it was (in the references' sequence its offline voltage
+    /// fit: the previous-cycle reference).
     pub previous: Degradation,
     pub model: ModelExtension,
     /// The model's knee, C.
