@@ -498,22 +498,19 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             "too few pairs: each calibrator's own prior width".into()
         }
     ));
-    // What each judged discharge starts from, the walk having seen the training ones: the end fits (the prior
-    // and every streaming calibrator) and the voltage fits (the references that carry a fit: the previous
-    // cycle's, the oracle's, with the knee against it).
-    let judged_along = |train_carried: &[(Degradation, ModelExtension)],
-                        judged_carried: &[(Degradation, ModelExtension)],
-                        knees: &[f64]| {
+    // What each training and judged discharge starts from, one walk through both: under the end fits (the
+    // prior and every streaming calibrator) and under the voltage fits (the references that carry a fit: the
+    // previous cycle's, the oracle's, with the knee against it; pinned, so the width does not matter).
+    let sequence = |train_carried: &[(Degradation, ModelExtension)],
+                    judged_carried: &[(Degradation, ModelExtension)]| {
         let mut walk = PriorWalk::new(&spec.tracker, life_model, width);
-        before(&mut walk, &train, train_carried, &(spec.tracker.prior, neutral.clone()), &[], cut);
+        let tb = before(&mut walk, &train, train_carried, &(spec.tracker.prior, neutral.clone()), &[], cut);
+        let knees: Vec<f64> = train.iter().zip(train_carried).filter_map(|(r, f)| knee_c(r, f, cut)).collect();
         let first = train_carried.last().cloned().unwrap_or((spec.tracker.prior, neutral.clone()));
-        before(&mut walk, &judged, judged_carried, &first, knees, cut)
+        (tb, before(&mut walk, &judged, judged_carried, &first, &knees, cut))
     };
-    let train_before = carrying.before.clone();
-    let judged_before = judged_along(&carrying.fits, &judged_carried, &carrying.knees);
-    let voltage = Carrying::along(&spec.tracker, life_model, &train, train_fits.clone(), &neutral, &rests, cut);
-    let train_ref_before = voltage.before;
-    let judged_ref_before = judged_along(&train_fits, &judged_fits, &train_knees);
+    let (train_before, judged_before) = sequence(&carrying.fits, &judged_carried);
+    let (train_ref_before, judged_ref_before) = sequence(&train_fits, &judged_fits);
 
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
