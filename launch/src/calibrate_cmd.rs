@@ -372,7 +372,9 @@ fn rest_jump(
     let rests = bcal_realcell::prior::rests_before(kept, starts);
     let long = rests.values().filter(|r| **r > bcal_realcell::prior::LONG_REST_S).count();
     let owned: Vec<Discharge> = kept.iter().map(|d| (*d).clone()).collect();
-    let Some((life, _)) = bcal_realcell::calibrate::lifetime_model(&owned, starts, cutoff_v) else { return none };
+    let Some(life) = bcal_realcell::calibrate::lifetime_model(&owned, starts, cutoff_v).map(|l| l.used) else {
+        return none;
+    };
     let mut caps: Vec<f64> = records.iter().filter_map(|r| r.data_capacity_ah).collect();
     let cap_ah = bcal_common::stats::median(&mut caps).unwrap_or(0.0);
     if long == 0 || life.amplitude <= 0.0 || life.quantity != Quantity::CapacityAh || cap_ah <= 0.0 {

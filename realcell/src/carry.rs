@@ -2,9 +2,10 @@
 //! Ro with the qMobile that puts the model's end of discharge at the measured cut-off crossing
 //! ([`bcal_calib::end_fit`]; the model's end is its voltage at the cut-off or an electrode's surface emptied),
 //! as a live stream carries it ([`bcal_calib::stream`]). The prior walk ([`crate::prior`]) moves it by the
-//! lifetime model and learns its width from consecutive ones; the model's knee ([`crate::run::knee_c`]) is
-//! measured against it (near zero: the end fit holds the charge the cell delivers past the model's empty
-//! point, which the offline voltage fit, made where the model's voltage is right, leaves to the knee).
+//! lifetime model and learns its width from consecutive ones; the model's knees ([`crate::run::Knee`]) are
+//! measured against it (the one an end of discharge adds near zero: the end fit holds the charge the cell
+//! delivers past the model's empty point, which the offline voltage fit, made where the model's voltage is
+//! right, leaves to the knee).
 //!
 //! Where the model is wrong (NASA cells: electrode balance, kinetics) a fit that makes its voltage right and
 //! one that makes its end right differ, and the next end is what is predicted. On B0005, B0006 and B0018 the
@@ -16,7 +17,7 @@
 
 use crate::prior::{learn_width, PriorWalk, RestWidth};
 use crate::record::CellRecord;
-use crate::run::{knee_c, knees_before, Before};
+use crate::run::{knees_along, Before, Knees};
 use bcal_common::battery::Degradation;
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::tracker::TrackerSpec;
@@ -47,7 +48,7 @@ pub fn end_fits(
 
 /// What each record of a sequence knows before it starts (no look-ahead: only discharges that ended): the
 /// prior from the walk (which has seen every discharge before `records`), the model values fitted on the
-/// record before it (the first takes `first`'s), at this record's ambient, and the model's knee against the
+/// record before it (the first takes `first`'s), at this record's ambient, and the model's knees against the
 /// carried fits over the discharges before it (`earlier_knees` those before `records`). The walk observes
 /// each record's carried fit.
 pub fn before(
@@ -55,12 +56,11 @@ pub fn before(
     records: &[CellRecord],
     carried: &[(Degradation, ModelExtension)],
     first: &(Degradation, ModelExtension),
-    earlier_knees: &[f64],
+    earlier_knees: &Knees,
     cutoff_v: f64,
 ) -> Vec<Before> {
-    let knees: Vec<Option<f64>> = records.iter().zip(carried).map(|(r, f)| knee_c(r, f, cutoff_v)).collect();
     let mut out = Vec::with_capacity(records.len());
-    for (k, (r, knee_c)) in records.iter().zip(knees_before(earlier_knees, &knees)).enumerate() {
+    for (k, (r, knee)) in records.iter().zip(knees_along(earlier_knees, records, carried, cutoff_v)).enumerate() {
         let prev = if k == 0 { first.clone() } else { carried[k - 1].clone() };
         let p = walk.prior(r, r.rest_before_s, &first.0);
         out.push(Before {
@@ -68,7 +68,7 @@ pub fn before(
             prior_sd_z: p.sd_z,
             previous: p.previous,
             model: ModelExtension { reference_k: Some(r.ambient_k), ..prev.1 },
-            knee_c,
+            knee,
             rest_before_s: r.rest_before_s,
         });
         walk.observe(r, r.rest_before_s, &carried[k].0);
@@ -85,8 +85,8 @@ pub struct Carrying {
     pub width: RestWidth,
     /// What each training record starts from.
     pub before: Vec<Before>,
-    /// The knee of every training record that has one, against its carried fit, C.
-    pub knees: Vec<f64>,
+    /// The knees of the training records, against their carried fits.
+    pub knees: Knees,
     /// Records that kept their voltage fit.
     pub kept_voltage_fit: usize,
 }
@@ -106,8 +106,8 @@ impl Carrying {
         let width =
             if train.is_empty() { RestWidth::fallback() } else { learn_width(spec, life, train, &carried, rests) };
         let mut walk = PriorWalk::new(spec, life, width);
-        let before = before(&mut walk, train, &carried, &(spec.prior, neutral.clone()), &[], cutoff_v);
-        let knees = train.iter().zip(&carried).filter_map(|(r, f)| knee_c(r, f, cutoff_v)).collect();
+        let before = before(&mut walk, train, &carried, &(spec.prior, neutral.clone()), &Knees::default(), cutoff_v);
+        let knees = Knees::of(train, &carried, cutoff_v);
         Self { fits: carried, width, before, knees, kept_voltage_fit: 0 }
     }
 
@@ -198,8 +198,9 @@ mod tests {
             assert_eq!(c.before[k].prior, c.fits[k - 1].0, "without a lifetime model the prior is the end fit before");
         }
         let voltage = Carrying::along(&spec, None, &records, fits.clone(), &neutral, &BTreeMap::new(), cfg.cutoff_v);
-        for (e, v) in c.knees.iter().zip(&voltage.knees) {
+        for (e, v) in c.knees.eod_c.iter().zip(&voltage.knees.eod_c) {
             assert!(*v > 0.0 && e.abs() < 0.25 * v, "knee against the end fit {e} C, the voltage fit {v} C");
         }
+        assert_eq!(c.knees.eod_c.len(), records.len(), "every record started at rest and reached its end");
     }
 }

@@ -173,10 +173,10 @@ pub fn scale_interval(iv: &Interval, d: &Degradation, scale: f64) -> Interval {
 }
 
 /// Runs `cal` along `record`, predicting at every reading with the calibrator's interval times `scale`;
-/// the knee's charge `knee_c` is added to every predicted capacity (and the time it takes at the current
-/// assumed to every predicted end of discharge): see [`knee_c`].
-pub fn run_cycle(cal: &Streaming, record: &CellRecord, cutoff_v: f64, knee_c: f64, scale: f64) -> CycleRun {
-    run_cycle_with(cal, record, cutoff_v, knee_c, &[scale], None).pop().expect("one scale, one run")
+/// the knees are added to every predicted capacity and (as the time they take at the current assumed)
+/// end of discharge: see [`Knee`].
+pub fn run_cycle(cal: &Streaming, record: &CellRecord, cutoff_v: f64, knee: Knee, scale: f64) -> CycleRun {
+    run_cycle_with(cal, record, cutoff_v, knee, &[scale], None).pop().expect("one scale, one run")
 }
 
 /// The reading indices the scores read (every fraction of [`crate::score`]).
@@ -198,7 +198,7 @@ pub fn run_cycle_with(
     cal: &Streaming,
     record: &CellRecord,
     cutoff_v: f64,
-    knee_c: f64,
+    knee: Knee,
     scales: &[f64],
     only: Option<&[usize]>,
 ) -> Vec<CycleRun> {
@@ -224,8 +224,8 @@ pub fn run_cycle_with(
         let predict_here = only.is_none_or(|o| o.binary_search(&k).is_ok()) && current_a.is_some();
         let current_a = current_a.unwrap_or(0.0);
         // The knee is charge: at this discharge's current it takes knee / current seconds.
-        let cap_shift = knee_c / 3600.0;
-        let knee_s = if current_a > 0.0 { knee_c / current_a } else { 0.0 };
+        let cap_shift = knee.capacity_c / 3600.0;
+        let knee_s = if current_a > 0.0 { knee.eod_c / current_a } else { 0.0 };
         let state = |p: &Degradation| c.state_under(p);
         // End of discharge: the model at the cell's temperature now.
         let now =
@@ -262,7 +262,7 @@ pub fn run_cycle_with(
 /// What is known of the cell before a discharge, from the discharges before it (each complete by then):
 /// the prior ([`crate::prior`]: the parameters the doctor fitted on the last one moved by the change the
 /// cell's lifetime model expects, with a width learned from the cell's history), the model values fitted on
-/// the last one, and the model's knee (see [`knee_c`]). A streaming calibrator starts each discharge there,
+/// the last one, and the model's knees (see [`Knee`]). A streaming calibrator starts each discharge there,
 /// as a BMS that runs the doctor's fit between discharges would.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Before {
@@ -274,8 +274,8 @@ pub struct Before {
     /// fit: the previous-cycle reference).
     pub previous: Degradation,
     pub model: ModelExtension,
-    /// The model's knee, C.
-    pub knee_c: f64,
+    /// The model's knees.
+    pub knee: Knee,
     /// The rest before the discharge, s (None: unknown).
     pub rest_before_s: Option<f64>,
 }
@@ -290,7 +290,7 @@ pub fn run_all<'a>(
     records
         .par_iter()
         .enumerate()
-        .map(|(k, r)| run_cycle(&make(k).with_model(&before[k].model), r, cutoff_v, before[k].knee_c, 1.0))
+        .map(|(k, r)| run_cycle(&make(k).with_model(&before[k].model), r, cutoff_v, before[k].knee, 1.0))
         .collect()
 }
 
@@ -312,7 +312,7 @@ pub fn run_sequence(
         .map(|(r, b)| {
             let c = cal.with_model(&b.model).with_before(b);
             let only = checkpoints_only.then(|| checkpoints(r));
-            run_cycle_with(&c, r, cutoff_v, b.knee_c, scales, only.as_deref())
+            run_cycle_with(&c, r, cutoff_v, b.knee, scales, only.as_deref())
         })
         .collect();
     let mut out: Vec<Vec<CycleRun>> = scales.iter().map(|_| Vec::with_capacity(records.len())).collect();
@@ -328,27 +328,52 @@ pub fn run_sequence(
 pub const KNEE_WINDOW: usize = 3;
 
 /// The model's knee on one complete discharge, C: the charge the cell delivered between the end the record's
-/// own offline fit predicts from its start and the measured time at the cut-off (that time span times the
-/// discharge's current; charge, so that it carries to a discharge at another current). The model's voltage stops falling when an electrode's
-/// surface empties (about 3.0 V at 2 A), while the real cell drops through its knee to a lower cut-off a
-/// little later, and by how much drifts with age. None for a record that never reached the cut-off, or
-/// did not start full (its rest lies more than the doctor's partial-start drop below a full cell's
-/// open-circuit voltage).
+/// fit `fit` predicts from a full cell and the measured time at the cut-off (that time span times the
+/// discharge's current; charge, so that it carries to a discharge at another current): what a predicted
+/// capacity (of a full cell) adds. The model's voltage stops falling when an electrode's surface empties
+/// (about 3.0 V at 2 A), while the real cell drops through its knee to a lower cut-off a little later, and by
+/// how much drifts with age. None for a record that never reached the cut-off, or did not start full (its
+/// rest lies more than the doctor's partial-start drop below a full cell's open-circuit voltage).
 pub fn knee_c(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64) -> Option<f64> {
-    let (d, ext) = fit;
-    let eod = r.eod_s?;
     let first = r.samples.first()?;
-    let start = r.samples.iter().find(|s| s.t_s >= r.load_on_s)?;
+    knee_from(r, fit, cutoff_v, |m, _| {
+        let full_ocv = bcal_common::measured::cellmodel::ocv_v(m, m.params.xn_max, first.temperature_k);
+        let partial = first.t_s < r.load_on_s && full_ocv - first.voltage_v > bcal_doctor::record::PARTIAL_START_DROP_V;
+        (!partial).then_some(m.params.xn_max)
+    })
+}
+
+/// The same knee against the model's end from the record's own start, its charge read off the mean rest
+/// voltage before the load (as every calibrator and the end fit start): what a predicted end of discharge
+/// adds, since the calibrators predict it from their own state. A record that did not start full has one.
+/// None without a rest reading before the load or for a record that never reached the cut-off.
+pub fn eod_knee_c(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64) -> Option<f64> {
+    let rest: Vec<f64> = r
+        .samples
+        .iter()
+        .take_while(|s| s.current_a.abs() < bcal_common::measured::cellmodel::REST_CURRENT_A)
+        .map(|s| s.voltage_v)
+        .collect();
+    let rest_v = (!rest.is_empty()).then(|| rest.iter().sum::<f64>() / rest.len() as f64)?;
+    knee_from(r, fit, cutoff_v, |m, t_k| Some(bcal_common::measured::cellmodel::xn_from_rest_voltage(m, rest_v, t_k)))
+}
+
+/// The knee with the model started at rest at the charge `start(model, temperature)` gives.
+fn knee_from(
+    r: &CellRecord,
+    (d, ext): &(Degradation, ModelExtension),
+    cutoff_v: f64,
+    start: impl Fn(&bcal_common::battery::BatteryModel, f64) -> Option<f64>,
+) -> Option<f64> {
+    let eod = r.eod_s?;
+    let at_load = r.samples.iter().find(|s| s.t_s >= r.load_on_s)?;
     // The temperature the calibrators run at: measured with the doctor's thermal, else the ambient.
-    let t_k = if ext.has("thermal") { start.temperature_k } else { r.ambient_k };
+    let t_k = if ext.has("thermal") { at_load.temperature_k } else { r.ambient_k };
     let p = Predictor::at(ext, t_k);
     let m = &p.model;
-    let full_ocv = bcal_common::measured::cellmodel::ocv_v(m, m.params.xn_max, first.temperature_k);
-    if first.t_s < r.load_on_s && full_ocv - first.voltage_v > bcal_doctor::record::PARTIAL_START_DROP_V {
-        return None;
-    }
+    let xn0 = start(m, t_k)?;
     let dyn_d = Degradation { r_o_ohm: d.r_o_ohm * p.ro_factor, ..*d };
-    let x0 = bcal_common::measured::scenario::rest_state(m, d, m.params.xn_max, t_k);
+    let x0 = bcal_common::measured::scenario::rest_state(m, d, xn0, t_k);
     let profile = bcal_common::battery::LoadProfile::Constant(bcal_common::battery::Load::CurrentA(r.current_a));
     let q = bcal_calib::EodQuery {
         profile: &profile,
@@ -360,7 +385,55 @@ pub fn knee_c(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64
     Some((eod - model_eod) * r.current_a)
 }
 
-/// The knee each discharge of a sequence runs with: the median of [`knee_c`] over the last [`KNEE_WINDOW`]
+/// The knees a discharge runs with, C: each the median over the last [`KNEE_WINDOW`] discharges before it
+/// that have one ([`knees_before`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Knee {
+    /// Added to every predicted capacity ([`knee_c`]).
+    pub capacity_c: f64,
+    /// Added, as time at the current assumed, to every predicted end of discharge ([`eod_knee_c`]).
+    pub eod_c: f64,
+}
+
+/// The knees measured along records against their fits, in order (those that have one).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Knees {
+    pub capacity_c: Vec<f64>,
+    pub eod_c: Vec<f64>,
+}
+
+impl Knees {
+    pub fn of(records: &[CellRecord], fits: &[(Degradation, ModelExtension)], cutoff_v: f64) -> Self {
+        let each = |f: fn(&CellRecord, &(Degradation, ModelExtension), f64) -> Option<f64>| {
+            records.iter().zip(fits).filter_map(|(r, d)| f(r, d, cutoff_v)).collect()
+        };
+        Self { capacity_c: each(knee_c), eod_c: each(eod_knee_c) }
+    }
+
+    /// The medians of each.
+    pub fn median(&self) -> Knee {
+        let m = |v: &[f64]| bcal_common::stats::median(&mut v.to_vec()).unwrap_or(0.0);
+        Knee { capacity_c: m(&self.capacity_c), eod_c: m(&self.eod_c) }
+    }
+}
+
+/// The knees each discharge of a sequence runs with (`earlier`: those of the discharges before it), from
+/// the records `records` and the fits they carry.
+pub fn knees_along(
+    earlier: &Knees,
+    records: &[CellRecord],
+    fits: &[(Degradation, ModelExtension)],
+    cutoff_v: f64,
+) -> Vec<Knee> {
+    let each = |f: fn(&CellRecord, &(Degradation, ModelExtension), f64) -> Option<f64>, e: &[f64]| {
+        let own: Vec<Option<f64>> = records.iter().zip(fits).map(|(r, d)| f(r, d, cutoff_v)).collect();
+        knees_before(e, &own)
+    };
+    let (cap, eod) = (each(knee_c, &earlier.capacity_c), each(eod_knee_c, &earlier.eod_c));
+    cap.into_iter().zip(eod).map(|(capacity_c, eod_c)| Knee { capacity_c, eod_c }).collect()
+}
+
+/// The knee each discharge of a sequence runs with: the median of the knees over the last [`KNEE_WINDOW`]
 /// discharges before it that have one (`earlier` first, the knees of discharges before the sequence);
 /// zero before any.
 pub fn knees_before(earlier: &[f64], knees: &[Option<f64>]) -> Vec<f64> {
@@ -440,5 +513,67 @@ mod tests {
         assert!((d.q_mobile_c - 5750.0).abs() < 1e-6 && (d.r_o_ohm - 0.14).abs() < 1e-9, "{d:?}");
         assert!(ParamTrend::fit(&pts[..1]).is_none());
         assert_eq!(t.at(10_000).q_mobile_c, 1.0);
+    }
+
+    /// A discharge that did not start full (the simulator's own integrator and sampling, 2 A to a 2.5 V
+    /// cut-off, from 93 % of a full cell's charge: its rest voltage within the doctor's partial-start drop),
+    /// measured against the cell's true parameters: the knee an end of discharge adds, measured from the
+    /// discharge's own start as the calibrators start, is near zero; the one a full cell's capacity adds is
+    /// the charge the cell never held. Before, the second was added to every end of discharge (B0006's
+    /// judged ends 1.7 % early).
+    #[test]
+    fn the_end_of_discharge_knee_is_measured_from_where_the_discharge_started() {
+        use bcal_common::battery::{Load, LoadProfile};
+        use bcal_common::measured::scenario::{simulate, EpisodeSpec, LoadKind, Request, Sample, ScenarioConfig};
+        let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
+        let ambient_k = cfg.model.params().tb0_k;
+        let truth = Degradation { q_mobile_c: 7200.0, r_o_ohm: 0.12 };
+        let record = |soc0: f64| {
+            let ep = simulate(
+                &cfg,
+                &EpisodeSpec {
+                    truth,
+                    soc0,
+                    kind: LoadKind::ConstantCurrent,
+                    profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (60.0, Load::CurrentA(2.0))]),
+                    rest_s: 60.0,
+                    ambient_k,
+                    interval_s: [9.0, 19.0],
+                    noise_seed: 7,
+                    cell_error: Default::default(),
+                    request_known: false,
+                    prior: None,
+                },
+            )
+            .unwrap();
+            let samples: Vec<Sample> = ep.samples.iter().map(|s| Sample { request: Request::Unknown, ..*s }).collect();
+            CellRecord {
+                cell: "T".into(),
+                cycle: 1,
+                source: "simulated".into(),
+                load_on_s: samples.iter().find(|s| s.current_a > 0.5).unwrap().t_s,
+                eod_s: ep.eod_s,
+                current_a: 2.0,
+                data_capacity_ah: None,
+                stated_capacity_ah: None,
+                ambient_k,
+                rest_before_s: None,
+                samples,
+            }
+        };
+        let fit = (truth, ModelExtension::default());
+        let (full, partial) = (record(1.0), record(0.93));
+        let first = &partial.samples[0];
+        let m = Predictor::at(&fit.1, ambient_k).model;
+        let drop_v =
+            bcal_common::measured::cellmodel::ocv_v(&m, m.params.xn_max, first.temperature_k) - first.voltage_v;
+        assert!(drop_v > 0.01 && drop_v < bcal_doctor::record::PARTIAL_START_DROP_V, "rest {drop_v} V below full");
+        let delivered_c = 2.0 * (partial.eod_s.unwrap() - partial.load_on_s);
+        let (eod, capacity) = (eod_knee_c(&partial, &fit, 2.5).unwrap(), knee_c(&partial, &fit, 2.5).unwrap());
+        assert!(eod.abs() < 0.005 * delivered_c, "end-of-discharge knee {eod} C of {delivered_c} C delivered");
+        assert!(capacity < -0.04 * delivered_c, "capacity knee {capacity} C: the charge a full cell holds more");
+        // From a full cell the two agree.
+        let (eod, capacity) = (eod_knee_c(&full, &fit, 2.5).unwrap(), knee_c(&full, &fit, 2.5).unwrap());
+        assert!((eod - capacity).abs() < 0.005 * delivered_c, "full start: {eod} against {capacity} C");
     }
 }
