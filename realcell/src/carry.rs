@@ -66,6 +66,7 @@ pub fn before(
         out.push(Before {
             prior: p.mean,
             prior_sd_z: p.sd_z,
+            prior_usual_sd_z: p.usual_sd_z,
             previous: p.previous,
             model: ModelExtension { reference_k: Some(r.ambient_k), ..prev.1 },
             knee,

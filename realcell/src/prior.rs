@@ -64,6 +64,8 @@ pub struct Prior {
     pub previous: Degradation,
     /// Standard deviation per parameter, z units (None: no history to learn it from).
     pub sd_z: Option<[f64; 2]>,
+    /// Its part after the usual rest (the same gap), z units: what a calibrator's prior width factor scales.
+    pub usual_sd_z: Option<[f64; 2]>,
     /// The rest before this discharge, s (None: unknown).
     pub rest_before_s: Option<f64>,
     /// The relative change of capacity the lifetime model expects since the previous discharge.
@@ -92,6 +94,7 @@ impl<'a> PriorWalk<'a> {
                 mean: *first,
                 previous: *first,
                 sd_z: None,
+                usual_sd_z: None,
                 rest_before_s: rest_s,
                 expected_capacity_change: 0.0,
             };
@@ -116,7 +119,8 @@ impl<'a> PriorWalk<'a> {
             sd[0] = sd[0].hypot(jump_sd_rel * prev.q_mobile_c / span);
             sd
         });
-        Prior { mean, previous: prev, sd_z, rest_before_s: rest_s, expected_capacity_change: ratio - 1.0 }
+        let usual_sd_z = self.width.fitted().then(|| self.width.sd_z(None, gap));
+        Prior { mean, previous: prev, sd_z, usual_sd_z, rest_before_s: rest_s, expected_capacity_change: ratio - 1.0 }
     }
 
     /// Takes the discharge `record` once it has ended: its offline fit and measured capacity.

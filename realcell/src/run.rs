@@ -80,7 +80,17 @@ impl<'a> Streaming<'a> {
             let z = spec.to_z(&b.prior);
             TrackerSpec { prior: spec.from_z(z), ..spec.clone() }
         };
-        let width = |f: &Option<f64>| f.zip(b.prior_sd_z).map(|(f, sd)| [f * sd[0], f * sd[1]]);
+        // The factor, chosen on the validation discharges, scales the width after the usual rest; what a
+        // longer rest adds (the lifetime model's uncertainty of the capacity it gives back, the spread
+        // longer rests gave the training fits) is added as learned. Scaling it too let the filters follow
+        // the voltage of a rested cell, which reads above the model's at the same charge, far past the
+        // prior (B0005 and B0006 after rests of 14 h to 3 days: docs/realcell.md).
+        let width = |f: &Option<f64>| {
+            f.zip(b.prior_sd_z).map(|(f, sd)| {
+                let usual = b.prior_usual_sd_z.unwrap_or(sd);
+                std::array::from_fn(|k| ((f * usual[k]).powi(2) + (sd[k].powi(2) - usual[k].powi(2)).max(0.0)).sqrt())
+            })
+        };
         match self {
             Streaming::Rl { spec, net, prior_factor } => {
                 let mut s = moved(spec);
@@ -270,6 +280,8 @@ pub struct Before {
     pub prior: Degradation,
     /// Its standard deviation per parameter, z units of the calibrator's ranges (None: no history).
     pub prior_sd_z: Option<[f64; 2]>,
+    /// Its part after the usual rest ([`crate::prior::Prior::usual_sd_z`]).
+    pub prior_usual_sd_z: Option<[f64; 2]>,
     /// The fit the previous discharge handed on, as it was (in the references' sequence its offline voltage
     /// fit: the previous-cycle reference).
     pub previous: Degradation,
@@ -513,6 +525,38 @@ mod tests {
         assert!((d.q_mobile_c - 5750.0).abs() < 1e-6 && (d.r_o_ohm - 0.14).abs() < 1e-9, "{d:?}");
         assert!(ParamTrend::fit(&pts[..1]).is_none());
         assert_eq!(t.at(10_000).q_mobile_c, 1.0);
+    }
+
+    /// A calibrator's prior width factor scales the width after the usual rest only: after a long rest the
+    /// learned extra variance is added as it is, and the mean is the prior's.
+    #[test]
+    fn the_prior_width_factor_scales_the_usual_width_and_adds_what_a_long_rest_adds() {
+        let spec = TrackerSpec::default();
+        let ukf = Streaming::Ukf { spec: spec.clone(), settings: JointUkfSettings::default(), prior_factor: Some(4.0) };
+        let prior = Degradation { q_mobile_c: 6500.0, r_o_ohm: 0.11 };
+        let before = |sd: [f64; 2], usual: [f64; 2]| Before {
+            prior,
+            prior_sd_z: Some(sd),
+            prior_usual_sd_z: Some(usual),
+            previous: prior,
+            model: ModelExtension::default(),
+            knee: Knee::default(),
+            rest_before_s: None,
+        };
+        let width = |b: &Before| match ukf.with_before(b) {
+            Streaming::Ukf { spec: s, settings, .. } => {
+                assert!((s.prior.q_mobile_c - prior.q_mobile_c).abs() < 1e-6, "the prior mean moves the filter");
+                settings.prior_std_z
+            }
+            _ => unreachable!(),
+        };
+        // After the usual rest: four times the learned width.
+        let w = width(&before([0.005, 0.004], [0.005, 0.004]));
+        assert!((w[0] - 0.02).abs() < 1e-12 && (w[1] - 0.016).abs() < 1e-12, "{w:?}");
+        // After a long rest that added 0.02 z to qMobile's: (4 x 0.005)^2 + 0.02^2 - 0.005^2, not 4 x 0.02.
+        let w = width(&before([0.02, 0.004], [0.005, 0.004]));
+        let want = (0.02f64.powi(2) + 0.02f64.powi(2) - 0.005f64.powi(2)).sqrt();
+        assert!((w[0] - want).abs() < 1e-12 && w[0] < 0.5 * 4.0 * 0.02, "{w:?} against {want}");
     }
 
     /// A discharge that did not start full (the simulator's own integrator and sampling, 2 A to a 2.5 V
