@@ -130,8 +130,7 @@ impl Carrying {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use bcal_common::measured::scenario::{simulate, EpisodeSpec, LoadKind, ScenarioConfig};
-    use bcal_common::measured::scenario::{Request, Sample};
+    use bcal_common::measured::scenario::ScenarioConfig;
 
     /// Constant-current discharges of a fading simulated cell (the simulator's own integrator and sampling),
     /// each ended where the cell's model emptied above a 2.5 V cut-off, and "voltage fits" 5 % short of the
@@ -143,39 +142,10 @@ mod tests {
         let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
         let spec = TrackerSpec { cutoff_v: cfg.cutoff_v, ..TrackerSpec::default() };
         let truths = [7400.0, 7250.0, 7120.0];
-        let ambient_k = cfg.model.params().tb0_k;
         let (mut records, mut fits) = (Vec::new(), Vec::new());
         for (k, q) in truths.iter().enumerate() {
             let truth = Degradation { q_mobile_c: *q, r_o_ohm: 0.12 };
-            use bcal_common::battery::{Load, LoadProfile};
-            let ep_spec = EpisodeSpec {
-                truth,
-                soc0: 1.0,
-                kind: LoadKind::ConstantCurrent,
-                profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (60.0, Load::CurrentA(2.0))]),
-                rest_s: 60.0,
-                ambient_k,
-                interval_s: [9.0, 19.0],
-                noise_seed: 5 + k as u64,
-                cell_error: Default::default(),
-                request_known: false,
-                prior: None,
-            };
-            let ep = simulate(&cfg, &ep_spec).unwrap();
-            let samples: Vec<Sample> = ep.samples.iter().map(|s| Sample { request: Request::Unknown, ..*s }).collect();
-            records.push(CellRecord {
-                cell: "T".into(),
-                cycle: k as u32 + 1,
-                source: "simulated".into(),
-                load_on_s: samples.iter().find(|s| s.current_a > 0.5).unwrap().t_s,
-                eod_s: ep.eod_s,
-                current_a: 2.0,
-                data_capacity_ah: None,
-                stated_capacity_ah: None,
-                ambient_k,
-                rest_before_s: None,
-                samples,
-            });
+            records.push(crate::testing::simulated_record(&cfg, truth, 1.0, 5 + k as u64, k as u32 + 1));
             fits.push((Degradation { q_mobile_c: 0.95 * q, ..truth }, ModelExtension::default()));
         }
         let short = CellRecord { eod_s: None, ..records[0].clone() };

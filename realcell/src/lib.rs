@@ -17,4 +17,6 @@ pub mod recorded;
 pub mod report;
 pub mod run;
 pub mod score;
+#[cfg(test)]
+mod testing;
 pub mod tune;

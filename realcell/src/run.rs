@@ -567,44 +567,10 @@ mod tests {
     /// judged ends 1.7 % early).
     #[test]
     fn the_end_of_discharge_knee_is_measured_from_where_the_discharge_started() {
-        use bcal_common::battery::{Load, LoadProfile};
-        use bcal_common::measured::scenario::{simulate, EpisodeSpec, LoadKind, Request, Sample, ScenarioConfig};
-        let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
+        let cfg = bcal_common::measured::scenario::ScenarioConfig { cutoff_v: 2.5, ..Default::default() };
         let ambient_k = cfg.model.params().tb0_k;
         let truth = Degradation { q_mobile_c: 7200.0, r_o_ohm: 0.12 };
-        let record = |soc0: f64| {
-            let ep = simulate(
-                &cfg,
-                &EpisodeSpec {
-                    truth,
-                    soc0,
-                    kind: LoadKind::ConstantCurrent,
-                    profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (60.0, Load::CurrentA(2.0))]),
-                    rest_s: 60.0,
-                    ambient_k,
-                    interval_s: [9.0, 19.0],
-                    noise_seed: 7,
-                    cell_error: Default::default(),
-                    request_known: false,
-                    prior: None,
-                },
-            )
-            .unwrap();
-            let samples: Vec<Sample> = ep.samples.iter().map(|s| Sample { request: Request::Unknown, ..*s }).collect();
-            CellRecord {
-                cell: "T".into(),
-                cycle: 1,
-                source: "simulated".into(),
-                load_on_s: samples.iter().find(|s| s.current_a > 0.5).unwrap().t_s,
-                eod_s: ep.eod_s,
-                current_a: 2.0,
-                data_capacity_ah: None,
-                stated_capacity_ah: None,
-                ambient_k,
-                rest_before_s: None,
-                samples,
-            }
-        };
+        let record = |soc0: f64| crate::testing::simulated_record(&cfg, truth, soc0, 7, 1);
         let fit = (truth, ModelExtension::default());
         let (full, partial) = (record(1.0), record(0.93));
         let first = &partial.samples[0];

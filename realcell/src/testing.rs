@@ -1,0 +1,49 @@
+//! What the crate's tests share: a cell record simulated by the simulator's own integrator and sampling.
+
+use crate::record::CellRecord;
+use bcal_common::battery::{Degradation, Load, LoadProfile};
+use bcal_common::measured::scenario::{simulate, EpisodeSpec, LoadKind, Request, Sample, ScenarioConfig};
+
+/// A 2 A constant-current discharge of the simulated cell `truth` after a minute's rest at its ambient,
+/// from `soc0` of a full cell's charge, sampled every 9-19 s (noise seed `noise_seed`), as the record of
+/// `cycle`: requests unknown, as on a cycler's record.
+pub fn simulated_record(
+    cfg: &ScenarioConfig,
+    truth: Degradation,
+    soc0: f64,
+    noise_seed: u64,
+    cycle: u32,
+) -> CellRecord {
+    let ambient_k = cfg.model.params().tb0_k;
+    let ep = simulate(
+        cfg,
+        &EpisodeSpec {
+            truth,
+            soc0,
+            kind: LoadKind::ConstantCurrent,
+            profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (60.0, Load::CurrentA(2.0))]),
+            rest_s: 60.0,
+            ambient_k,
+            interval_s: [9.0, 19.0],
+            noise_seed,
+            cell_error: Default::default(),
+            request_known: false,
+            prior: None,
+        },
+    )
+    .expect("the simulator runs its own default cell");
+    let samples: Vec<Sample> = ep.samples.iter().map(|s| Sample { request: Request::Unknown, ..*s }).collect();
+    CellRecord {
+        cell: "T".into(),
+        cycle,
+        source: "simulated".into(),
+        load_on_s: samples.iter().find(|s| s.current_a > 0.5).expect("a load").t_s,
+        eod_s: ep.eod_s,
+        current_a: 2.0,
+        data_capacity_ah: None,
+        stated_capacity_ah: None,
+        ambient_k,
+        rest_before_s: None,
+        samples,
+    }
+}
