@@ -536,7 +536,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // prior and every streaming calibrator) and under the voltage fits (the references that carry a fit: the
     // previous cycle's, the oracle's, with the knee against it; pinned, so the width does not matter).
     // The training discharges start from the tuning lifetime model, the judged ones from the one fitted on
-    // every training discharge (that walk goes through the training discharges first, for their history).
+    // every training discharge (that walk observes the training discharges first, for their history).
     let sequence = |train_carried: &[(Degradation, ModelExtension)],
                     judged_carried: &[(Degradation, ModelExtension)]| {
         let start = (spec.tracker.prior, neutral.clone());
@@ -544,7 +544,9 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let tb =
             before(&mut PriorWalk::new(&spec.tracker, life_tuning, width), &train, train_carried, &start, &none, cut);
         let mut walk = PriorWalk::new(&spec.tracker, life_used, width);
-        before(&mut walk, &train, train_carried, &start, &none, cut);
+        for (r, f) in train.iter().zip(train_carried) {
+            walk.observe(r, r.rest_before_s, &f.0);
+        }
         let knees = Knees::of(&train, train_carried, cut);
         let first = train_carried.last().cloned().unwrap_or((spec.tracker.prior, neutral.clone()));
         (tb, before(&mut walk, &judged, judged_carried, &first, &knees, cut))
