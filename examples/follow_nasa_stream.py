@@ -5,7 +5,7 @@ end-of-discharge prediction at half its loaded time scored against the time the 
 the cut-off under load. Standard library only.
 
     python examples/follow_nasa_stream.py [--data ../shared/data/nasa-pcoe] [--cell B0005] [--cycles 41..80]
-        [--kind ukf] [--cutoff-v 3.0] [--model diagnosis.json] [--bcal PATH]
+        [--kind ukf] [--cutoff-v 3.0] [--model diagnosis.json] [--config cell.toml] [--bcal PATH]
 
 Prints, per discharge, the prediction's error in % of the time from the load's start to the end of
 discharge (and whether the stream's 90 % interval held the end), and the median and 90th percentile of its
@@ -125,6 +125,7 @@ def main() -> None:
     p.add_argument("--cutoff-v", type=float, default=3.0)
     p.add_argument("--bcal", default=None, help="the bcal executable (default: this clone's build)")
     p.add_argument("--model", default=None, help="the doctor's diagnosis.json to calibrate on (default: the base model)")
+    p.add_argument("--config", default=None, help="a bcal cell-config TOML: the cell's filter, prior, ranges and lifetime model")
     a = p.parse_args()
     try:
         first, last = (int(x) for x in a.cycles.split(".."))
@@ -135,7 +136,9 @@ def main() -> None:
     bcal = a.bcal or find_bcal()
     if a.model and not pathlib.Path(a.model).is_file():
         raise SystemExit(f"--model {a.model}: no such file (bcal diagnose --out DIR writes DIR/diagnosis.json)")
-    extra = ["--model", a.model] if a.model else []
+    if a.config and not pathlib.Path(a.config).is_file():
+        raise SystemExit(f"--config {a.config}: no such file (bcal cell-config --out FILE writes one)")
+    extra = (["--model", a.model] if a.model else []) + (["--config", a.config] if a.config else [])
     records = discharges(pathlib.Path(a.data), a.cell, first, last)
 
     stream = follow(bcal, a.kind, [r for rows in records for r in rows], a.cutoff_v, extra)

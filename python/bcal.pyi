@@ -128,7 +128,8 @@ class Calibrator:
     `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy; `policy` is
     its .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior).
     `model`: the doctor's extended model (diagnosis.json, or its folder). `config`: a bcal config TOML
-    (`bcal cell-config` writes one per cell). `ambient_c`: temperature of readings that give none.
+    (`bcal cell-config` writes one per cell); its lifetime model (else the diagnosis's) moves what one
+    discharge hands the next by the fade and the capacity a rest gives back. `ambient_c`: temperature of readings that give none.
     `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0).
 
     Raises ValueError for a bad kind or file content, FileNotFoundError / OSError for unreadable

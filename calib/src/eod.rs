@@ -3,6 +3,30 @@
 
 use bcal_common::battery::{BatteryModel, Degradation, Load, LoadProfile};
 use bcal_common::math::ModelState;
+use bcal_common::measured::scenario::Sample;
+
+/// The charge a discharge's readings drew from the first of `samples` to `end_s`, Ah: the discharging
+/// current (charging counts 0) by the trapezoid rule, the interval holding `end_s` cut there with the
+/// current taken linear in it. With `end_s` the interpolated cut-off crossing this is the discharge's
+/// measured capacity, not the charge to the first reading below the cut-off (a sample interval, 10-20 s on
+/// a NASA cycler, past it): `bcal calibrate`'s records and a live stream both measure it so.
+pub fn charge_to_ah(samples: &[Sample], end_s: f64) -> f64 {
+    let mut q_c = 0.0;
+    for w in samples.windows(2) {
+        let (a, b) = (&w[0], &w[1]);
+        let (i0, i1) = (a.current_a.max(0.0), b.current_a.max(0.0));
+        if b.t_s <= end_s {
+            q_c += 0.5 * (i0 + i1) * (b.t_s - a.t_s);
+        } else {
+            if a.t_s < end_s {
+                let f = (end_s - a.t_s) / (b.t_s - a.t_s);
+                q_c += 0.5 * (i0 + (i0 + f * (i1 - i0))) * (end_s - a.t_s);
+            }
+            break;
+        }
+    }
+    q_c / 3600.0
+}
 
 /// How an end-of-discharge prediction runs: the future load (in the episode's absolute time), the cut-off,
 /// the Euler step and the longest horizon.

@@ -552,6 +552,13 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
         |key: &'static str, value: String, why: &str| ConfigError::Invalid { key, value, why: why.to_string() };
     let sc = &m.scenario;
     let tr = &m.tracker;
+    if let Some(why) = m.lifetime.as_ref().and_then(|l| l.unusable()) {
+        return Err(invalid(
+            "measured.lifetime",
+            format!("{:?}", m.lifetime),
+            &format!("{why}; write it with bcal cell-config"),
+        ));
+    }
     let p = crate::battery::BatteryParams::default();
     let finite_range = |key: &'static str, r: [f64; 2], lo: f64, hi: f64| {
         if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
@@ -978,6 +985,14 @@ mod tests {
                  [measured.correction.adaptive]\nwindow_readings = 64.0\nmeas_scale_range = [0.25, 100.0]\n\
                  adapt_walk = false\nwalk_max_var_per_s = 0.0\n",
                 "measured.correction.noise_actions",
+            ),
+            // A lifetime model moves a stream's carried capacity: one of qMobile cannot.
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.lifetime]\nquantity = \"q_mobile_c\"\nintercept = 6000.0\n\
+                 per_cycle = -5.0\nreference_cycle = 20.0\nper_kelvin = 0.0\nper_ampere = 0.0\namplitude = 0.0\n\
+                 tau_rest_s = 0.0\ndecay_discharges = 0.0\nusual_rest_s = 3600.0\nresidual_sd = 10.0\n\
+                 jump_sd_fraction = 0.5\n[measured.lifetime.reference]\nambient_c = 24.0\ncurrent_a = 2.0\n",
+                "measured.lifetime",
             ),
         ];
         for (text, key) in cases {

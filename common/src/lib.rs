@@ -11,6 +11,7 @@ pub mod dataset;
 pub mod fsutil;
 pub mod hash;
 pub mod ipc;
+pub mod lifetime;
 pub mod math;
 pub mod mdp;
 pub mod measured;

@@ -38,7 +38,7 @@ use crate::error::DoctorError;
 use crate::read::RecordStart;
 use crate::record::{Discharge, CELSIUS_TO_KELVIN};
 use nalgebra::{DMatrix, DVector};
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use std::collections::BTreeMap;
 use std::ops::RangeInclusive;
 
@@ -114,199 +114,7 @@ impl LifetimeConfig {
     }
 }
 
-/// The conditions of one discharge that the trend may depend on.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct Condition {
-    pub ambient_c: f64,
-    /// Mean current under load, A.
-    pub current_a: f64,
-}
-
-/// What a lifetime series holds.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Quantity {
-    /// Charge drawn under load to the cut-off, Ah.
-    CapacityAh,
-    /// The base model's fitted mobile charge, C.
-    QMobileC,
-}
-
-/// One series' lifetime model (see the module doc): what the calibrators can use as a prior.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct LifetimeModel {
-    /// What the series is (the unit of every value below).
-    pub quantity: Quantity,
-    /// a: the trend's value at `reference_cycle` with R = 0.
-    pub intercept: f64,
-    /// b: change per discharge (negative: fade).
-    pub per_cycle: f64,
-    pub reference_cycle: f64,
-    /// c_T per K of ambient temperature above `reference.ambient_c`, and c_I per A of mean load current
-    /// above `reference.current_a` (0 when the training records did not vary enough to fit them).
-    pub per_kelvin: f64,
-    pub per_ampere: f64,
-    pub reference: Condition,
-    /// A: what a rest long against `tau_rest_s` adds (0: no recovery in this model).
-    pub amplitude: f64,
-    /// tau: recovery time constant, s of rest (0 without recovery).
-    pub tau_rest_s: f64,
-    /// d: wear-off time constant, discharges (0 without recovery).
-    pub decay_discharges: f64,
-    /// The cell's usual rest between discharges, s (median of the known ones): the rest assumed where one is
-    /// not known.
-    pub usual_rest_s: f64,
-    /// RMS of the one-ahead residuals on the training cycles (the prior's floor).
-    pub residual_sd: f64,
-    /// See [`LifetimeConfig::jump_sd_fraction`].
-    pub jump_sd_fraction: f64,
-}
-
-impl LifetimeModel {
-    /// What a rest of `rest_s` adds to R: 1 - exp(-rest / tau).
-    pub fn refill(&self, rest_s: f64) -> f64 {
-        if self.amplitude == 0.0 {
-            return 0.0;
-        }
-        1.0 - (-rest_s.max(0.0) / self.tau_rest_s).exp()
-    }
-
-    /// R one discharge later: worn off once, filled by the rest before it (the usual rest when unknown).
-    pub fn next_recovery(&self, recovery: f64, rest_before_s: Option<f64>) -> f64 {
-        if self.amplitude == 0.0 {
-            return 0.0;
-        }
-        recovery * (-1.0 / self.decay_discharges).exp() + self.refill(rest_before_s.unwrap_or(self.usual_rest_s))
-    }
-
-    /// R under the usual rest forever (where a life without a known history starts).
-    pub fn steady_recovery(&self) -> f64 {
-        if self.amplitude == 0.0 {
-            return 0.0;
-        }
-        self.refill(self.usual_rest_s) / (1.0 - (-1.0 / self.decay_discharges).exp())
-    }
-
-    /// The model's value at a cycle with recovery state `recovery` and conditions `at` (open loop).
-    pub fn level(&self, cycle: u32, recovery: f64, at: Condition) -> f64 {
-        self.intercept
-            + self.per_cycle * (f64::from(cycle) - self.reference_cycle)
-            + self.per_kelvin * (at.ambient_c - self.reference.ambient_c)
-            + self.per_ampere * (at.current_a - self.reference.current_a)
-            + self.amplitude * recovery
-    }
-
-    /// The jump a rest of `rest_s` gives over the usual rest, before it wears off.
-    pub fn jump_over_usual(&self, rest_s: f64) -> f64 {
-        self.amplitude * (self.refill(rest_s) - self.refill(self.usual_rest_s))
-    }
-}
-
-/// A prediction one or more discharges ahead.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct Prediction {
-    pub value: f64,
-    /// One standard deviation of it: the one-ahead residual sd and a share of the predicted recovery change.
-    pub sd: f64,
-    /// The part of the change since the last measured value that recovery accounts for.
-    pub recovery_change: f64,
-}
-
-/// A prior for qMobile at the next discharge.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct QMobilePrior {
-    pub mean_c: f64,
-    pub sd_c: f64,
-}
-
-/// Follows a cell's life discharge by discharge with a [`LifetimeModel`]: what a calibrator keeps between
-/// discharges. [`LifeTracker::predict`] gives the value a coming discharge should show from the last measured
-/// one and the rest before it; [`LifeTracker::observe`] takes the measured value once known.
-#[derive(Clone, Debug, PartialEq)]
-pub struct LifeTracker {
-    pub model: LifetimeModel,
-    /// The cycle the recovery state stands at (`None` before the first).
-    cycle: Option<u32>,
-    recovery: f64,
-    condition: Condition,
-    /// The last measured value, with the cycle, recovery state and conditions it was measured at.
-    last: Option<(u32, f64, f64, Condition)>,
-}
-
-impl LifeTracker {
-    /// A tracker before the first discharge, its recovery at the usual rest's steady state.
-    pub fn new(model: LifetimeModel) -> Self {
-        Self { cycle: None, recovery: model.steady_recovery(), condition: model.reference, last: None, model }
-    }
-
-    /// Moves to discharge `cycle` (later than the current one), with the rest before it and its conditions;
-    /// discharges in between had the usual rest.
-    pub fn advance_to(&mut self, cycle: u32, rest_before_s: Option<f64>, at: Condition) {
-        self.condition = at;
-        if let Some(now) = self.cycle {
-            if cycle <= now {
-                return;
-            }
-            for _ in now + 1..cycle {
-                self.recovery = self.model.next_recovery(self.recovery, None);
-            }
-        }
-        self.recovery = self.model.next_recovery(self.recovery, rest_before_s);
-        self.cycle = Some(cycle);
-    }
-
-    /// What the current discharge should show: the last measured value plus the model's change since (its
-    /// open-loop value before anything was measured).
-    pub fn expected(&self) -> Prediction {
-        let m = &self.model;
-        let cycle = self.cycle.unwrap_or(m.reference_cycle.round().max(1.0) as u32);
-        let here = m.level(cycle, self.recovery, self.condition);
-        let (value, recovery_change) = match self.last {
-            Some((c, v, r, at)) => (v + here - m.level(c, r, at), m.amplitude * (self.recovery - r)),
-            None => (here, m.amplitude * (self.recovery - m.steady_recovery())),
-        };
-        let sd = m.residual_sd.hypot(m.jump_sd_fraction * recovery_change);
-        Prediction { value, sd, recovery_change }
-    }
-
-    /// The prediction for discharge `cycle` after a rest of `rest_before_s` (the usual when `None`).
-    pub fn predict(&self, cycle: u32, rest_before_s: Option<f64>, at: Condition) -> Prediction {
-        let mut t = self.clone();
-        t.advance_to(cycle, rest_before_s, at);
-        t.expected()
-    }
-
-    /// The capacity (or whatever the model's quantity is) of discharge `cycle` after a rest of
-    /// `rest_before_s`, at the last measured discharge's conditions.
-    pub fn predict_capacity(&self, cycle: u32, rest_before_s: f64) -> f64 {
-        let at = self.last.map_or(self.model.reference, |l| l.3);
-        self.predict(cycle, Some(rest_before_s), at).value
-    }
-
-    /// Records the value measured on the current discharge.
-    pub fn observe(&mut self, value: f64) {
-        let cycle = self.cycle.unwrap_or(1);
-        self.last = Some((cycle, value, self.recovery, self.condition));
-    }
-
-    /// A prior for qMobile on discharge `cycle` from the last calibrated qMobile (`q_mobile_last_c`, on the
-    /// last observed discharge): scaled by the predicted relative change of this tracker's quantity, widened
-    /// by its relative uncertainty. Before any observation the prior is centred on `q_mobile_last_c`.
-    pub fn q_mobile_prior(
-        &self,
-        q_mobile_last_c: f64,
-        cycle: u32,
-        rest_before_s: Option<f64>,
-        at: Condition,
-    ) -> QMobilePrior {
-        let p = self.predict(cycle, rest_before_s, at);
-        let last = self.last.map_or(p.value - p.recovery_change, |l| l.1);
-        if last == 0.0 || !last.is_finite() {
-            return QMobilePrior { mean_c: q_mobile_last_c, sd_c: f64::INFINITY };
-        }
-        QMobilePrior { mean_c: q_mobile_last_c * p.value / last, sd_c: q_mobile_last_c * p.sd / last.abs() }
-    }
-}
+pub use bcal_common::lifetime::{Carry, Condition, LifeTracker, LifetimeModel, Prediction, QMobilePrior, Quantity};
 
 /// One discharge on the cell's life line (the per-cycle series of the report).
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -597,7 +405,7 @@ impl Context<'_> {
         (1..=last)
             .map(|c| {
                 t.advance_to(c, self.rest_of.get(&c).copied(), m.reference);
-                (c, t.recovery)
+                (c, t.recovery())
             })
             .collect()
     }
@@ -614,7 +422,7 @@ impl Context<'_> {
             }
             t.advance_to(p.cycle, self.rest_of.get(&p.cycle).copied(), p.at);
             now = p.cycle;
-            if t.last.is_some() {
+            if t.has_observed() {
                 out.insert(p.cycle, t.expected());
             }
             t.observe(p.value);
@@ -909,7 +717,7 @@ mod tests {
             for c in 1..=50u32 {
                 t.advance_to(c, Some(rest_of(c)), m.reference);
                 // A deterministic wiggle of 2 mAh for measurement noise.
-                let cap_ah = t.model.level(c, t.recovery, m.reference) + 0.002 * (f64::from(c) * 2.3).sin();
+                let cap_ah = t.model.level(c, t.recovery(), m.reference) + 0.002 * (f64::from(c) * 2.3).sin();
                 clock_s += rest_of(c);
                 starts.push(RecordStart { cycle: c, start_s: clock_s });
                 records.push(discharge(c, cap_ah));

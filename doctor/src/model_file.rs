@@ -201,12 +201,8 @@ pub fn load_lifetime(path: &Path) -> Result<Option<LifetimeModel>, DoctorError> 
     let model = capacity.get(key).ok_or_else(|| bad(format!("`lifetime.capacity.{key}` is missing")))?;
     let m: LifetimeModel = serde_json::from_value(model.clone())
         .map_err(|e| bad(format!("`lifetime.capacity.{key}` is not a lifetime model ({e})")))?;
-    let numbers =
-        [m.intercept, m.per_cycle, m.amplitude, m.tau_rest_s, m.decay_discharges, m.usual_rest_s, m.residual_sd];
-    if numbers.iter().any(|x| !x.is_finite())
-        || (m.amplitude > 0.0 && !(m.tau_rest_s > 0.0 && m.decay_discharges > 0.0))
-    {
-        return Err(bad(format!("`lifetime.capacity.{key}` holds a value out of range: {m:?}")));
+    if let Some(why) = m.unusable() {
+        return Err(bad(format!("`lifetime.capacity.{key}` cannot move a prior: {why}: {m:?}")));
     }
     Ok(Some(m))
 }

@@ -11,7 +11,7 @@ use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::measured::scenario::RestJumpConfig;
 use bcal_common::policy::{PolicyFile, POLICY_BEST};
-use bcal_doctor::lifetime::Quantity;
+use bcal_doctor::lifetime::{LifetimeModel, Quantity};
 use bcal_doctor::read::{parse_cycle_range, CurrentSign, ReadOptions, RecordStart};
 use bcal_doctor::Discharge;
 use bcal_realcell::calibrate::{calibrate, choose_cell_rule, choose_cell_ukf, CalibrateInput, CellHistory};
@@ -41,7 +41,8 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "-|FILE", conflicts_with_all = ["data", "cycles", "quick"])]
     pub follow: Option<String>,
     /// With --follow: the cell's config (a `bcal cell-config` TOML) whose measured.tracker sets the
-    /// calibrator's ranges, prior and cut-off.
+    /// calibrator's ranges, prior and cut-off, measured.ukf its filter, and measured.lifetime how each
+    /// discharge's carried value moves to the next (fade, capacity regained over a rest).
     #[arg(long, value_name = "FILE.toml", requires = "follow")]
     pub config: Option<PathBuf>,
     /// With --follow FILE: end when no new line has come for this long, s (default: follow until Ctrl-C).
@@ -366,15 +367,12 @@ fn rest_jump(
     kept: &[&Discharge],
     records: &[bcal_realcell::record::CellRecord],
     starts: &[RecordStart],
-    cutoff_v: f64,
+    life: Option<&LifetimeModel>,
 ) -> RestJumpConfig {
     let none = RestJumpConfig::default();
     let rests = bcal_realcell::prior::rests_before(kept, starts);
     let long = rests.values().filter(|r| **r > bcal_realcell::prior::LONG_REST_S).count();
-    let owned: Vec<Discharge> = kept.iter().map(|d| (*d).clone()).collect();
-    let Some(life) = bcal_realcell::calibrate::lifetime_model(&owned, starts, cutoff_v).map(|l| l.used) else {
-        return none;
-    };
+    let Some(life) = life else { return none };
     let mut caps: Vec<f64> = records.iter().filter_map(|r| r.data_capacity_ah).collect();
     let cap_ah = bcal_common::stats::median(&mut caps).unwrap_or(0.0);
     if long == 0 || life.amplitude <= 0.0 || life.quantity != Quantity::CapacityAh || cap_ah <= 0.0 {
@@ -449,7 +447,10 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     }
     spec.ukf = Some(ukf);
     spec.scenario.prior_sd_z = Some(ukf.prior_std_z);
-    spec.scenario.rest_jump = rest_jump(&kept, &records, &starts, cut);
+    // The lifetime model `bcal calibrate` moves the judged discharges' priors by: a live stream on this
+    // config moves what each discharge hands the next by it too.
+    spec.lifetime = history.life.as_ref().map(|l| l.used).filter(|m| m.unusable().is_none());
+    spec.scenario.rest_jump = rest_jump(&kept, &records, &starts, spec.lifetime.as_ref());
     // `bcal calibrate` chooses among the cell's policies by their end-of-discharge error on its validation
     // cycles, so the policy learns from that term alone (B0006: with it, the policy chosen there beat the
     // tuned UKF's EOD on the judged cycles; docs/calibrator.md).

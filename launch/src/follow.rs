@@ -294,6 +294,25 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     if let Some(v) = a.cutoff_v {
         setup.spec.tracker.cutoff_v = v;
     }
+    // A diagnosis's capacity lifetime model moves the carried value when the cell's config gave none.
+    if let (None, Some(p)) = (&setup.spec.lifetime, &a.model) {
+        setup.spec.lifetime = bcal_doctor::model_file::load_lifetime(p)?;
+    }
+    if let Some(l) = &setup.spec.lifetime {
+        eprintln!(
+            "lifetime model: each discharge starts from the last one's value moved by {:+.4} Ah per discharge{}",
+            l.per_cycle,
+            if l.amplitude > 0.0 {
+                format!(
+                    " and up to {:.3} Ah regained over a rest (time constant {:.1} h)",
+                    l.amplitude,
+                    l.tau_rest_s / 3600.0
+                )
+            } else {
+                String::new()
+            }
+        );
+    }
     let spec = setup.spec.tracker.clone();
     let mut stream = Stream::of(&setup, net.as_ref(), a.ambient_c)?;
     // The current's sign: positive discharges unless told otherwise (a stream cannot be read ahead to

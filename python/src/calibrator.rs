@@ -151,6 +151,10 @@ impl Calibrator {
             setup.spec.tracker.cutoff_v =
                 bcal_common::simulate::positive(v).map_err(|why| value_error(format!("cutoff_v: {why}")))?;
         }
+        // A diagnosis's capacity lifetime model moves the carried value when the cell's config gave none.
+        if let (None, Some(p)) = (&setup.spec.lifetime, &model) {
+            setup.spec.lifetime = bcal_doctor::model_file::load_lifetime(p).map_err(doctor_error)?;
+        }
         let net = policy_file.as_ref().map(|p| p.net()).transpose().map_err(value_error)?;
         let owned = Owned::try_new(net, |net| Stream::of(&setup, net.as_ref(), ambient_c)).map_err(value_error)?;
         Ok(Self { kind, stream: Mutex::new(owned) })

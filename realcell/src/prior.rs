@@ -21,7 +21,7 @@ pub use bcal_calib::prior_width::{RestWidth, LONG_REST_S, MIN_PAIRS, MIN_SD_Z};
 use bcal_common::battery::Degradation;
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::tracker::TrackerSpec;
-use bcal_doctor::lifetime::{Condition, LifeTracker, LifetimeModel};
+use bcal_doctor::lifetime::{Carry, Condition, LifeTracker, LifetimeModel};
 use bcal_doctor::read::RecordStart;
 use bcal_doctor::Discharge;
 use serde::Serialize;
@@ -99,28 +99,21 @@ impl<'a> PriorWalk<'a> {
                 expected_capacity_change: 0.0,
             };
         };
-        let at = condition(record);
-        let (ratio, jump_sd_rel) = match (&self.life, prev_cap) {
-            (Some(t), Some(c)) if c > 0.0 => {
-                let p = t.predict(record.cycle, rest_s, at);
-                // The lifetime model's one-ahead value holds the fade and the recovery since the last
-                // observed capacity; its uncertainty of the recovery change is the jump's width.
-                let jump_sd = t.model.jump_sd_fraction * p.recovery_change.abs();
-                ((p.value / c).clamp(0.8, 1.25), jump_sd / c)
-            }
-            _ => (1.0, 0.0),
-        };
-        let mean = Degradation { q_mobile_c: prev.q_mobile_c * ratio, r_o_ohm: prev.r_o_ohm };
+        let carry =
+            self.life.as_ref().map_or(Carry::NONE, |t| t.carry(record.cycle, rest_s, condition(record), prev_cap));
+        let mean = carry.mean(&prev);
         let gap = record.cycle.saturating_sub(cycle);
-        let sd_z = self.width.fitted().then(|| {
-            let mut sd = self.width.sd_z(rest_s, gap);
-            // The jump's own uncertainty, as a fraction of qMobile, in z units.
-            let span = self.spec.q_mobile_range_c[1] - self.spec.q_mobile_range_c[0];
-            sd[0] = sd[0].hypot(jump_sd_rel * prev.q_mobile_c / span);
-            sd
-        });
+        let span = self.spec.q_mobile_range_c[1] - self.spec.q_mobile_range_c[0];
+        let sd_z = self.width.fitted().then(|| carry.widen_z(self.width.sd_z(rest_s, gap), prev.q_mobile_c, span));
         let usual_sd_z = self.width.fitted().then(|| self.width.sd_z(None, gap));
-        Prior { mean, previous: prev, sd_z, usual_sd_z, rest_before_s: rest_s, expected_capacity_change: ratio - 1.0 }
+        Prior {
+            mean,
+            previous: prev,
+            sd_z,
+            usual_sd_z,
+            rest_before_s: rest_s,
+            expected_capacity_change: carry.ratio - 1.0,
+        }
     }
 
     /// Takes the discharge `record` once it has ended: its offline fit and measured capacity.

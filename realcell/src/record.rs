@@ -4,6 +4,7 @@
 //! states). Everything after the cut-off (the relaxation) is left out: a calibrator predicts the end of
 //! discharge before it happens.
 
+use bcal_calib::eod::charge_to_ah;
 use bcal_common::measured::scenario::{Request, Sample};
 use bcal_doctor::Discharge;
 use serde::Serialize;
@@ -102,15 +103,7 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
     let current_a = loaded.iter().sum::<f64>() / loaded.len().max(1) as f64;
     // The charge drawn up to the interpolated cut-off, not to the first reading below it (which can lie a
     // sample interval, 10-20 s on a NASA cycler, past it).
-    let data_capacity_ah = cut.zip(eod_s).map(|(k, eod)| {
-        let to_before = d.charge_ah(on.saturating_sub(1), k);
-        let (t0, t1) = (d.time_s[k - 1], d.time_s[k]);
-        let f = if t1 > t0 { ((eod - t0) / (t1 - t0)).clamp(0.0, 1.0) } else { 1.0 };
-        let (i0, i1) = (d.current_a[k - 1].max(0.0), d.current_a[k].max(0.0));
-        // Trapezoid from the reading before to the crossing, the current taken linear in between.
-        let i_at = i0 + f * (i1 - i0);
-        to_before + 0.5 * (i0 + i_at) * f * (t1 - t0) / 3600.0
-    });
+    let data_capacity_ah = cut.zip(eod_s).map(|(k, eod)| charge_to_ah(&samples[on.saturating_sub(1)..=k], eod));
     Ok(CellRecord {
         cell: d.cell.clone(),
         cycle: d.cycle,

@@ -30,6 +30,11 @@ pub struct MeasuredSpec {
     pub ukf: Option<JointUkfSettings>,
     pub correction: CorrectionSpec,
     pub cost: PredictiveCost,
+    /// The cell's capacity lifetime model (`bcal cell-config` writes the one `bcal calibrate` uses on judged
+    /// discharges): a live stream moves what one discharge hands the next by the fade and the recovery after
+    /// rest it expects ([`crate::lifetime::LifeTracker::carry`]). None: the carried value as it is. Training
+    /// does not read it.
+    pub lifetime: Option<crate::lifetime::LifetimeModel>,
 }
 
 impl Default for MeasuredSpec {
@@ -41,6 +46,7 @@ impl Default for MeasuredSpec {
             ukf: None,
             correction: CorrectionSpec::default(),
             cost: PredictiveCost::default(),
+            lifetime: None,
         }
     }
 }

@@ -1,0 +1,280 @@
+//! A cell's capacity across discharges (the model `bcal diagnose` fits; `bcal_doctor::lifetime`'s module
+//! doc gives its form and how it is fitted): a linear fade, condition terms, and capacity a rest gives back
+//! and the next discharges wear off. Here are the model and [`LifeTracker`], which follows a cell's life
+//! discharge by discharge: what `bcal calibrate`'s prior walk and a live stream carry between discharges
+//! ([`LifeTracker::carry`], the one rule for both).
+
+use serde::{Deserialize, Serialize};
+
+/// The conditions of one discharge that the trend may depend on.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Condition {
+    pub ambient_c: f64,
+    /// Mean current under load, A.
+    pub current_a: f64,
+}
+
+/// What a lifetime series holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Quantity {
+    /// Charge drawn under load to the cut-off, Ah.
+    CapacityAh,
+    /// The base model's fitted mobile charge, C.
+    QMobileC,
+}
+
+/// One series' lifetime model (see the module doc): what the calibrators can use as a prior.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LifetimeModel {
+    /// What the series is (the unit of every value below).
+    pub quantity: Quantity,
+    /// a: the trend's value at `reference_cycle` with R = 0.
+    pub intercept: f64,
+    /// b: change per discharge (negative: fade).
+    pub per_cycle: f64,
+    pub reference_cycle: f64,
+    /// c_T per K of ambient temperature above `reference.ambient_c`, and c_I per A of mean load current
+    /// above `reference.current_a` (0 when the training records did not vary enough to fit them).
+    pub per_kelvin: f64,
+    pub per_ampere: f64,
+    pub reference: Condition,
+    /// A: what a rest long against `tau_rest_s` adds (0: no recovery in this model).
+    pub amplitude: f64,
+    /// tau: recovery time constant, s of rest (0 without recovery).
+    pub tau_rest_s: f64,
+    /// d: wear-off time constant, discharges (0 without recovery).
+    pub decay_discharges: f64,
+    /// The cell's usual rest between discharges, s (median of the known ones): the rest assumed where one is
+    /// not known.
+    pub usual_rest_s: f64,
+    /// RMS of the one-ahead residuals on the training cycles (the prior's floor).
+    pub residual_sd: f64,
+    /// Width of a predicted recovery's uncertainty, as a fraction of its size (`bcal diagnose`'s setting).
+    pub jump_sd_fraction: f64,
+}
+
+impl LifetimeModel {
+    /// What a rest of `rest_s` adds to R: 1 - exp(-rest / tau).
+    pub fn refill(&self, rest_s: f64) -> f64 {
+        if self.amplitude == 0.0 {
+            return 0.0;
+        }
+        1.0 - (-rest_s.max(0.0) / self.tau_rest_s).exp()
+    }
+
+    /// R one discharge later: worn off once, filled by the rest before it (the usual rest when unknown).
+    pub fn next_recovery(&self, recovery: f64, rest_before_s: Option<f64>) -> f64 {
+        if self.amplitude == 0.0 {
+            return 0.0;
+        }
+        recovery * (-1.0 / self.decay_discharges).exp() + self.refill(rest_before_s.unwrap_or(self.usual_rest_s))
+    }
+
+    /// R under the usual rest forever (where a life without a known history starts).
+    pub fn steady_recovery(&self) -> f64 {
+        if self.amplitude == 0.0 {
+            return 0.0;
+        }
+        self.refill(self.usual_rest_s) / (1.0 - (-1.0 / self.decay_discharges).exp())
+    }
+
+    /// The model's value at a cycle with recovery state `recovery` and conditions `at` (open loop).
+    pub fn level(&self, cycle: u32, recovery: f64, at: Condition) -> f64 {
+        self.intercept
+            + self.per_cycle * (f64::from(cycle) - self.reference_cycle)
+            + self.per_kelvin * (at.ambient_c - self.reference.ambient_c)
+            + self.per_ampere * (at.current_a - self.reference.current_a)
+            + self.amplitude * recovery
+    }
+
+    /// Why this model cannot move a carried value (None: it can): a series other than capacity, a number
+    /// that is not finite, or a recovery without its time constants.
+    pub fn unusable(&self) -> Option<String> {
+        if self.quantity != Quantity::CapacityAh {
+            return Some("it models qMobile, not the capacity in Ah (quantity = \"capacity_ah\")".into());
+        }
+        let numbers = [
+            self.intercept,
+            self.per_cycle,
+            self.reference_cycle,
+            self.per_kelvin,
+            self.per_ampere,
+            self.amplitude,
+            self.tau_rest_s,
+            self.decay_discharges,
+            self.usual_rest_s,
+            self.residual_sd,
+            self.jump_sd_fraction,
+        ];
+        if numbers.iter().any(|x| !x.is_finite()) {
+            return Some("a number in it is not finite".into());
+        }
+        if self.amplitude < 0.0 || (self.amplitude > 0.0 && !(self.tau_rest_s > 0.0 && self.decay_discharges > 0.0)) {
+            return Some(
+                "its recovery needs amplitude >= 0 and, when above 0, tau_rest_s and decay_discharges above 0".into(),
+            );
+        }
+        None
+    }
+
+    /// The jump a rest of `rest_s` gives over the usual rest, before it wears off.
+    pub fn jump_over_usual(&self, rest_s: f64) -> f64 {
+        self.amplitude * (self.refill(rest_s) - self.refill(self.usual_rest_s))
+    }
+}
+
+/// A prediction one or more discharges ahead.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Prediction {
+    pub value: f64,
+    /// One standard deviation of it: the one-ahead residual sd and a share of the predicted recovery change.
+    pub sd: f64,
+    /// The part of the change since the last measured value that recovery accounts for.
+    pub recovery_change: f64,
+}
+
+/// A prior for qMobile at the next discharge.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct QMobilePrior {
+    pub mean_c: f64,
+    pub sd_c: f64,
+}
+
+/// Follows a cell's life discharge by discharge with a [`LifetimeModel`]: what a calibrator keeps between
+/// discharges. [`LifeTracker::predict`] gives the value a coming discharge should show from the last measured
+/// one and the rest before it; [`LifeTracker::observe`] takes the measured value once known.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LifeTracker {
+    pub model: LifetimeModel,
+    /// The cycle the recovery state stands at (`None` before the first).
+    cycle: Option<u32>,
+    recovery: f64,
+    condition: Condition,
+    /// The last measured value, with the cycle, recovery state and conditions it was measured at.
+    last: Option<(u32, f64, f64, Condition)>,
+}
+
+impl LifeTracker {
+    /// A tracker before the first discharge, its recovery at the usual rest's steady state.
+    pub fn new(model: LifetimeModel) -> Self {
+        Self { cycle: None, recovery: model.steady_recovery(), condition: model.reference, last: None, model }
+    }
+
+    /// Moves to discharge `cycle` (later than the current one), with the rest before it and its conditions;
+    /// discharges in between had the usual rest.
+    pub fn advance_to(&mut self, cycle: u32, rest_before_s: Option<f64>, at: Condition) {
+        self.condition = at;
+        if let Some(now) = self.cycle {
+            if cycle <= now {
+                return;
+            }
+            for _ in now + 1..cycle {
+                self.recovery = self.model.next_recovery(self.recovery, None);
+            }
+        }
+        self.recovery = self.model.next_recovery(self.recovery, rest_before_s);
+        self.cycle = Some(cycle);
+    }
+
+    /// What the current discharge should show: the last measured value plus the model's change since (its
+    /// open-loop value before anything was measured).
+    pub fn expected(&self) -> Prediction {
+        let m = &self.model;
+        let cycle = self.cycle.unwrap_or(m.reference_cycle.round().max(1.0) as u32);
+        let here = m.level(cycle, self.recovery, self.condition);
+        let (value, recovery_change) = match self.last {
+            Some((c, v, r, at)) => (v + here - m.level(c, r, at), m.amplitude * (self.recovery - r)),
+            None => (here, m.amplitude * (self.recovery - m.steady_recovery())),
+        };
+        let sd = m.residual_sd.hypot(m.jump_sd_fraction * recovery_change);
+        Prediction { value, sd, recovery_change }
+    }
+
+    /// The prediction for discharge `cycle` after a rest of `rest_before_s` (the usual when `None`).
+    pub fn predict(&self, cycle: u32, rest_before_s: Option<f64>, at: Condition) -> Prediction {
+        let mut t = self.clone();
+        t.advance_to(cycle, rest_before_s, at);
+        t.expected()
+    }
+
+    /// The capacity (or whatever the model's quantity is) of discharge `cycle` after a rest of
+    /// `rest_before_s`, at the last measured discharge's conditions.
+    pub fn predict_capacity(&self, cycle: u32, rest_before_s: f64) -> f64 {
+        let at = self.last.map_or(self.model.reference, |l| l.3);
+        self.predict(cycle, Some(rest_before_s), at).value
+    }
+
+    /// Whether a value was measured yet.
+    pub fn has_observed(&self) -> bool {
+        self.last.is_some()
+    }
+
+    /// The recovery state at the current discharge.
+    pub fn recovery(&self) -> f64 {
+        self.recovery
+    }
+
+    /// How the value carried from the last discharge (`last_capacity_ah`: its measured capacity, None when
+    /// it did not reach its cut-off) moves to discharge `cycle` after a rest of `rest_before_s`: the relative
+    /// change of capacity the model expects (fade and recovery since the last measured capacity), and the
+    /// uncertainty of the recovery part. No measured capacity: no change.
+    pub fn carry(&self, cycle: u32, rest_before_s: Option<f64>, at: Condition, last_capacity_ah: Option<f64>) -> Carry {
+        match last_capacity_ah {
+            Some(c) if c > 0.0 => {
+                let p = self.predict(cycle, rest_before_s, at);
+                let jump_sd = self.model.jump_sd_fraction * p.recovery_change.abs();
+                Carry { ratio: (p.value / c).clamp(0.8, 1.25), jump_sd_rel: jump_sd / c }
+            }
+            _ => Carry::NONE,
+        }
+    }
+
+    /// Records the value measured on the current discharge.
+    pub fn observe(&mut self, value: f64) {
+        let cycle = self.cycle.unwrap_or(1);
+        self.last = Some((cycle, value, self.recovery, self.condition));
+    }
+
+    /// A prior for qMobile on discharge `cycle` from the last calibrated qMobile (`q_mobile_last_c`, on the
+    /// last observed discharge): scaled by the predicted relative change of this tracker's quantity, widened
+    /// by its relative uncertainty. Before any observation the prior is centred on `q_mobile_last_c`.
+    pub fn q_mobile_prior(
+        &self,
+        q_mobile_last_c: f64,
+        cycle: u32,
+        rest_before_s: Option<f64>,
+        at: Condition,
+    ) -> QMobilePrior {
+        let p = self.predict(cycle, rest_before_s, at);
+        let last = self.last.map_or(p.value - p.recovery_change, |l| l.1);
+        if last == 0.0 || !last.is_finite() {
+            return QMobilePrior { mean_c: q_mobile_last_c, sd_c: f64::INFINITY };
+        }
+        QMobilePrior { mean_c: q_mobile_last_c * p.value / last, sd_c: q_mobile_last_c * p.sd / last.abs() }
+    }
+}
+
+/// What [`LifeTracker::carry`] gives: how a carried qMobile moves to the next discharge.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Carry {
+    /// The expected capacity over the last measured one (clamped to 0.8-1.25): qMobile follows it.
+    pub ratio: f64,
+    /// One standard deviation of the recovery's change, relative to the last capacity.
+    pub jump_sd_rel: f64,
+}
+
+impl Carry {
+    pub const NONE: Carry = Carry { ratio: 1.0, jump_sd_rel: 0.0 };
+
+    /// The carried estimate moved: qMobile scaled by the ratio, Ro carried.
+    pub fn mean(&self, carried: &crate::battery::Degradation) -> crate::battery::Degradation {
+        crate::battery::Degradation { q_mobile_c: carried.q_mobile_c * self.ratio, r_o_ohm: carried.r_o_ohm }
+    }
+
+    /// A prior width (z units of qMobile and Ro, qMobile's range `q_span_c` C wide) with the jump's own
+    /// uncertainty added in quadrature to qMobile's.
+    pub fn widen_z(&self, sd_z: [f64; 2], carried_q_mobile_c: f64, q_span_c: f64) -> [f64; 2] {
+        [sd_z[0].hypot(self.jump_sd_rel * carried_q_mobile_c / q_span_c), sd_z[1]]
+    }
+}
