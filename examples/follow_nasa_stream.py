@@ -88,9 +88,17 @@ def eod_error_pct(rows: list, est: list, cutoff_v: float):
     if not loaded:
         return None, None
     t_on = loaded[0][1][0]
-    eod = next((r[0] for _, r in loaded if r[1] < cutoff_v), None)
-    if eod is None:
+    # The end: the crossing interpolated between the last loaded reading above the cut-off and the first
+    # below, as the stream and `bcal calibrate` score it (the first reading below lies up to a sample
+    # interval, 10-20 s here, past it).
+    below = next((n for n, (_, r) in enumerate(loaded) if r[1] < cutoff_v), None)
+    if below is None:
         return None, None
+    (t1, v1), eod = loaded[below][1][:2], loaded[below][1][0]
+    if below > 0:
+        t0, v0 = loaded[below - 1][1][:2]
+        if v0 > v1:
+            eod = t0 + (v0 - cutoff_v) / (v0 - v1) * (t1 - t0)
     mid = t_on + 0.5 * (eod - t_on)
     k = min(range(len(rows)), key=lambda j: abs(rows[j][0] - mid))
     p, lo, hi = est[k]["eod_s"], est[k].get("eod_lo_s"), est[k].get("eod_hi_s")

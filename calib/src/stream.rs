@@ -34,7 +34,7 @@ use crate::correction::CorrectionCalibrator;
 use crate::joint_ukf::JointUkf;
 use crate::prior_width::{RestWidth, LONG_REST_S};
 use crate::tracker_based::{RlCalibrator, Uncalibrated, WindowFitCalibrator};
-use crate::widening::{share_bin, Outcome, Widening, EOD_FRACTIONS_PCT, MIN_OUTCOMES, WINDOW};
+use crate::widening::{share_bin, Adapt, Outcome, Widening, EOD_FRACTIONS_PCT, MIN_OUTCOMES, WINDOW};
 use crate::{predict_eod_s, Calibrator, EodQuery};
 use bcal_common::battery::{Degradation, Load, LoadProfile};
 use bcal_common::lifetime::{Carry, Condition, LifeTracker};
@@ -371,8 +371,11 @@ struct EodSource {
     /// The scored predictions of the last [`WINDOW`] discharges (one entry per discharge, aligned across
     /// the sources).
     scored: VecDeque<Vec<Outcome>>,
-    /// The interval's widening per share ([`EOD_FRACTIONS_PCT`]; None: too few scores at that share).
+    /// The interval's widening per share ([`EOD_FRACTIONS_PCT`]; None: too few scores at that share), as
+    /// the window learned it ...
     widening: [Option<Widening>; 3],
+    /// ... and its online scale per share ([`Adapt`]: how the intervals given so far fared).
+    adapt: [Adapt; 3],
 }
 
 impl EodSource {
@@ -391,6 +394,14 @@ impl EodSource {
                 Some(Outcome { value, below: 0.0, above: 0.0, size, measured: end_s, fraction: f })
             })
             .collect();
+        for (b, w) in self.widening.iter().enumerate() {
+            if let Some(w) = w {
+                let at: Vec<Outcome> =
+                    outcomes.iter().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
+                let applied = self.adapt[b].scaled(*w);
+                self.adapt[b].update(&applied, &at);
+            }
+        }
         if self.scored.len() == WINDOW {
             self.scored.pop_front();
         }
@@ -400,6 +411,11 @@ impl EodSource {
                 self.scored.iter().flatten().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
             (at.len() >= MIN_OUTCOMES).then(|| Widening::learn(&at, self.scored.len()))
         });
+    }
+
+    /// The interval at share index `b` as it is given now: the window's widening, scaled online.
+    fn interval(&self, b: usize) -> Option<Widening> {
+        self.widening[b].map(|w| self.adapt[b].scaled(w))
     }
 
     /// The relative error of each of the last discharges at share `fraction` (None where it made no
@@ -557,7 +573,7 @@ impl<'a> Stream<'a> {
             _ => METHOD,
         };
         let eod_s = if source == PRIOR { eod_prior_s } else { eod_method_s };
-        let (eod_lo_s, eod_hi_s) = match (eod_s, on, bin.and_then(|b| self.sources[source].widening[b])) {
+        let (eod_lo_s, eod_hi_s) = match (eod_s, on, bin.and_then(|b| self.sources[source].interval(b))) {
             (Some(eod), Some(on), Some(w)) => {
                 let half = w.half(0.0, (eod - on).max(1.0));
                 (Some((eod - half).max(r.time_s)), Some(eod + half))
@@ -715,7 +731,7 @@ impl<'a> Stream<'a> {
     pub fn eod_widening(&self) -> [Option<(f64, usize)>; 3] {
         std::array::from_fn(|b| {
             let source = if self.prior_serves[b] { PRIOR } else { METHOD };
-            self.sources[source].widening[b].map(|w| (w.model, w.learned_on))
+            self.sources[source].interval(b).map(|w| (w.model, w.learned_on))
         })
     }
 
@@ -751,6 +767,7 @@ impl<'a> Stream<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::widening::ADAPT_MAX_LOG;
     use bcal_common::measured::scenario::{draw_spec, simulate, CellError, EpisodeSpec, LoadKind, ScenarioConfig};
     use rand::SeedableRng;
 
@@ -1044,7 +1061,8 @@ mod tests {
     /// and 90 % of it once its voltage crosses the cut-off under load, and from the tenth discharge (nine
     /// scored) each prediction carries a 90 % interval whose half-width, as a share of the predicted
     /// duration, is the conformal rank of the last ten scored errors at the share the prediction is at
-    /// (nine or ten of them: the largest), recomputed here from the estimates and the readings alone.
+    /// (nine or ten of them: the largest) times the online scale those intervals earned (up 0.1 x 0.9 in
+    /// log on a miss, down 0.1 x 0.1 on a hit), recomputed here from the estimates and the readings alone.
     #[test]
     fn eod_intervals_are_learned_from_the_discharges_the_stream_followed_to_their_cut_off() {
         let cfg = ScenarioConfig::default();
@@ -1070,6 +1088,16 @@ mod tests {
         // Each discharge's scores, from its readings: the load-on, the interpolated crossing, and the
         // relative error of the last prediction made by each share.
         let mut errors: Vec<[f64; 3]> = Vec::new();
+        let scale = |errors: &[[f64; 3]], scored: usize, b: usize| {
+            let mut log = 0.0f64;
+            for d in MIN_OUTCOMES..scored {
+                let w = errors[d.saturating_sub(WINDOW)..d].iter().map(|e| e[b]).fold(0.0, f64::max) * log.exp();
+                let miss = if errors[d][b] > w { 1.0 } else { 0.0 };
+                log = (log + 0.1 * (miss - 0.1)).clamp(-ADAPT_MAX_LOG, ADAPT_MAX_LOG);
+            }
+            log.exp()
+        };
+        let mut scaled = 0;
         for d in 0..12 {
             let (r, e) = (&readings[starts[d]..starts[d + 1]], &est[starts[d]..starts[d + 1]]);
             let loaded: Vec<usize> = (0..r.len()).filter(|&k| r[k].current_a > LOAD_THRESHOLD_A).collect();
@@ -1094,7 +1122,9 @@ mod tests {
                 assert!(scored >= 9, "discharge {d}, reading {k}: an interval after {scored} scored discharges");
                 let bin = share_bin(on, x.time_s, p);
                 let expect = errors[scored.saturating_sub(WINDOW)..scored].iter().map(|e| e[bin]).fold(0.0, f64::max);
-                let half = expect * (p - on).max(1.0);
+                let f = scale(&errors, scored, bin);
+                scaled += usize::from((f - 1.0).abs() > 1e-9);
+                let half = expect * f * (p - on).max(1.0);
                 assert!((hi - p - half).abs() < 1e-6 * p, "discharge {d}, reading {k}: {hi} - {p} against {half}");
                 assert!((lo - (p - half).max(x.time_s)).abs() < 1e-6 * p, "discharge {d}, reading {k}");
             }
@@ -1103,6 +1133,7 @@ mod tests {
                 assert!(n > crossed / 2, "discharge {d}: {n} of {crossed} readings before the end have an interval");
             }
         }
+        assert!(scaled > 0, "no interval here was scaled: the online scale is not tested");
         let w = stream.eod_widening();
         assert!(w.iter().all(|w| w.is_some_and(|(a, n)| a > 0.0 && n == WINDOW)), "{w:?}");
     }

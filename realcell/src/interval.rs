@@ -13,7 +13,9 @@
 //! BMS learns its own error): the pair that covers [`COVER`] of their scored predictions (with the
 //! finite-sample rank of split conformal prediction) with the narrowest intervals. The end of discharge has
 //! one pair per share of the discharge the scores read (10, 50, 90 %), each reading taking the one nearest
-//! the share it predicts has passed. No look-ahead: a
+//! the share it predicts has passed. Each kind's widening is then scaled online by how the intervals
+//! before fared ([`Adapt`]: adaptive conformal inference, from the first judged discharge on), so that a
+//! model error that drifts as the cell ages does not leave the window's rank behind. No look-ahead: a
 //! discharge's own outcome never sets its interval. Methods without an interval of their own get the
 //! model-error term alone. The learning itself is [`bcal_calib::widening`], which a live stream shares.
 
@@ -21,7 +23,7 @@ use crate::predict::Predicted;
 use crate::record::CellRecord;
 use crate::run::CycleRun;
 use crate::score::{share_bin, CAPACITY_FRACTIONS_PCT, EOD_FRACTIONS_PCT};
-pub use bcal_calib::widening::{Outcome, Widening, COVER, OWN_FACTORS, WINDOW};
+pub use bcal_calib::widening::{Adapt, Outcome, Widening, COVER, OWN_FACTORS, WINDOW};
 use serde::Serialize;
 
 /// The widenings one discharge ran with.
@@ -89,6 +91,7 @@ pub fn calibrate_intervals(
     let mut past: Vec<(Vec<Outcome>, Vec<Outcome>)> =
         history.iter().map(|(r, run)| outcomes(r, run)).filter(|(e, c)| !e.is_empty() || !c.is_empty()).collect();
     let mut out = Vec::with_capacity(records.len());
+    let (mut adapt_eod, mut adapt_cap) = ([Adapt::default(); 3], Adapt::default());
     for (r, run) in records.iter().zip(runs.iter_mut()) {
         let recent = &past[past.len().saturating_sub(WINDOW)..];
         let eod_past: Vec<Outcome> = recent.iter().flat_map(|p| p.0.iter().copied()).collect();
@@ -98,9 +101,9 @@ pub fn calibrate_intervals(
         // predictions too often and late ones too rarely (60 % at 90 % of B0005's discharges, pooled).
         let eod: [Widening; 3] = std::array::from_fn(|b| {
             let at: Vec<Outcome> = eod_past.iter().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
-            Widening::learn(&at, recent.len())
+            adapt_eod[b].scaled(Widening::learn(&at, recent.len()))
         });
-        let cap = Widening::learn(&cap_past, recent.len());
+        let cap = adapt_cap.scaled(Widening::learn(&cap_past, recent.len()));
         // The outcome is taken with the calibrator's own bounds, before this widening.
         let own = outcomes(r, run);
         for s in &mut run.steps {
@@ -111,6 +114,11 @@ pub fn calibrate_intervals(
             }
             widen(&mut s.capacity, &cap, |v| v.abs().max(1e-6));
         }
+        for (b, a) in adapt_eod.iter_mut().enumerate() {
+            let at: Vec<Outcome> = own.0.iter().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
+            a.update(&eod[b], &at);
+        }
+        adapt_cap.update(&cap, &own.1);
         if !own.0.is_empty() || !own.1.is_empty() {
             past.push(own);
         }
