@@ -396,10 +396,8 @@ impl EodSource {
             .collect();
         for (b, w) in self.widening.iter().enumerate() {
             if let Some(w) = w {
-                let at: Vec<Outcome> =
-                    outcomes.iter().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
                 let applied = self.adapt[b].scaled(*w);
-                self.adapt[b].update(&applied, &at);
+                self.adapt[b].update(&applied, outcomes.iter().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]));
             }
         }
         if self.scored.len() == WINDOW {
@@ -601,7 +599,8 @@ impl<'a> Stream<'a> {
 
     /// A new calibrator on the same setting from `start_s` on, its prior what the last discharge told (its
     /// end fit, else its final estimate; moved by the lifetime model when the setting has one), its width
-    /// learned from the discharges before (the module's doc). A stretch that never discharged (a charge after a gap) is no discharge to learn from or carry: the one before it is.
+    /// learned from the discharges before (the module's doc). A stretch that never discharged (a charge
+    /// after a gap) is no discharge to learn from or carry: the one before it is.
     fn new_discharge(&mut self, start_s: f64) {
         let Some((setup, net)) = &self.rebuild else { return };
         let spec = &setup.spec.tracker;

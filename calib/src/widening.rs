@@ -136,7 +136,7 @@ impl Adapt {
     }
 
     /// Takes the scored predictions of a finished discharge under the widening it ran with.
-    pub fn update(&mut self, applied: &Widening, outcomes: &[Outcome]) {
+    pub fn update<'o>(&mut self, applied: &Widening, outcomes: impl IntoIterator<Item = &'o Outcome>) {
         for o in outcomes {
             let miss = f64::from(u8::from(!applied.covers(o)));
             self.log_scale =

@@ -115,8 +115,7 @@ pub fn calibrate_intervals(
             widen(&mut s.capacity, &cap, |v| v.abs().max(1e-6));
         }
         for (b, a) in adapt_eod.iter_mut().enumerate() {
-            let at: Vec<Outcome> = own.0.iter().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).copied().collect();
-            a.update(&eod[b], &at);
+            a.update(&eod[b], own.0.iter().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]));
         }
         adapt_cap.update(&cap, &own.1);
         if !own.0.is_empty() || !own.1.is_empty() {
