@@ -13,7 +13,8 @@
 # --experiment.
 # With --seeds N (N >= 2) it trains and evaluates seeds 1..N into runs/<name>-s<k> and prints their summary
 # (mean, spread and every run's value) from runs/<name>-summary/.
-# With --cell ID: a real cell (default data ../shared/data/nasa-pcoe, training cycles 1..40): the doctor
+# With --cell ID: a real cell (default data ../shared/data/nasa-pcoe, training cycles the first third of the
+# cell's discharges, at most 40, as bcal calibrate takes them): the doctor
 # diagnoses the training cycles alone (fits their first three quarters, judges the last), a measured-only
 # policy is trained on the cell's own setting and the diagnosed model (bcal cell-config --model), and bcal
 # calibrate runs it, the joint UKF and the references on the later cycles and scores them against the
@@ -29,7 +30,7 @@ actors=""
 name=""
 cell=""
 data="../shared/data/nasa-pcoe"
-train_cycles="1..40"
+train_cycles=""
 cutoff_args=()
 usage() { sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//'; }
 while [ $# -gt 0 ]; do
@@ -72,6 +73,9 @@ actor_args=()
 if [ -n "$cell" ]; then
   run="runs/$name"
   mkdir -p "$run"
+  if [ -z "$train_cycles" ]; then
+    train_cycles="$("$bin/bcal" calibrate --data "$data" --cell "$cell" --print-train-cycles)"
+  fi
   # The doctor chooses the model on the training cycles alone: it fits their first three quarters and
   # judges the candidates on the last quarter (the cycles calibrate judges later are never looked at).
   case "$train_cycles" in

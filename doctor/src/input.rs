@@ -41,6 +41,34 @@ pub fn read_any(
     }
 }
 
+/// Most training cycles a cell gets by default: B0005, B0006 and B0018 train on their first 40 of 132-168.
+pub const DEFAULT_TRAIN_MAX: usize = 40;
+
+/// The training cycles `bcal calibrate` and `bcal cell-config` take when none are given: the cell's first
+/// third of discharges, at most [`DEFAULT_TRAIN_MAX`], so a short life (NASA's cells of 25-47 discharges)
+/// still leaves two thirds to judge. Refused, saying so, for a cell with fewer than 3 discharges.
+pub fn default_train_cycles(cell: &str, all: &[Discharge]) -> Result<RangeInclusive<u32>, DoctorError> {
+    let mut cycles: Vec<u32> = all.iter().map(|d| d.cycle).collect();
+    cycles.sort_unstable();
+    cycles.dedup();
+    let k = (cycles.len() / 3).min(DEFAULT_TRAIN_MAX);
+    if cycles.is_empty() {
+        return Err(DoctorError::NothingSelected {
+            why: format!("{cell} has no readable discharge (the reader's lines above say what was missing or refused)"),
+        });
+    }
+    if k == 0 {
+        return Err(DoctorError::NothingSelected {
+            why: format!(
+                "{cell} has {} readable discharge(s): too few to set up on the first third and judge the rest; \
+                 give --train-cycles and --cycles",
+                cycles.len()
+            ),
+        });
+    }
+    Ok(cycles[0]..=cycles[k - 1])
+}
+
 /// The training and held-out cycle ranges: as given, or what the other leaves (the held-out cycles start
 /// after the training ones), or the first third of the cycles against the rest.
 pub fn cycle_ranges(
@@ -166,6 +194,23 @@ mod tests {
         assert_eq!((t.iter().map(|d| d.cycle).collect::<Vec<_>>(), h[0].cycle), (vec![2, 4], 5));
         let e = split_cycles(&all, Some(20..=30), None, 1).unwrap_err();
         assert!(e.to_string().contains("no training record in cycles 20..=30"), "{e}");
+    }
+
+    #[test]
+    fn the_default_training_cycles_are_a_third_at_most_forty() {
+        let cycles = |n: u32| default_train_cycles("c", &(1..=n).map(record).collect::<Vec<_>>());
+        // NASA's lives: B0005 (168), B0018 (132), the 28-discharge B0025 and the 40-discharge B0029.
+        assert_eq!(cycles(168).unwrap(), 1..=40);
+        assert_eq!(cycles(132).unwrap(), 1..=40);
+        assert_eq!(cycles(28).unwrap(), 1..=9);
+        assert_eq!(cycles(40).unwrap(), 1..=13);
+        // Gaps in the numbering count records, not numbers.
+        let gappy: Vec<Discharge> = [3, 7, 8, 20, 21, 40].into_iter().map(record).collect();
+        assert_eq!(default_train_cycles("c", &gappy).unwrap(), 3..=7);
+        let e = cycles(2).unwrap_err().to_string();
+        assert!(e.contains("2 readable discharge(s)") && e.contains("--train-cycles"), "{e}");
+        let e = cycles(0).unwrap_err().to_string();
+        assert!(e.contains("no readable discharge"), "{e}");
     }
 
     #[test]

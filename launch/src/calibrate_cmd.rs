@@ -63,8 +63,10 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "A..B")]
     pub cycles: Option<String>,
     /// Training cycles, A..B: the capacity trend, the cell's setting and the first previous-cycle reference.
-    #[arg(long, value_name = "A..B", default_value = "1..40")]
-    pub train_cycles: String,
+    /// Default: the cell's first third of discharges, at most 40 (B0005: 1..40; a cell of 28 discharges:
+    /// 1..9), said on stderr.
+    #[arg(long, value_name = "A..B")]
+    pub train_cycles: Option<String>,
     /// Calibrators, comma separated: `rl:RUN` (the RL policy of a measured-only run folder, or a policy file;
     /// `rl:` given more than once: an ensemble of runs of one cell config trained from other seeds, each run's
     /// delivered policy, whose mean action corrects the filter),
@@ -98,8 +100,12 @@ pub struct CalibrateArgs {
     #[arg(long)]
     pub quick: bool,
     /// Output folder for calibration.json, calibration.md, the figures and readings/<method>/<cell>-<cycle>.csv.
-    #[arg(long, value_name = "DIR", required_unless_present = "follow")]
+    #[arg(long, value_name = "DIR", required_unless_present_any = ["follow", "print_train_cycles"])]
     pub out: Option<PathBuf>,
+    /// Print the training cycles the cell gets (A..B: --train-cycles or its default) and exit
+    /// (`launch/run.sh --cell` splits them for the doctor).
+    #[arg(long)]
+    pub print_train_cycles: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -114,9 +120,10 @@ pub struct CellConfigArgs {
     /// the policy's calibrator run it.
     #[arg(long, value_name = "DIAG")]
     pub model: Option<PathBuf>,
-    /// Training cycles, A..B.
-    #[arg(long, value_name = "A..B", default_value = "1..40")]
-    pub train_cycles: String,
+    /// Training cycles, A..B. Default: as `bcal calibrate` takes them (the first third of the cell's
+    /// discharges, at most 40), said on stderr.
+    #[arg(long, value_name = "A..B")]
+    pub train_cycles: Option<String>,
     #[arg(long, value_parser = crate::cli::positive_f64)]
     pub cutoff_v: Option<f64>,
     #[arg(long, allow_hyphen_values = true)]
@@ -152,6 +159,30 @@ pub fn read_with_starts(
         eprintln!("{line}");
     }
     Ok((ds, rep.starts))
+}
+
+/// The training cycles given, or the cell's default ([`bcal_doctor::input::default_train_cycles`], said on
+/// stderr) with every record it was read from.
+#[allow(clippy::type_complexity)]
+fn train_cycles(
+    given: Option<&str>,
+    data: &Path,
+    cell: &str,
+    opts: &ReadOptions,
+) -> anyhow::Result<(RangeInclusive<u32>, Option<(Vec<Discharge>, Vec<RecordStart>)>)> {
+    if let Some(t) = given {
+        return Ok((parse_cycle_range(t)?, None));
+    }
+    let (all, starts) = read_with_starts(data, cell, None, opts)?;
+    let range = bcal_doctor::input::default_train_cycles(cell, &all)?;
+    eprintln!(
+        "training cycles {}..{} (the first third of {cell}'s {} discharges, at most {}; --train-cycles sets them)",
+        range.start(),
+        range.end(),
+        all.len(),
+        bcal_doctor::input::DEFAULT_TRAIN_MAX
+    );
+    Ok((range, Some((all, starts))))
 }
 
 /// The policy files of `rl:RUN`: a run folder's checkpoints (best and last by each criterion, duplicates
@@ -246,6 +277,14 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
             idle_s: a.idle_s,
         });
     }
+    if a.print_train_cycles {
+        let data = a.data.clone().context("--print-train-cycles needs --data PATH")?;
+        let cell = cell_name(&a.cell, &data)?;
+        let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
+        let (r, _) = train_cycles(a.train_cycles.as_deref(), &data, &cell, &opts)?;
+        println!("{}..{}", r.start(), r.end());
+        return Ok(());
+    }
     let (Some(data), Some(out)) = (a.data.clone(), a.out.clone()) else {
         bail!("give --data PATH and --out DIR (or --follow - for live readings)");
     };
@@ -257,7 +296,8 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let cell = cell_name(&a.cell, &data)?;
     let model = load_model(&a.model)?;
-    let train_range = parse_cycle_range(&a.train_cycles)?;
+    let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
+    let (train_range, everything) = train_cycles(a.train_cycles.as_deref(), &data, &cell, &opts)?;
     let judged_range = match &a.cycles {
         Some(c) => parse_cycle_range(c)?,
         None => (*train_range.end() + 1)..=u32::MAX,
@@ -277,9 +317,29 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
             shown(&train_range)
         );
     }
-    let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
-    let (train, mut starts) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
-    let (mut judged, judged_starts) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
+    let (train, mut judged, starts) = match everything {
+        // Read once already; the starts of records outside both ranges are never looked up.
+        Some((all, starts)) => {
+            let (train, rest): (Vec<Discharge>, Vec<Discharge>) =
+                all.into_iter().partition(|d| train_range.contains(&d.cycle));
+            (train, rest.into_iter().filter(|d| judged_range.contains(&d.cycle)).collect(), starts)
+        }
+        None => {
+            let (train, mut starts) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
+            let (judged, judged_starts) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
+            starts.extend(judged_starts);
+            (train, judged, starts)
+        }
+    };
+    if train.is_empty() && judged.is_empty() {
+        bail!(
+            "{cell}: no discharge read from {} in cycles {} or {} (the reader's lines above say what was missing \
+             or refused)",
+            data.display(),
+            shown(&train_range),
+            shown(&judged_range)
+        );
+    }
     if judged.is_empty() {
         let last = train.iter().map(|d| d.cycle).max().unwrap_or(0);
         bail!(
@@ -290,7 +350,6 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
             (last / 3).max(2)
         );
     }
-    starts.extend(judged_starts);
     // Read off the training records only, as cell-config does: the judged ones are not looked at.
     let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &data, &cell, &train)?;
     if a.stride > 1 {
@@ -385,11 +444,14 @@ fn rest_jump(
 }
 
 pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
-    let range = parse_cycle_range(&a.train_cycles)?;
     let cell = cell_name(&a.cell, &a.data)?;
     let model = load_model(&a.model)?;
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
-    let (ds, starts) = read_with_starts(&a.data, &cell, Some(&range), &opts)?;
+    let (range, everything) = train_cycles(a.train_cycles.as_deref(), &a.data, &cell, &opts)?;
+    let (ds, starts) = match everything {
+        Some((all, starts)) => (all.into_iter().filter(|d| range.contains(&d.cycle)).collect(), starts),
+        None => read_with_starts(&a.data, &cell, Some(&range), &opts)?,
+    };
     let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &a.data, &cell, &ds)?;
     let mut summary = RecordSummary::default();
     let mut records = Vec::new();

@@ -206,8 +206,18 @@ pub fn lifetime_model(train: &[Discharge], starts: &[RecordStart], cutoff_v: f64
             "the fade alone".to_string()
         }
     };
-    let verdict =
+    let mut verdict =
         format!("{}; used on the judged discharges, fitted on cycles {first}-{last}: {}", life.verdict, says(&used));
+    if let Some(w) = &whole {
+        if !w.partial_start_cycles.is_empty() {
+            let cycles: Vec<String> = w.partial_start_cycles.iter().map(u32::to_string).collect();
+            verdict += &format!(
+                "; capacity of cycle {} left out: started from a partial charge (its rest voltage well below its \
+                 neighbours')",
+                cycles.join(", ")
+            );
+        }
+    }
     Some(CellLife { tuning, used, verdict })
 }
 

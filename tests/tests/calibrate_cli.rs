@@ -81,6 +81,26 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
     let (ok, err) = calibrate(&["--data", dir.path().to_str().unwrap(), "--out", out]);
     assert!(!ok && err.contains("--cell"), "{err}");
 
+    // Without --train-cycles a cell trains on the first third of its discharges (at most 40), so a short
+    // life still leaves cycles to judge: 8 discharges, 1..2.
+    let shown = Command::new(bcal_tests::bin("bcal"))
+        .args(["calibrate", "--data", data, "--print-train-cycles"])
+        .output()
+        .unwrap();
+    assert!(shown.status.success(), "{}", String::from_utf8_lossy(&shown.stderr));
+    assert_eq!(String::from_utf8_lossy(&shown.stdout), "1..2\n");
+    // A NASA folder whose metadata names records that are not there: refused, saying so, not "judge fewer".
+    let nasa = dir.path().join("nasa");
+    std::fs::create_dir_all(nasa.join("data")).unwrap();
+    let mut meta =
+        String::from("type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n");
+    for k in 1..=6 {
+        meta.push_str(&format!("discharge,[2010. 7. 21. 15. 0. {k}.],4,B0049,{k},{k},0{k}.csv,1.6,,\n"));
+    }
+    std::fs::write(nasa.join("metadata.csv"), meta).unwrap();
+    let (ok, err) = calibrate(&["--data", nasa.to_str().unwrap(), "--cell", "B0049", "--out", out]);
+    assert!(!ok && err.contains("6 of 6 files") && err.contains("B0049 has no readable discharge"), "{err}");
+
     // A policy trained on the paper's full-state observation.
     let paper = bcal_common::mdp::MdpSpec {
         observation: bcal_common::mdp::ObservationKind::FullState,
