@@ -110,7 +110,9 @@ def diagnose(
 
     `data`: a NASA PCoE folder (`cell` required, e.g. "B0005") or a CSV
     (time_s,voltage_v,current_a[,temperature_c][,cycle]). `cycles`, `holdout`: "A..B" (1-based,
-    inclusive; default the first third against the rest).
+    inclusive; default three quarters of the cycles `bcal calibrate` trains on against the last quarter,
+    B0005 1..30 against 31..40, so the diagnosis feeds `bcal calibrate --model`; a life under 24
+    discharges: its first third against the rest).
 
     Returns diagnosis.json's content (cause, ranking, base and extended models, per-cycle fits,
     residual structure) plus `read_notes` and `cutoff_source`. Raises FileNotFoundError / OSError for

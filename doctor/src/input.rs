@@ -69,8 +69,15 @@ pub fn default_train_cycles(cell: &str, all: &[Discharge]) -> Result<RangeInclus
     Ok(cycles[0]..=cycles[k - 1])
 }
 
+/// Fewest training cycles [`cycle_ranges`] splits 3:1 by default (`launch/run.sh --cell` asks as many).
+pub const MIN_DEFAULT_SPLIT: usize = 8;
+
 /// The training and held-out cycle ranges: as given, or what the other leaves (the held-out cycles start
-/// after the training ones), or the first third of the cycles against the rest.
+/// after the training ones). By default the cycles `bcal calibrate` trains on ([`default_train_cycles`]):
+/// their first three quarters fitted, the last quarter held out (B0005: 1..30 against 31..40), so the
+/// diagnosis feeds `bcal calibrate --model` (which refuses a model whose choice saw the cycles it judges).
+/// A life too short for that ([`MIN_DEFAULT_SPLIT`] training cycles) splits its first third against the
+/// rest.
 pub fn cycle_ranges(
     all: &[Discharge],
     cycles: Option<RangeInclusive<u32>>,
@@ -83,15 +90,24 @@ pub fn cycle_ranges(
         (Some(c), None) => (c.clone(), c.end() + 1..=last),
         (None, Some(h)) => (first..=h.start().saturating_sub(1).max(first), h),
         (None, None) => {
-            let split = first + (last - first) / 3;
-            (first..=split, split + 1..=last)
+            let mut cycles: Vec<u32> = all.iter().map(|d| d.cycle).collect();
+            cycles.sort_unstable();
+            cycles.dedup();
+            let k = (cycles.len() / 3).min(DEFAULT_TRAIN_MAX);
+            if k >= MIN_DEFAULT_SPLIT {
+                let fit = k * 3 / 4;
+                (cycles[0]..=cycles[fit - 1], cycles[fit]..=cycles[k - 1])
+            } else {
+                let split = first + (last - first) / 3;
+                (first..=split, split + 1..=last)
+            }
         }
     }
 }
 
 /// Splits `all` into training and held-out records: the ranges given, else the training cycles and
-/// everything after them, else everything before the held-out ones, else the first third against the
-/// rest; every `stride`-th cycle of each range.
+/// everything after them, else everything before the held-out ones, else [`cycle_ranges`]' default; every
+/// `stride`-th cycle of each range.
 pub fn split_cycles(
     all: &[Discharge],
     cycles: Option<RangeInclusive<u32>>,
@@ -190,6 +206,11 @@ mod tests {
         let (t, h) = split_cycles(&all, None, None, 1).unwrap();
         assert_eq!(t.iter().map(|d| d.cycle).collect::<Vec<_>>(), vec![1, 2, 3]);
         assert_eq!(h.len(), 6);
+        // A longer life: calibrate's training cycles, fitted on three quarters and judged on the last.
+        let life = |n: u32| cycle_ranges(&(1..=n).map(record).collect::<Vec<_>>(), None, None);
+        assert_eq!(life(168), (1..=30, 31..=40));
+        assert_eq!(life(40), (1..=9, 10..=13));
+        assert_eq!(life(23), (1..=8, 9..=23));
         let (t, h) = split_cycles(&all, Some(2..=4), None, 2).unwrap();
         assert_eq!((t.iter().map(|d| d.cycle).collect::<Vec<_>>(), h[0].cycle), (vec![2, 4], 5));
         let e = split_cycles(&all, Some(20..=30), None, 1).unwrap_err();

@@ -21,8 +21,11 @@ pub struct DiagnoseArgs {
     /// report gives it (default: the file's name).
     #[arg(long)]
     pub cell: Option<String>,
-    /// Training cycles A..B (inclusive, 1-based; NASA: order of the cell's discharges). Default: the first
-    /// third of the cycles present when --holdout is not given either, else every cycle before --holdout.
+    /// Training cycles A..B (inclusive, 1-based; NASA: order of the cell's discharges). Default, when
+    /// --holdout is not given either: the first three quarters of the cycles `bcal calibrate` trains on (the
+    /// first third of the life, at most 40; B0005: 1..30, held out 31..40), so the diagnosis feeds `bcal
+    /// calibrate --model`; a life under 24 discharges: its first third against the rest. With --holdout:
+    /// every cycle before it.
     #[arg(long, value_name = "A..B")]
     pub cycles: Option<String>,
     /// Held-out cycles A..B used to judge every model. Default: the cycles after --cycles.
