@@ -44,14 +44,19 @@ pub fn read_any(
 /// Most training cycles a cell gets by default: B0005, B0006 and B0018 train on their first 40 of 132-168.
 pub const DEFAULT_TRAIN_MAX: usize = 40;
 
+/// Fewest training cycles a cell gets by default while it leaves one to judge: `bcal calibrate` chooses its
+/// filters on at least 4 training discharges that reach the cut-off.
+pub const DEFAULT_TRAIN_MIN: usize = 4;
+
 /// The training cycles `bcal calibrate` and `bcal cell-config` take when none are given: the cell's first
 /// third of discharges, at most [`DEFAULT_TRAIN_MAX`], so a short life (NASA's cells of 25-47 discharges)
-/// still leaves two thirds to judge. Refused, saying so, for a cell with fewer than 3 discharges.
+/// still leaves two thirds to judge, and at least [`DEFAULT_TRAIN_MIN`] while one is left to judge (a
+/// life of 8: 1..4). Refused, saying so, for a cell with fewer than 2 discharges.
 pub fn default_train_cycles(cell: &str, all: &[Discharge]) -> Result<RangeInclusive<u32>, DoctorError> {
     let mut cycles: Vec<u32> = all.iter().map(|d| d.cycle).collect();
     cycles.sort_unstable();
     cycles.dedup();
-    let k = (cycles.len() / 3).min(DEFAULT_TRAIN_MAX);
+    let k = (cycles.len() / 3).max(DEFAULT_TRAIN_MIN.min(cycles.len().saturating_sub(1))).min(DEFAULT_TRAIN_MAX);
     if cycles.is_empty() {
         return Err(DoctorError::NothingSelected {
             why: format!("{cell} has no readable discharge (the reader's lines above say what was missing or refused)"),
@@ -60,8 +65,8 @@ pub fn default_train_cycles(cell: &str, all: &[Discharge]) -> Result<RangeInclus
     if k == 0 {
         return Err(DoctorError::NothingSelected {
             why: format!(
-                "{cell} has {} readable discharge(s): too few to set up on the first third and judge the rest; \
-                 give --train-cycles and --cycles",
+                "{cell} has {} readable discharge(s): too few to set up on some and judge the others; give \
+                 --train-cycles and --cycles",
                 cycles.len()
             ),
         });
@@ -93,7 +98,7 @@ pub fn cycle_ranges(
             let mut cycles: Vec<u32> = all.iter().map(|d| d.cycle).collect();
             cycles.sort_unstable();
             cycles.dedup();
-            let k = (cycles.len() / 3).min(DEFAULT_TRAIN_MAX);
+            let k = default_train_cycles("", all).map_or(0, |r| cycles.iter().filter(|c| r.contains(c)).count());
             if k >= MIN_DEFAULT_SPLIT {
                 let fit = k * 3 / 4;
                 (cycles[0]..=cycles[fit - 1], cycles[fit]..=cycles[k - 1])
@@ -227,9 +232,13 @@ mod tests {
         assert_eq!(cycles(40).unwrap(), 1..=13);
         // Gaps in the numbering count records, not numbers.
         let gappy: Vec<Discharge> = [3, 7, 8, 20, 21, 40].into_iter().map(record).collect();
-        assert_eq!(default_train_cycles("c", &gappy).unwrap(), 3..=7);
-        let e = cycles(2).unwrap_err().to_string();
-        assert!(e.contains("2 readable discharge(s)") && e.contains("--train-cycles"), "{e}");
+        assert_eq!(default_train_cycles("c", &gappy).unwrap(), 3..=20);
+        // A short life still sets its filters up on 4 discharges, while one is left to judge.
+        assert_eq!(cycles(8).unwrap(), 1..=4);
+        assert_eq!(cycles(4).unwrap(), 1..=3);
+        assert_eq!(cycles(2).unwrap(), 1..=1);
+        let e = cycles(1).unwrap_err().to_string();
+        assert!(e.contains("1 readable discharge(s)") && e.contains("--train-cycles"), "{e}");
         let e = cycles(0).unwrap_err().to_string();
         assert!(e.contains("no readable discharge"), "{e}");
     }

@@ -63,8 +63,8 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "A..B")]
     pub cycles: Option<String>,
     /// Training cycles, A..B: the capacity trend, the cell's setting and the first previous-cycle reference.
-    /// Default: the cell's first third of discharges, at most 40 (B0005: 1..40; a cell of 28 discharges:
-    /// 1..9), said on stderr.
+    /// Default: the cell's first third of discharges, at most 40 and at least 4 while one is left to judge
+    /// (B0005: 1..40; a cell of 28 discharges: 1..9; of 8: 1..4), said on stderr.
     #[arg(long, value_name = "A..B")]
     pub train_cycles: Option<String>,
     /// Calibrators, comma separated: `rl:RUN` (the RL policy of a measured-only run folder, or a policy file;
@@ -176,11 +176,13 @@ fn train_cycles(
     let (all, starts) = read_with_starts(data, cell, None, opts)?;
     let range = bcal_doctor::input::default_train_cycles(cell, &all)?;
     eprintln!(
-        "training cycles {}..{} (the first third of {cell}'s {} discharges, at most {}; --train-cycles sets them)",
+        "training cycles {}..{} (the first third of {cell}'s {} discharges, at most {}, at least {}; --train-cycles \
+         sets them)",
         range.start(),
         range.end(),
         all.len(),
-        bcal_doctor::input::DEFAULT_TRAIN_MAX
+        bcal_doctor::input::DEFAULT_TRAIN_MAX,
+        bcal_doctor::input::DEFAULT_TRAIN_MIN
     );
     Ok((range, Some((all, starts))))
 }

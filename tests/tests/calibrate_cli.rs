@@ -81,14 +81,14 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
     let (ok, err) = calibrate(&["--data", dir.path().to_str().unwrap(), "--out", out]);
     assert!(!ok && err.contains("--cell"), "{err}");
 
-    // Without --train-cycles a cell trains on the first third of its discharges (at most 40), so a short
-    // life still leaves cycles to judge: 8 discharges, 1..2.
+    // Without --train-cycles a cell trains on the first third of its discharges (at most 40, at least 4
+    // while one is left to judge), so a short life still leaves cycles to judge: 8 discharges, 1..4.
     let shown = Command::new(bcal_tests::bin("bcal"))
         .args(["calibrate", "--data", data, "--print-train-cycles"])
         .output()
         .unwrap();
     assert!(shown.status.success(), "{}", String::from_utf8_lossy(&shown.stderr));
-    assert_eq!(String::from_utf8_lossy(&shown.stdout), "1..2\n");
+    assert_eq!(String::from_utf8_lossy(&shown.stdout), "1..4\n");
     // A NASA folder whose metadata names records that are not there: refused, saying so, not "judge fewer".
     let nasa = dir.path().join("nasa");
     std::fs::create_dir_all(nasa.join("data")).unwrap();
