@@ -53,10 +53,8 @@ pub const DEFAULT_TRAIN_MIN: usize = 4;
 /// still leaves two thirds to judge, and at least [`DEFAULT_TRAIN_MIN`] while one is left to judge (a
 /// life of 8: 1..4). Refused, saying so, for a cell with fewer than 2 discharges.
 pub fn default_train_cycles(cell: &str, all: &[Discharge]) -> Result<RangeInclusive<u32>, DoctorError> {
-    let mut cycles: Vec<u32> = all.iter().map(|d| d.cycle).collect();
-    cycles.sort_unstable();
-    cycles.dedup();
-    let k = (cycles.len() / 3).max(DEFAULT_TRAIN_MIN.min(cycles.len().saturating_sub(1))).min(DEFAULT_TRAIN_MAX);
+    let cycles = distinct_cycles(all);
+    let k = default_train_len(cycles.len());
     if cycles.is_empty() {
         return Err(DoctorError::NothingSelected {
             why: format!("{cell} has no readable discharge (the reader's lines above say what was missing or refused)"),
@@ -72,6 +70,19 @@ pub fn default_train_cycles(cell: &str, all: &[Discharge]) -> Result<RangeInclus
         });
     }
     Ok(cycles[0]..=cycles[k - 1])
+}
+
+/// How many of a life's `n` discharges [`default_train_cycles`] trains on.
+fn default_train_len(n: usize) -> usize {
+    (n / 3).max(DEFAULT_TRAIN_MIN.min(n.saturating_sub(1))).min(DEFAULT_TRAIN_MAX)
+}
+
+/// The cycle numbers of `all`, sorted, each once.
+fn distinct_cycles(all: &[Discharge]) -> Vec<u32> {
+    let mut cycles: Vec<u32> = all.iter().map(|d| d.cycle).collect();
+    cycles.sort_unstable();
+    cycles.dedup();
+    cycles
 }
 
 /// Fewest training cycles [`cycle_ranges`] splits 3:1 by default (`launch/run.sh --cell` asks as many).
@@ -95,10 +106,8 @@ pub fn cycle_ranges(
         (Some(c), None) => (c.clone(), c.end() + 1..=last),
         (None, Some(h)) => (first..=h.start().saturating_sub(1).max(first), h),
         (None, None) => {
-            let mut cycles: Vec<u32> = all.iter().map(|d| d.cycle).collect();
-            cycles.sort_unstable();
-            cycles.dedup();
-            let k = default_train_cycles("", all).map_or(0, |r| cycles.iter().filter(|c| r.contains(c)).count());
+            let cycles = distinct_cycles(all);
+            let k = default_train_len(cycles.len());
             if k >= MIN_DEFAULT_SPLIT {
                 let fit = k * 3 / 4;
                 (cycles[0]..=cycles[fit - 1], cycles[fit]..=cycles[k - 1])

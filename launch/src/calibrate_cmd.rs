@@ -346,7 +346,8 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         let last = train.iter().map(|d| d.cycle).max().unwrap_or(0);
         bail!(
             "{cell}: no discharge to judge in cycles {} (its discharges end at cycle {last}, within --train-cycles {}); \
-             give fewer training cycles, e.g. --train-cycles 1..{} (the first third)",
+             give fewer training cycles, e.g. --train-cycles 1..{} (the first third), or leave --train-cycles out \
+             for the cell's default",
             shown(&judged_range),
             shown(&train_range),
             (last / 3).max(2)
