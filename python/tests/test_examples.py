@@ -53,3 +53,34 @@ def test_eod_by_age_scores_each_discharge_as_calibrate_does(tmp_path):
     # rl: |1030 - 1010| / 1000 = 2 %, |1011 - 1010| = 0.1 %; ukf: 1 %, 4 %.
     assert "41-80: 2.00 against 1.00 %, better on 0 of 1" in out, out
     assert "81-120: 0.10 against 4.00 %, better on 1 of 1" in out, out
+
+
+def test_previous_discharge_signal_recovers_the_slope_it_was_made_with(tmp_path):
+    """A hand-made NASA folder whose discharges last 3000 s plus 5000 s per volt their voltage reads above
+    the discharge before at the same time: the slope comes back, the corrected ends are exact, and the
+    duration carried as it is misses by the change."""
+    import random
+
+    rng = random.Random(7)
+    (tmp_path / "data").mkdir()
+    meta = ["type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct"]
+    for k in range(1, 15):
+        offset_v = 0.002 * rng.randint(-5, 5)
+        duration_s = 3000.0 + 5000.0 * offset_v  # a multiple of 10 s: a reading lands on the crossing
+        knee_s = duration_s - 100.0
+        knee_v = 4.0 + offset_v - 0.0005 * knee_s
+        rows = ["Voltage_measured,Current_measured,Temperature_measured,Current_load,Voltage_load,Time",
+                "4.2,0.0,24.0,0.0,0.0,0.0"]
+        for step in range(0, int(duration_s) // 10 + 2):
+            t = 10.0 * step
+            v = 4.0 + offset_v - 0.0005 * t if t <= knee_s else knee_v + (2.5 - knee_v) * (t - knee_s) / 100.0
+            rows.append(f"{v:.6f},-2.0,24.0,2.0,{v:.6f},{t + 10.0}")
+        (tmp_path / "data" / f"{k:05d}.csv").write_text("\n".join(rows) + "\n")
+        meta.append(f"discharge,[2010. 1. 1. 0. 0. 0.],24,B0000,{k},{k},{k:05d}.csv,1.6,,")
+    (tmp_path / "metadata.csv").write_text("\n".join(meta) + "\n")
+    out = run_example("previous_discharge_signal.py", "--data", str(tmp_path), "--cell", "B0000", "--cutoff-v",
+                      "2.5", "--train-cycles", "1..8")
+    assert "slope 5000 s/V" in out, out
+    assert "corrected 0.00 / 0.00 %" in out, out
+    carried = float(out.split("carried ")[-1].split(" /")[0])
+    assert carried > 0.2, out
