@@ -30,6 +30,8 @@ REPO = pathlib.Path(__file__).resolve().parent.parent
 HEADER = "time_s,voltage_v,current_a,temperature_c\n"
 # Scored predictions at half a discharge that were the prior alone's (the stream's gate), one entry each.
 PRIOR_SERVED: list = []
+# The same for the calibrator's own prediction recentred on its bias over the last discharges.
+RECENTRED_SERVED: list = []
 
 
 def find_bcal() -> str:
@@ -106,6 +108,8 @@ def eod_error_pct(rows: list, est: list, cutoff_v: float, fraction: float = 0.5)
     p, lo, hi = est[k]["eod_s"], est[k].get("eod_lo_s"), est[k].get("eod_hi_s")
     if est[k].get("eod_from_prior") and fraction == 0.5:
         PRIOR_SERVED.append(True)
+    if est[k].get("eod_recentred") and fraction == 0.5:
+        RECENTRED_SERVED.append(True)
     # Whether the interval held the end, and its width (hi - lo) in % of the time to the end.
     held = None if lo is None or hi is None else (lo <= eod <= hi, 100.0 * (hi - lo) / (eod - t_on))
     return (None if p is None else 100.0 * (p - eod) / (eod - t_on)), held
@@ -179,7 +183,8 @@ def main() -> None:
               f"{held} as one stream, {fmt(alone[-1][0])} % alone")
     served = len(PRIOR_SERVED)
     summary(f"{a.cell} {a.cycles}, {a.kind}, one stream", joined, joined_at)
-    print(f"  (the prior alone predicted at half of {served} of the {len(records)} discharges)")
+    print(f"  (the prior alone predicted at half of {served} of the {len(records)} discharges, the calibrator's own "
+          f"recentred on its bias at half of {len(RECENTRED_SERVED)})")
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone, alone_at)
 
 

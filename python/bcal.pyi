@@ -63,6 +63,11 @@ class Estimate(TypedDict):
     """Whether eod_s is the prior alone's prediction (the estimate the discharge started from, never moved
     by its readings): where the prior beat the calibrator on at least 8 of the last 10 discharges followed
     to the cut-off and in their mean, except after a rest of more than a day."""
+    eod_recentred: bool
+    """Whether eod_s is the calibrator's own prediction moved by its median signed error at this share of
+    the discharge over the last 10 discharges followed to the cut-off: where that beat the calibrator's own
+    on at least 8 of them and in their mean, except where the prior alone predicts or after a rest of more
+    than a day."""
     discharge: int
     """The discharge the reading belongs to, from 0: a new one after a charge or a gap of more than
     half an hour, started from what the last one told (the charge its end measured where it reached

@@ -28,6 +28,7 @@ pub mod env;
 pub mod eod;
 pub mod joint_ukf;
 pub mod prior_width;
+pub mod recentre;
 pub mod rescue;
 pub mod stream;
 pub mod tracker;

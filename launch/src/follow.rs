@@ -482,6 +482,20 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
             held.join(", ")
         ));
     }
+    let moved: Vec<String> = bcal_calib::widening::EOD_FRACTIONS_PCT
+        .iter()
+        .zip(stream.recentred_serves())
+        .zip(stream.prior_serves())
+        .filter(|((_, on), prior)| *on && !*prior)
+        .map(|((f, _), _)| format!("{f} %"))
+        .collect();
+    if !moved.is_empty() {
+        s.push_str(&format!(
+            "; its own prediction moved by its median error over the last 10 discharges gives the end at {} of a \
+             discharge (it beat the unmoved one there on at least 8 of them)",
+            moved.join(", ")
+        ));
+    }
     if let Some(e) = last {
         s.push_str(&format!(
             "; last estimate at {} s: q_mobile {:.1} C, r_o {:.5} ohm, EOD {}{}",

@@ -82,12 +82,13 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
     d.set_item("eod_lo_s", e.eod_lo_s)?;
     d.set_item("eod_hi_s", e.eod_hi_s)?;
     d.set_item("eod_from_prior", e.eod_from_prior)?;
+    d.set_item("eod_recentred", e.eod_recentred)?;
     d.set_item("discharge", e.discharge)?;
     Ok(d)
 }
 
 /// The columns `run` returns, in order.
-const RUN_COLUMNS: [&str; 14] = [
+const RUN_COLUMNS: [&str; 15] = [
     "time_s",
     "q_mobile",
     "q_mobile_lo",
@@ -100,6 +101,7 @@ const RUN_COLUMNS: [&str; 14] = [
     "eod_lo_s",
     "eod_hi_s",
     "eod_from_prior",
+    "eod_recentred",
     "discharge",
     "row",
 ];
@@ -184,7 +186,8 @@ impl Calibrator {
     /// `r_o_lo`, `r_o_hi`, `eod_s` (predicted end of discharge, absolute time, s, at `eod_current_a`: the
     /// mean discharge current so far), `eod_lo_s`, `eod_hi_s` (its 90 % interval, learned from the
     /// stream's own discharges followed to the cut-off: from the ninth on), `eod_from_prior` (the prediction
-    /// is the prior alone's, where it beat the calibrator on 8 of the last 10 discharges) and `discharge` (from 0: a new
+    /// is the prior alone's, where it beat the calibrator on 8 of the last 10 discharges), `eod_recentred` (the
+    /// calibrator's own moved by its median error over the last 10, where that beat it on 8 of them) and `discharge` (from 0: a new
     /// one after a charge or a gap of more than half an hour, started from what the last one told: the charge its end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
     /// A reading that is not finite, not a cell's voltage or not later than the last raises ValueError and
@@ -280,6 +283,7 @@ impl Calibrator {
                     opt(e.eod_lo_s),
                     opt(e.eod_hi_s),
                     f64::from(u8::from(e.eod_from_prior)),
+                    f64::from(u8::from(e.eod_recentred)),
                     f64::from(e.discharge),
                     k as f64,
                 ];

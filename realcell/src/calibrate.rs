@@ -636,8 +636,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                    entry: &mut serde_json::Value,
                    widenings: &mut serde_json::Map<String, serde_json::Value>,
                    runs: &mut Vec<(&'static str, Vec<CycleRun>)>| {
-        let alone = MethodEntry::new(key, score(&judged, &r.judged));
-        let (mut held, gate) = tune::gate_runs(&prior_runs, &r, &validation, &judged);
+        let own_score = score(&judged, &r.judged);
+        let (own, recentred) = crate::recentre::serve(&r, &validation, &judged);
+        entry["recentred"] = serde_json::json!({"cycles": served_cycles(&judged, &recentred),
+            "own_signed_pct": own_score.eod_signed_pct});
+        let alone = MethodEntry::new(key, own_score);
+        let (mut held, gate) = tune::gate_runs_onto(&prior_runs, &r, &own, &validation, &judged);
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
         let w = calibrate_intervals(&hist, &judged, &mut held.judged);
         widenings.insert(key.into(), serde_json::to_value(&w).unwrap_or_default());
@@ -910,9 +914,10 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         }),
     ));
     settings.insert("uncalibrated".into(), serde_json::to_value(Degradation::default()).unwrap_or_default());
+    let mut recentrings = serde_json::Map::new();
     for (key, pin) in &references {
         // The prior's runs were made for the streaming calibrators' hold: not run twice.
-        let (hist_runs, mut r) = if *key == "prior" {
+        let (hist_runs, r) = if *key == "prior" {
             (prior_runs.validation.clone(), prior_runs.judged.clone())
         } else {
             (
@@ -920,7 +925,17 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 pinned(&|b, r, k| pin(b, r, k, true), &judged, &judged_ref_before),
             )
         };
-        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&hist_runs).collect();
+        // A new cell's model knows nothing of this cell: it learns nothing from its record either.
+        let own = if *key == "uncalibrated" {
+            tune::Runs { validation: hist_runs, judged: r }
+        } else {
+            let (own, recentred) =
+                crate::recentre::serve(&tune::Runs { validation: hist_runs, judged: r }, &validation, &judged);
+            recentrings.insert(key.to_string(), served_cycles(&judged, &recentred));
+            own
+        };
+        let mut r = own.judged;
+        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&own.validation).collect();
         let w = calibrate_intervals(&hist, &judged, &mut r);
         widenings.insert(key.to_string(), serde_json::to_value(&w).unwrap_or_default());
         runs.push((key, r));
@@ -932,6 +947,18 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             narrowest pair covering 90 % (split-conformal rank) of the method's scored predictions on the last \
             `window` discharges that had ended (validation cycles first)", "window": crate::interval::WINDOW,
             "per_discharge": widenings}),
+    );
+    settings.insert(
+        "recentred".into(),
+        serde_json::json!({"what": format!("each method's predicted end of discharge, and its interval, moved by \
+            the median of its signed relative errors at that share of the discharge (10 / 50 / 90 %) over the \
+            last {} discharges that had ended (validation cycles first), served at a share of a judged discharge \
+            where it beat the method's own predictions on at least {:.0} % of the last {} and in their mean, never \
+            after a rest of more than a day (judged cycles served, per share: under each streaming calibrator's \
+            `recentred.cycles`, beside its own predictions' signed errors, and here for the references; not \
+            `uncalibrated`, a new cell's model that learns nothing of this one)", crate::interval::WINDOW,
+            tune::MIN_WIN_SHARE * 100.0, tune::GATE_WINDOW),
+            "references": recentrings}),
     );
     let train_capacities: Vec<(u32, f64)> = train
         .iter()

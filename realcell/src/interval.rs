@@ -46,7 +46,7 @@ fn own_halves(p: &Predicted) -> Option<(f64, f64, f64)> {
 }
 
 /// The scored predictions of one finished discharge: (end of discharge, capacity against the data).
-fn outcomes(r: &CellRecord, run: &CycleRun) -> (Vec<Outcome>, Vec<Outcome>) {
+pub(crate) fn outcomes(r: &CellRecord, run: &CycleRun) -> (Vec<Outcome>, Vec<Outcome>) {
     let (mut eod, mut cap) = (Vec::new(), Vec::new());
     let step = |f: u32| r.reading_at_fraction(f64::from(f) / 100.0).and_then(|k| run.steps.get(k));
     if let Some(m) = r.eod_s {

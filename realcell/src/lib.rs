@@ -12,6 +12,7 @@ pub mod cellspec;
 pub mod interval;
 pub mod predict;
 pub mod prior;
+pub mod recentre;
 pub mod record;
 pub mod recorded;
 pub mod report;

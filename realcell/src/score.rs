@@ -68,6 +68,22 @@ fn quantiles(mut v: Vec<f64>) -> Quantiles {
     Quantiles { n, median: q(0.5), p90: q(0.9), mean }
 }
 
+/// Signed end-of-discharge errors, % of the duration: a steady sign is a bias the method's own record shows
+/// ([`crate::recentre`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Signed {
+    pub n: usize,
+    /// Median of predicted - measured, %.
+    pub median: f64,
+    /// Predictions that came late (after the measured end).
+    pub late: usize,
+}
+
+fn signed(mut v: Vec<f64>) -> Signed {
+    let late = v.iter().filter(|x| **x > 0.0).count();
+    Signed { n: v.len(), median: bcal_common::stats::median(&mut v).unwrap_or(f64::NAN), late }
+}
+
 /// One method's scores.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct MethodScore {
@@ -79,6 +95,8 @@ pub struct MethodScore {
     pub eod_error_s: BTreeMap<String, Quantiles>,
     /// The same in % of each discharge's duration (load-on to cut-off).
     pub eod_error_pct: BTreeMap<String, Quantiles>,
+    /// Their sign: how the predicted ends lie against the measured ones, by fraction.
+    pub eod_signed_pct: BTreeMap<String, Signed>,
     /// Predictions whose 90 % interval holds the measurement, % (None without intervals).
     pub coverage_90_pct: BTreeMap<String, Option<f64>>,
     /// Predictions that failed (the model never reached the cut-off within the horizon).
@@ -165,7 +183,7 @@ fn score_flat(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
         s.capacity_vs_data.insert(f.to_string(), errors(&data));
     }
     for f in EOD_FRACTIONS_PCT {
-        let (mut abs_s, mut abs_pct) = (Vec::new(), Vec::new());
+        let (mut abs_s, mut abs_pct, mut signed_pct) = (Vec::new(), Vec::new(), Vec::new());
         for (r, run) in records.iter().zip(runs) {
             let (Some(eod), Some(dur), Some(k)) =
                 (r.eod_s, r.discharge_s(), r.reading_at_fraction(f64::from(f) / 100.0))
@@ -179,6 +197,7 @@ fn score_flat(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
             };
             abs_s.push((v - eod).abs());
             abs_pct.push(100.0 * (v - eod).abs() / dur.max(1.0));
+            signed_pct.push(100.0 * (v - eod) / dur.max(1.0));
             if let (Some(lo), Some(hi)) = (p.lo, p.hi) {
                 eod_n += 1;
                 eod_in += usize::from(lo <= eod && eod <= hi);
@@ -186,6 +205,7 @@ fn score_flat(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
         }
         s.eod_error_s.insert(f.to_string(), quantiles(abs_s));
         s.eod_error_pct.insert(f.to_string(), quantiles(abs_pct));
+        s.eod_signed_pct.insert(f.to_string(), signed(signed_pct));
     }
     let pct = |a: usize, n: usize| (n > 0).then(|| 100.0 * a as f64 / n as f64);
     s.coverage_90_pct.insert("eod".into(), pct(eod_in, eod_n));
@@ -251,6 +271,9 @@ mod tests {
         assert!((s.capacity_vs_data["50"].rmse_pct - 20.0).abs() < 1e-9);
         assert_eq!(s.eod_error_s["90"].median, 50.0);
         assert!((s.eod_error_pct["10"].p90 - 5.0).abs() < 1e-12);
+        // Late, not early: the sign is kept.
+        assert_eq!((s.eod_signed_pct["50"].n, s.eod_signed_pct["50"].late), (1, 1));
+        assert!((s.eod_signed_pct["50"].median - 5.0).abs() < 1e-12);
         assert_eq!(s.coverage_90_pct["eod"], Some(100.0));
         // 1.0 Ah measured lies outside [1.1, 1.3].
         assert_eq!(s.coverage_90_pct["capacity"], Some(0.0));

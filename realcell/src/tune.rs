@@ -137,6 +137,19 @@ pub type Served = [Vec<bool>; EOD_FRACTIONS_PCT.len()];
 /// ended before. Each calibrator runs every discharge from its own prior, so choosing after the fact is
 /// what running the gate live would give.
 pub fn gate_runs(alt: &Runs, base: &Runs, validation: &[CellRecord], judged: &[CellRecord]) -> (Runs, Served) {
+    gate_runs_onto(alt, base, base, validation, judged)
+}
+
+/// [`gate_runs`] decided against `base` and composed onto `onto` (the same readings): the prior alone is
+/// judged against a calibrator's own predictions and served in place of them as delivered (recentred where
+/// that serves, [`crate::recentre`]), as a live stream does.
+pub fn gate_runs_onto(
+    alt: &Runs,
+    base: &Runs,
+    onto: &Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+) -> (Runs, Served) {
     let mut val_gates: Served = Default::default();
     let mut gates: Served = Default::default();
     let rested = |records: &[CellRecord]| -> Vec<bool> { records.iter().map(CellRecord::after_long_rest).collect() };
@@ -150,8 +163,8 @@ pub fn gate_runs(alt: &Runs, base: &Runs, validation: &[CellRecord], judged: &[C
         gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &judged_rested);
     }
     let runs = Runs {
-        validation: compose(validation, &val_gates, &alt.validation, &base.validation),
-        judged: compose(judged, &gates, &alt.judged, &base.judged),
+        validation: compose(validation, &val_gates, &alt.validation, &onto.validation),
+        judged: compose(judged, &gates, &alt.judged, &onto.judged),
     };
     (runs, gates)
 }
