@@ -904,6 +904,37 @@ mod tests {
         assert!(at_4a < at_2a, "{at_4a} vs {at_2a}");
     }
 
+    /// `n` discharges of a cycler's protocol (a constant 2 A after a 30 s rest, read every 10-20 s) joined
+    /// end to end, `cell(k, spec)` setting discharge k's cell. Each ends where the cell's true voltage
+    /// crossed 3.0 V: its last reading reads it. The readings and where each discharge starts, the end last.
+    fn cycler_life(n: u64, cell: impl Fn(u64, EpisodeSpec) -> EpisodeSpec) -> (Vec<Reading>, Vec<usize>) {
+        let cfg = ScenarioConfig::default();
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(4);
+        let first = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
+        let (mut readings, mut starts) = joined(
+            &cfg,
+            (0..n).map(|k| {
+                cell(
+                    k,
+                    EpisodeSpec {
+                        noise_seed: first.noise_seed + k,
+                        kind: LoadKind::ConstantCurrent,
+                        profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (30.0, Load::CurrentA(2.0))]),
+                        rest_s: 30.0,
+                        interval_s: [10.0, 20.0],
+                        ..first.clone()
+                    },
+                )
+            }),
+        );
+        starts.push(readings.len());
+        for end in &starts[1..] {
+            let last = &mut readings[end - 1];
+            last.voltage_v = last.voltage_v.min(2.99);
+        }
+        (readings, starts)
+    }
+
     /// Simulated discharges joined end to end, each 3 h after the last one's final reading (the charges
     /// between them unseen): the readings and where each discharge starts.
     fn joined(cfg: &ScenarioConfig, specs: impl IntoIterator<Item = EpisodeSpec>) -> (Vec<Reading>, Vec<usize>) {
@@ -1182,30 +1213,12 @@ mod tests {
     /// both) it predicts where it beat the filter on at least 8 of the last 10; never before.
     #[test]
     fn the_prior_alone_predicts_where_it_has_beaten_the_calibrator() {
-        let cfg = ScenarioConfig::default();
-        let mut rng = rand::rngs::SmallRng::seed_from_u64(4);
-        let first = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
-        // A cycler's protocol: a constant 2 A after a 30 s rest, read every 10-20 s.
-        let (mut readings, mut starts) = joined(
-            &cfg,
-            (0..14u64).map(|k| EpisodeSpec {
-                soc0: 0.85 + 0.01 * (k % 10) as f64,
-                noise_seed: first.noise_seed + k,
-                kind: LoadKind::ConstantCurrent,
-                profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (30.0, Load::CurrentA(2.0))]),
-                rest_s: 30.0,
-                interval_s: [10.0, 20.0],
-                // What the doctor finds in B0005: the electrodes' balance shifted, slower charge transfer.
-                cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
-                ..first.clone()
-            }),
-        );
-        starts.push(readings.len());
-        // Each episode ends where the cell's true voltage crossed 3.0 V: its last reading reads it.
-        for end in &starts[1..] {
-            let last = &mut readings[end - 1];
-            last.voltage_v = last.voltage_v.min(2.99);
-        }
+        let (readings, starts) = cycler_life(14, |k, spec| EpisodeSpec {
+            soc0: 0.85 + 0.01 * (k % 10) as f64,
+            // What the doctor finds in B0005: the electrodes' balance shifted, slower charge transfer.
+            cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
+            ..spec
+        });
         let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         let mut stream = Stream::of(&setup, None, None).unwrap();
         let mut served_from = None;
@@ -1234,28 +1247,11 @@ mod tests {
     /// readings reach.
     #[test]
     fn a_steady_bias_is_recentred_once_it_has_earned_it() {
-        let cfg = ScenarioConfig::default();
-        let mut rng = rand::rngs::SmallRng::seed_from_u64(4);
-        let first = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
-        let (mut readings, mut starts) = joined(
-            &cfg,
-            (0..20u64).map(|k| EpisodeSpec {
-                truth: Degradation { q_mobile_c: 7600.0 * (1.0 - 0.015 * k as f64), ..Degradation::default() },
-                soc0: 1.0,
-                noise_seed: first.noise_seed + k,
-                kind: LoadKind::ConstantCurrent,
-                profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (30.0, Load::CurrentA(2.0))]),
-                rest_s: 30.0,
-                interval_s: [10.0, 20.0],
-                ..first.clone()
-            }),
-        );
-        starts.push(readings.len());
-        // Each episode ends where the cell's true voltage crossed 3.0 V: its last reading reads it.
-        for end in &starts[1..] {
-            let last = &mut readings[end - 1];
-            last.voltage_v = last.voltage_v.min(2.99);
-        }
+        let (readings, starts) = cycler_life(20, |k, spec| EpisodeSpec {
+            truth: Degradation { q_mobile_c: 7600.0 * (1.0 - 0.015 * k as f64), ..Degradation::default() },
+            soc0: 1.0,
+            ..spec
+        });
         let setup = resolve(CalibratorKind::Uncalibrated, None, None, None).unwrap();
         let mut stream = Stream::of(&setup, None, None).unwrap();
         let mut served_from = None;
