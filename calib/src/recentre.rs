@@ -23,16 +23,23 @@ pub fn signed_error(o: &Outcome) -> f64 {
 pub fn biases(ended: &[Vec<Outcome>]) -> [Option<f64>; 3] {
     let recent = &ended[ended.len().saturating_sub(WINDOW)..];
     std::array::from_fn(|b| {
-        let mut e: Vec<f64> =
-            recent.iter().flatten().filter(|o| o.fraction == EOD_FRACTIONS_PCT[b]).map(signed_error).collect();
+        let mut e: Vec<f64> = recent
+            .iter()
+            .flatten()
+            .filter(|o| o.fraction == EOD_FRACTIONS_PCT[b])
+            .map(signed_error)
+            .filter(|e| e.is_finite())
+            .collect();
         bcal_common::stats::median(&mut e)
     })
 }
 
 /// The shift, s, that recentres a predicted end `eod_s` made at `t_s` of a discharge loaded at
 /// `load_on_s` under `biases` (to be added to the prediction and its bounds; 0 without a bias at its share).
+/// The recentred end is never before `t_s`: the discharge is still running when the prediction is made.
 pub fn shift_s(biases: &[Option<f64>; 3], load_on_s: f64, t_s: f64, eod_s: f64) -> f64 {
-    biases[share_bin(load_on_s, t_s, eod_s)].map_or(0.0, |bias| -bias * (eod_s - load_on_s).max(1.0))
+    biases[share_bin(load_on_s, t_s, eod_s)]
+        .map_or(0.0, |bias| (-bias * (eod_s - load_on_s).max(1.0)).max((t_s - eod_s).min(0.0)))
 }
 
 #[cfg(test)]
@@ -64,5 +71,12 @@ mod tests {
         let only_half = biases(&[vec![outcome(50, 1010.0, 1000.0)]]);
         assert!(only_half[0].is_none() && only_half[2].is_none());
         assert_eq!(shift_s(&only_half, 0.0, 100.0, 2000.0), 0.0);
+        // Near its end a late method's recentred end would fall before the reading: it stops at the reading.
+        let s = shift_s(&b, 0.0, 2015.0, 2020.0);
+        assert!((2020.0 + s - 2015.0).abs() < 1e-9, "recentred {}", 2020.0 + s);
+        // A record holding a non-finite error (a degenerate discharge) leaves the bias finite.
+        let mut nan = vec![vec![outcome(50, f64::NAN, 1000.0)]];
+        nan.push(vec![outcome(50, 1010.0, 1000.0)]);
+        assert!((biases(&nan)[1].unwrap() - 10.0 / 1010.0).abs() < 1e-12);
     }
 }

@@ -702,7 +702,8 @@ impl<'a> Stream<'a> {
     /// reading below the cut-off, scores the discharge's predictions at each share of it against the
     /// interpolated crossing, learns the EOD intervals again from the last [`WINDOW`] scored discharges (a
     /// discharge's own interval is never set by its own outcome: a prediction is made before its end is
-    /// known), and decides again at which shares the prior alone predicts.
+    /// known), learns the calibrator's bias per share again, and decides again at which shares the prior
+    /// alone and the recentred twin predict.
     fn track_eod(&mut self, r: &Reading, eod_s: [Option<f64>; 3]) {
         let t = &mut self.eod_track;
         if r.current_a <= LOAD_THRESHOLD_A || t.ended_s.is_some() {

@@ -75,11 +75,13 @@ mod tests {
 
     /// A method 3 s late on every discharge, with a wiggle of +-1 s: once a window of recentred predictions
     /// has beaten its own, each discharge is served within the wiggle of the measured end, its interval
-    /// moved with it; before that, its own predictions.
+    /// moved with it; before that, its own predictions. Never right after a rest of more than a day.
     #[test]
     fn a_steady_bias_is_served_recentred_once_it_has_earned_it() {
         let wiggle = |k: usize| if k.is_multiple_of(2) { 1.0 } else { -1.0 };
-        let (records, runs) = sequence(40, |k| 3.0 + wiggle(k));
+        let (mut records, runs) = sequence(40, |k| 3.0 + wiggle(k));
+        // Judged discharge 5 follows a rest of two days.
+        records[12 + 5].rest_before_s = Some(2.0 * 86_400.0);
         let (val, judged) = records.split_at(12);
         let runs = Runs { validation: runs.judged[..12].to_vec(), judged: runs.judged[12..].to_vec() };
         let (served, gates) = serve(&runs, val, judged);
@@ -88,13 +90,16 @@ mod tests {
             if gates[1][k] {
                 let (v, lo, hi) = (p.value.unwrap(), p.lo.unwrap(), p.hi.unwrap());
                 assert!((v - 100.0).abs() <= 2.0 + 1e-9, "judged {k}: recentred {v}");
-                assert!((hi - lo - 10.0).abs() < 1e-9);
+                assert!((lo - (v - 5.0)).abs() < 1e-9 && (hi - (v + 5.0)).abs() < 1e-9, "{lo} {v} {hi}");
             } else {
                 assert_eq!(p, eod_at_half(&runs.judged[k]));
             }
         }
-        // Validation alone holds 12 discharges: the gate opens within it, so every judged one is served.
-        assert!(gates[1].iter().all(|g| *g), "{:?}", gates[1]);
+        // Validation alone holds 12 discharges: the gate opens within it, so every judged one is served at
+        // every share, except the one after the long rest.
+        for g in &gates {
+            assert!(g.iter().enumerate().all(|(k, s)| *s == (k != 5)), "{g:?}");
+        }
     }
 
     /// A bias that flips sign from one discharge to the next (late 4 s, then early 2 s): the median of

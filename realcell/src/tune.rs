@@ -163,29 +163,37 @@ pub fn gate_runs_onto(
         gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &judged_rested);
     }
     let runs = Runs {
-        validation: compose(validation, &val_gates, &alt.validation, &onto.validation),
-        judged: compose(judged, &gates, &alt.judged, &onto.judged),
+        validation: compose(validation, &val_gates, &alt.validation, &onto.validation, &base.validation),
+        judged: compose(judged, &gates, &alt.judged, &onto.judged, &base.judged),
     };
     (runs, gates)
 }
 
-/// Each discharge's readings from `alt` where its share's gate serves it, else from `base` (the same
-/// readings, so the steps pair up).
-fn compose(records: &[CellRecord], gates: &Served, alt: &[CycleRun], base: &[CycleRun]) -> Vec<CycleRun> {
+/// Each discharge's readings from `alt` where its share's gate serves it, else from `onto` (the same
+/// readings, so the steps pair up). A reading's share is the one `by`'s prediction puts it at (the
+/// calibrator's own, which the gate was decided against), as in a live stream.
+fn compose(
+    records: &[CellRecord],
+    gates: &Served,
+    alt: &[CycleRun],
+    onto: &[CycleRun],
+    by: &[CycleRun],
+) -> Vec<CycleRun> {
     records
         .iter()
-        .zip(alt.iter().zip(base))
+        .zip(alt.iter().zip(onto).zip(by))
         .enumerate()
-        .map(|(k, (r, (a, o)))| {
-            if gates.iter().all(|g| !g[k]) || a.steps.len() != o.steps.len() {
+        .map(|(k, (r, ((a, o), b)))| {
+            if gates.iter().all(|g| !g[k]) || a.steps.len() != o.steps.len() || b.steps.len() != o.steps.len() {
                 return o.clone();
             }
             let steps = a
                 .steps
                 .iter()
                 .zip(&o.steps)
-                .map(|(sa, so)| {
-                    let bin = so.eod.value.map_or(0, |v| share_bin(r.load_on_s, so.t_s, v));
+                .zip(&b.steps)
+                .map(|((sa, so), sb)| {
+                    let bin = sb.eod.value.map_or(0, |v| share_bin(r.load_on_s, sb.t_s, v));
                     if gates[bin][k] {
                         sa.clone()
                     } else {
@@ -351,6 +359,37 @@ mod tests {
         }
         // Along the validation cycles themselves nothing ended before the first: the filter throughout.
         assert!(runs.validation.iter().zip(&fv).all(|(a, b)| a.steps[50].eod.value == b.steps[50].eod.value));
+    }
+
+    /// Composed onto other runs (the recentred ones), a reading's share is still the one the calibrator's
+    /// own prediction, which the gate was decided against, puts it at.
+    #[test]
+    fn a_gate_composed_onto_other_runs_reads_the_share_off_the_calibrators_own_prediction() {
+        let policy = |t: f64| if (30.0..=70.0).contains(&t) { 101.0 } else { 110.0 };
+        let filter = |_: f64| 102.0;
+        // Onto runs whose end is far out: by them, every reading would sit in the first tenth.
+        let far = |_: f64| 1000.0;
+        let build = |cycles: std::ops::Range<u32>, f: &dyn Fn(f64) -> f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles.map(|c| discharge(c, f)).unzip()
+        };
+        let (validation, pv) = build(1..11, &policy);
+        let (_, fv) = build(1..11, &filter);
+        let (_, ov) = build(1..11, &far);
+        let (judged, pj) = build(11..14, &policy);
+        let (_, fj) = build(11..14, &filter);
+        let (_, oj) = build(11..14, &far);
+        let (runs, served) = gate_runs_onto(
+            &Runs { validation: pv, judged: pj.clone() },
+            &Runs { validation: fv, judged: fj },
+            &Runs { validation: ov, judged: oj.clone() },
+            &validation,
+            &judged,
+        );
+        assert_eq!(served, [vec![false; 3], vec![true; 3], vec![false; 3]]);
+        for (k, r) in runs.judged.iter().enumerate() {
+            assert_eq!(r.steps[50].eod.value, pj[k].steps[50].eod.value, "judged {k}: served at half");
+            assert_eq!(r.steps[5].eod.value, oj[k].steps[5].eod.value, "judged {k}: onto at a tenth");
+        }
     }
 
     /// A discharge cut short before the cut-off leaves the gate's window untouched, and one after a rest of
