@@ -355,6 +355,12 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     }
     // Read off the training records only, as cell-config does: the judged ones are not looked at.
     let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &data, &cell, &train)?;
+    // The rests between discharges, from every record read: a record left out by --stride still ends the
+    // rest before the next one.
+    let rests = {
+        let all: Vec<&bcal_doctor::Discharge> = train.iter().chain(&judged).collect();
+        bcal_realcell::prior::rests_before(&all, &starts)
+    };
     if a.stride > 1 {
         let first = judged.first().map_or(0, |d| d.cycle);
         judged.retain(|d| (d.cycle - first) % a.stride == 0);
@@ -402,6 +408,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         ukf_grid: if a.quick { JointUkfGrid::real_cells_quick() } else { JointUkfGrid::real_cells() },
         model,
         starts,
+        rests: Some(rests),
     };
     let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
     cal.report.seconds = started.elapsed().as_secs_f64();

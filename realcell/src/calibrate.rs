@@ -65,6 +65,10 @@ pub struct CalibrateInput<'a> {
     /// When each record started (the reader's [`bcal_doctor::read::ReadReport::starts`]): the rests between
     /// discharges. Empty: rests unknown (the priors' widths then do not depend on them).
     pub starts: Vec<RecordStart>,
+    /// The rest before each discharge, s, when the caller knows more records than it passes (`--stride`
+    /// leaves judged records out, and each still ends the rest before the next); None: from `starts` and
+    /// the records given ([`crate::prior::rests_before`]).
+    pub rests: Option<BTreeMap<u32, f64>>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -108,6 +112,49 @@ fn prepare_all(ds: &[Discharge], cutoff_v: f64, summary: &mut RecordSummary) -> 
         }
     }
     (out, kept)
+}
+
+/// Fewer loaded samples than this, settled after a load step and above the fit's voltage floor, leave a
+/// record's offline fit undetermined (the protocol-wide check in [`fits`] uses the same count).
+const MIN_FIT_SAMPLES: usize = 5;
+
+/// How many of `d`'s samples the offline fit can use.
+fn fit_samples(d: &Discharge, cfg: &FitConfig) -> usize {
+    d.windows(cfg.load_threshold_a, cfg.v_floor_v).map_or(0, |w| FitRecord::new(d, w, cfg).used.len())
+}
+
+/// Leaves out, one by one and each named, the prepared records the offline fit cannot use (a discharge
+/// that starts from a partial charge below the fit's voltage floor, one cut short within seconds of its load
+/// step), unless none could be used: then [`fits`] says why for the whole cell (a load that switches as
+/// often as it is sampled).
+fn refuse_unfittable(
+    sets: [(&mut Vec<CellRecord>, &mut Vec<usize>, &[Discharge]); 2],
+    cfg: &FitConfig,
+    summary: &mut RecordSummary,
+) {
+    let usable = |ds: &[Discharge], kept: &[usize], k: usize| fit_samples(&ds[kept[k]], cfg) >= MIN_FIT_SAMPLES;
+    if !sets.iter().any(|(recs, kept, ds)| (0..recs.len()).any(|k| usable(ds, kept, k))) {
+        return;
+    }
+    for (recs, kept, ds) in sets {
+        let keep: Vec<bool> = (0..recs.len()).map(|k| usable(ds, kept, k)).collect();
+        for (k, r) in recs.iter().enumerate().filter(|(k, _)| !keep[*k]) {
+            summary.refused.push(format!(
+                "{} cycle {}: fewer than {MIN_FIT_SAMPLES} loaded samples above {} V settled {} s after a load step \
+                 ({} of them): the offline fit that starts the next discharge has nothing to fit (a start from a \
+                 partial charge, or a load cut within seconds); left out",
+                r.cell,
+                r.cycle,
+                cfg.v_floor_v,
+                cfg.settle_s,
+                fit_samples(&ds[kept[k]], cfg)
+            ));
+        }
+        let mut it = keep.iter();
+        recs.retain(|_| *it.next().unwrap_or(&true));
+        let mut it = keep.iter();
+        kept.retain(|_| *it.next().unwrap_or(&true));
+    }
 }
 
 /// One record's model as the calibrators run it: the doctor's causes with the values of `ext` (shared
@@ -414,8 +461,14 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let started = Instant::now();
     let cut = input.cutoff_v;
     let mut summary = RecordSummary::default();
-    let (mut train, train_kept) = prepare_all(&input.train, cut, &mut summary);
-    let (mut judged, judged_kept) = prepare_all(&input.judged, cut, &mut summary);
+    let (mut train, mut train_kept) = prepare_all(&input.train, cut, &mut summary);
+    let (mut judged, mut judged_kept) = prepare_all(&input.judged, cut, &mut summary);
+    let fit_cfg = FitConfig::default();
+    refuse_unfittable(
+        [(&mut train, &mut train_kept, &input.train), (&mut judged, &mut judged_kept, &input.judged)],
+        &fit_cfg,
+        &mut summary,
+    );
     if judged.is_empty() {
         let why = if input.judged.is_empty() {
             "no record was given to judge".to_string()
@@ -426,7 +479,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     }
     // The rest before each discharge, from the records' start times.
     let all_records: Vec<&Discharge> = input.train.iter().chain(&input.judged).collect();
-    let rests = rests_before(&all_records, &input.starts);
+    let rests = input.rests.clone().unwrap_or_else(|| rests_before(&all_records, &input.starts));
     for r in train.iter_mut().chain(judged.iter_mut()) {
         r.rest_before_s = rests.get(&r.cycle).copied();
     }
@@ -480,7 +533,6 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     progress(&format!("model: {model_label}"));
 
     // Offline fits (the doctor, on that model) of the training and judged cycles.
-    let fit_cfg = FitConfig::default();
     let t0 = Instant::now();
     let train_ds: Vec<&Discharge> = train_kept.iter().map(|&k| &input.train[k]).collect();
     let judged_ds: Vec<&Discharge> = judged_kept.iter().map(|&k| &input.judged[k]).collect();

@@ -77,8 +77,8 @@ pub struct PriorWalk<'a> {
     spec: &'a TrackerSpec,
     life: Option<LifeTracker>,
     width: RestWidth,
-    /// The previous discharge: its cycle, fit and data capacity.
-    last: Option<(u32, Degradation, Option<f64>)>,
+    /// The previous discharge: its cycle, fit, data capacity and mean current, A.
+    last: Option<(u32, Degradation, Option<f64>, f64)>,
 }
 
 impl<'a> PriorWalk<'a> {
@@ -89,7 +89,7 @@ impl<'a> PriorWalk<'a> {
     /// The prior of `record` (rest before it `rest_s`), from what the walk has seen; `first` is the prior
     /// of the very first discharge (no history).
     pub fn prior(&self, record: &CellRecord, rest_s: Option<f64>, first: &Degradation) -> Prior {
-        let Some((cycle, prev, prev_cap)) = self.last else {
+        let Some((cycle, prev, prev_cap, prev_current_a)) = self.last else {
             return Prior {
                 mean: *first,
                 previous: *first,
@@ -99,8 +99,11 @@ impl<'a> PriorWalk<'a> {
                 expected_capacity_change: 0.0,
             };
         };
-        let carry =
-            self.life.as_ref().map_or(Carry::NONE, |t| t.carry(record.cycle, rest_s, condition(record), prev_cap));
+        // The ambient is the test's setting, known before the discharge; its current is known only as it
+        // runs (its mean to the cut-off, once it has ended), so the lifetime model assumes the last one's, as a
+        // live stream does.
+        let at = Condition { current_a: prev_current_a, ..condition(record) };
+        let carry = self.life.as_ref().map_or(Carry::NONE, |t| t.carry(record.cycle, rest_s, at, prev_cap));
         let mean = carry.mean(&prev);
         let gap = record.cycle.saturating_sub(cycle);
         let span = self.spec.q_mobile_range_c[1] - self.spec.q_mobile_range_c[0];
@@ -124,7 +127,7 @@ impl<'a> PriorWalk<'a> {
                 t.observe(c);
             }
         }
-        self.last = Some((record.cycle, *fit, record.data_capacity_ah));
+        self.last = Some((record.cycle, *fit, record.data_capacity_ah, record.current_a));
     }
 }
 
@@ -149,7 +152,7 @@ pub fn learn_width(
     let mut long = 0;
     for (r, (fit, _)) in train.iter().zip(fits) {
         let rest = rests.get(&r.cycle).copied();
-        let consecutive = walk.last.is_some_and(|(c, _, _)| c + 1 == r.cycle);
+        let consecutive = walk.last.is_some_and(|(c, _, _, _)| c + 1 == r.cycle);
         if consecutive {
             let p = walk.prior(r, rest, fit);
             let (z, m) = (spec.to_z(fit), spec.to_z(&p.mean));
@@ -223,6 +226,44 @@ mod tests {
         let mut plain = PriorWalk::new(&spec, None, width);
         plain.observe(&record(10, None, 1.77), None, &fit);
         assert_eq!(plain.prior(&record(11, Some(3.0 * LONG_REST_S), 0.0), Some(3.0 * LONG_REST_S), &fit).mean, fit);
+    }
+
+    /// A discharge's own current is measured as it runs: its prior is the same whatever current it will
+    /// draw, the lifetime model assuming the last discharge's (a cell whose capacity depends on the current).
+    #[test]
+    fn the_prior_does_not_know_the_current_the_discharge_will_draw() {
+        use bcal_doctor::lifetime::Quantity;
+        let life = LifetimeModel {
+            quantity: Quantity::CapacityAh,
+            intercept: 1.8,
+            per_cycle: -0.003,
+            reference_cycle: 20.0,
+            per_kelvin: 0.0,
+            per_ampere: -0.05,
+            reference: Condition { ambient_c: 24.0, current_a: 2.0 },
+            amplitude: 0.0,
+            tau_rest_s: 54_720.0,
+            decay_discharges: 5.0,
+            usual_rest_s: 3_600.0,
+            residual_sd: 0.004,
+            jump_sd_fraction: 0.5,
+        };
+        let spec = TrackerSpec::default();
+        let width = RestWidth { a_z2: [1e-4; 2], b_z2: [0.0; 2], usual_rest_s: 3_600.0, pairs: 20, long_rest_pairs: 0 };
+        let mut walk = PriorWalk::new(&spec, Some(&life), width);
+        let fit = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.12 };
+        walk.observe(&record(10, Some(3_600.0), 1.77), Some(3_600.0), &fit);
+        let at = |current_a: f64| {
+            let r = CellRecord { current_a, ..record(11, Some(3_600.0), 0.0) };
+            walk.prior(&r, Some(3_600.0), &fit).mean
+        };
+        assert_eq!(at(1.0), at(4.0));
+        // Carried at the last discharge's own current, the change the model expects from one discharge to the
+        // next is its fade and recovery alone, whatever that current was.
+        let mut fast = PriorWalk::new(&spec, Some(&life), width);
+        fast.observe(&CellRecord { current_a: 4.0, ..record(10, Some(3_600.0), 1.77) }, Some(3_600.0), &fit);
+        let after_fast = fast.prior(&record(11, Some(3_600.0), 0.0), Some(3_600.0), &fit).mean;
+        assert!((after_fast.q_mobile_c - at(2.0).q_mobile_c).abs() < 1e-9, "{after_fast:?}");
     }
 
     #[test]
