@@ -169,8 +169,9 @@ class Calibrator:
         temperature_c: Optional[float] = None,
     ) -> Estimate:
         """Takes the next reading (time order; current positive while discharging) and returns the
-        estimate. A reading that is not finite, not a cell's voltage or not later than the last raises
-        ValueError and leaves the calibrator as it was."""
+        estimate. A temperature of None or NaN (pandas' missing value) reads as the ambient. A reading
+        that is not finite, not a cell's voltage or not later than the last raises ValueError and leaves
+        the calibrator as it was."""
     def predict_eod_s(self, current_a: float) -> Optional[float]:
         """End of discharge (absolute time, s) if the cell now draws `current_a` (A) to the cut-off;
         None before the first reading or beyond the 40 000 s horizon."""
@@ -180,4 +181,5 @@ class Calibrator:
     def run(self, df: pd.DataFrame) -> pd.DataFrame:
         """Feeds every row of `df` (columns time_s, voltage_v, current_a, optionally temperature_c) and
         returns one row per reading: the keys of `step` (NaN for None) and `row`, the reading's
-        position. A bad row raises ValueError naming its position."""
+        position. A missing temperature (NaN) reads as the ambient, as an empty CSV field of
+        `bcal calibrate --follow` does. A bad row raises ValueError naming its position."""

@@ -60,6 +60,10 @@ pub const CELL_VOLTAGE_RANGE_V: [f64; 2] = [0.5, 5.0];
 /// never pauses that long within a discharge, and a cell that rested or was charged unseen that long is
 /// no longer in the state the model carried).
 pub const NEW_DISCHARGE_GAP_S: f64 = 1800.0;
+/// A charge lasts at least this long, s: a shorter negative current (a regenerative pulse, a noisy reading
+/// at rest) is not a charge and does not end the discharge it falls in. Measured from the first charging
+/// reading to the first reading after it, so a charge read once an hour still counts.
+pub const MIN_CHARGE_S: f64 = 60.0;
 
 /// One reading as a user gives it, in the CLI's and the Python package's names and units.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -301,7 +305,16 @@ pub struct Stream<'a> {
     /// What builds the calibrator of a new discharge (streams made by [`Stream::of`]).
     rebuild: Option<(Setup, Option<&'a PolicyNet>)>,
     discharge: u32,
-    charging: bool,
+    /// When the charge under way began (its first reading), s; None while not charging.
+    charge_started_s: Option<f64>,
+    /// When the current discharge's calibrator was built, s (None: the stream's first, built before it).
+    discharge_start_s: Option<f64>,
+    /// The last reading, as the calibrator took it: a discharge whose load comes on long after it was
+    /// built starts again from the rest reading before the load ([`Stream::step`]).
+    last_sample: Option<Sample>,
+    /// Whether the current discharge began under load (after a gap in the readings): a piece of a
+    /// discharge, whose start is unseen. It is neither scored nor measured nor end-fitted.
+    joined_under_load: bool,
     /// Time of the last reading that discharged the cell, s.
     last_loaded_t_s: Option<f64>,
     /// Each finished discharge's carried value, the rest before it and the prior mean it started from.
@@ -466,7 +479,10 @@ impl<'a> Stream<'a> {
             readings: 0,
             rebuild: None,
             discharge: 0,
-            charging: false,
+            charge_started_s: None,
+            discharge_start_s: None,
+            last_sample: None,
+            joined_under_load: false,
             last_loaded_t_s: None,
             ends: Vec::new(),
             carried: None,
@@ -554,10 +570,32 @@ impl<'a> Stream<'a> {
         };
         let charging = r.current_a < -LOAD_THRESHOLD_A;
         let after_gap = self.last_t_s.is_some_and(|p| r.time_s - p > NEW_DISCHARGE_GAP_S);
-        if (after_gap || (self.charging && !charging)) && self.rebuild.is_some() {
+        let charged = !charging && self.charge_started_s.is_some_and(|t0| r.time_s - t0 >= MIN_CHARGE_S);
+        let loaded = r.current_a > LOAD_THRESHOLD_A;
+        if (after_gap || charged) && self.rebuild.is_some() {
             self.new_discharge(r.time_s);
+            self.joined_under_load = loaded;
+        } else if loaded && self.loaded_n == 0 && self.rebuild.is_some() {
+            // The load comes on long after this discharge's calibrator was built at the end of a charge: the
+            // rest before it lasted until now. It starts again from the rest reading before the load, its
+            // prior's rest measured to there (as `bcal calibrate` measures it, to the record's start).
+            let idle = self.last_sample.filter(|x| x.current_a.abs() <= LOAD_THRESHOLD_A);
+            if let (Some(idle), Some(t0)) = (idle, self.discharge_start_s) {
+                if idle.t_s - t0 > NEW_DISCHARGE_GAP_S {
+                    // The same discharge, started again: its number stays.
+                    let number = self.discharge;
+                    self.new_discharge(idle.t_s);
+                    self.discharge = number;
+                    self.cal.step(&idle);
+                    if let Some(p) = self.prior_cal.as_mut() {
+                        p.step(&idle);
+                    }
+                    self.samples.push(idle);
+                }
+            }
         }
-        self.charging = charging;
+        self.charge_started_s = if charging { self.charge_started_s.or(Some(r.time_s)) } else { None };
+        self.last_sample = Some(s);
         self.cal.step(&s);
         if let Some(p) = self.prior_cal.as_mut() {
             p.step(&s);
@@ -626,9 +664,24 @@ impl<'a> Stream<'a> {
     fn new_discharge(&mut self, start_s: f64) {
         let Some((setup, net)) = &self.rebuild else { return };
         let spec = &setup.spec.tracker;
+        for src in &mut self.sources {
+            // Predictions of a discharge that stopped above its cut-off are never scored.
+            src.predictions.clear();
+        }
+        self.discharge_start_s = Some(start_s);
+        self.joined_under_load = false;
+        if self.loaded_n == 0 && self.carried.is_none() {
+            // Nothing has discharged yet (a stream that began on a charge or at rest): the next discharge
+            // starts from the setting's own prior, as the stream's first does, with no rest known before it.
+            self.cal = build(setup, *net).expect("the stream's calibrator was built from this setting");
+            self.prior_cal = prior_alone(setup);
+            self.rest_before_s = None;
+            self.reset_discharge();
+            return;
+        }
         // The rest: from the last reading that discharged (a charge seen in between is part of it).
         let rest_s = self.last_loaded_t_s.or(self.last_t_s).map(|t| (start_s - t).max(0.0));
-        if self.loaded_n > 0 || self.carried.is_none() {
+        if self.loaded_n > 0 {
             let end = self.end_fit.take().unwrap_or_else(|| self.cal.estimate());
             let mean_z = self.prior_mean.map(|m| spec.to_z(&m));
             self.ends.push(Carried { end_z: spec.to_z(&end), rest_s: self.rest_before_s, mean_z });
@@ -689,6 +742,11 @@ impl<'a> Stream<'a> {
         self.prior_cal = prior_alone(&next);
         self.rest_before_s = rest_s;
         self.prior_mean = Some(mean);
+        self.reset_discharge();
+    }
+
+    /// What the current discharge has measured, cleared for the next one.
+    fn reset_discharge(&mut self) {
         self.capacity_ah = None;
         self.eod_track = EodTrack::default();
         self.samples.clear();
@@ -706,11 +764,19 @@ impl<'a> Stream<'a> {
     /// alone and the recentred twin predict.
     fn track_eod(&mut self, r: &Reading, eod_s: [Option<f64>; 3]) {
         let t = &mut self.eod_track;
-        if r.current_a <= LOAD_THRESHOLD_A || t.ended_s.is_some() {
+        let cutoff_v = self.spec.cutoff_v;
+        if t.ended_s.is_some() {
+            return;
+        }
+        if r.current_a <= LOAD_THRESHOLD_A {
+            // The load paused: the crossing is interpolated from the last reading above the cut-off, loaded
+            // or not, as `bcal calibrate` interpolates it, never across the pause.
+            if t.load_on_s.is_some() && r.voltage_v >= cutoff_v {
+                t.above_cutoff = Some((r.time_s, r.voltage_v));
+            }
             return;
         }
         let on = *t.load_on_s.get_or_insert(r.time_s);
-        let cutoff_v = self.spec.cutoff_v;
         if r.voltage_v >= cutoff_v {
             t.above_cutoff = Some((r.time_s, r.voltage_v));
             for (src, e) in self.sources.iter_mut().zip(eod_s) {
@@ -724,6 +790,10 @@ impl<'a> Stream<'a> {
         let Some((t0, v0)) = t.above_cutoff else { return };
         let end_s = t0 + (v0 - cutoff_v) / (v0 - r.voltage_v) * (r.time_s - t0);
         t.ended_s = Some(end_s);
+        if self.joined_under_load {
+            // A piece whose start is unseen: its span, its charge and its end fit are not the discharge's.
+            return;
+        }
         for src in &mut self.sources {
             src.score(on, end_s);
         }
@@ -1327,5 +1397,153 @@ mod tests {
             readings[..n_first].iter().chain(&readings[n_before..]).map(|r| plain.step(r).unwrap()).collect();
         assert_eq!(est[n_before].q_mobile, without[n_first].q_mobile, "carried from the discharge, not the charge");
         assert_ne!(est[n_before - 1].q_mobile, est[n_before].q_mobile, "the filter moved while charging");
+    }
+
+    /// Two constant-current discharges of a cycler (a 30 s rest, then 2 A to the cut-off, read every 10-20 s),
+    /// the second 3 h after the first; each reading a UKF stream.
+    fn two_discharges() -> (Vec<Reading>, Vec<usize>, Setup) {
+        let (readings, starts) = cycler_life(2, |_, spec| spec);
+        (readings, starts, resolve(CalibratorKind::Ukf, None, None, None).unwrap())
+    }
+
+    /// A discharge that stops above its cut-off (as a device's do) leaves no prediction behind: the next
+    /// discharge's shares are scored on its own predictions only.
+    #[test]
+    fn a_discharge_stopped_above_its_cut_off_leaves_no_prediction_behind() {
+        let (readings, starts, setup) = two_discharges();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let half = starts[0] + (starts[1] - starts[0]) / 2;
+        for r in &readings[..half] {
+            stream.step(r).unwrap();
+        }
+        assert!(stream.sources.iter().all(|s| !s.predictions.is_empty()));
+        // Its next reading at rest, hours later: a new discharge, nothing of the last one's predictions kept.
+        stream.step(&Reading { time_s: readings[half].time_s + 7200.0, ..readings[starts[1]] }).unwrap();
+        assert_eq!(stream.discharges(), 2);
+        assert!(stream.sources.iter().all(|s| s.predictions.is_empty()));
+    }
+
+    /// A stream that begins on a charge starts its first discharge from the setting's own prior, as one that
+    /// begins at the discharge does: the charge is no discharge to carry.
+    #[test]
+    fn a_stream_that_begins_on_a_charge_starts_its_first_discharge_from_the_setting() {
+        let (readings, starts, setup) = two_discharges();
+        let first = &readings[..starts[1]];
+        let t0 = first[0].time_s - 2400.0;
+        let charge: Vec<Reading> = (0..=90)
+            .map(|k| Reading {
+                time_s: t0 + 20.0 * f64::from(k),
+                voltage_v: 3.9 + 0.3 * f64::from(k) / 90.0,
+                current_a: -1.5,
+                temperature_c: None,
+            })
+            .collect();
+        let mut charged = Stream::of(&setup, None, None).unwrap();
+        let mut plain = Stream::of(&setup, None, None).unwrap();
+        for r in &charge {
+            charged.step(r).unwrap();
+        }
+        for r in first {
+            let (a, b) = (charged.step(r).unwrap(), plain.step(r).unwrap());
+            assert_eq!((a.q_mobile, a.r_o, a.eod_s), (b.q_mobile, b.r_o, b.eod_s), "at {} s", r.time_s);
+        }
+    }
+
+    /// One reading of negative current inside a discharge (a regenerative pulse, sensor noise) is no charge:
+    /// the discharge goes on. A charge of a minute or more ends it.
+    #[test]
+    fn a_short_negative_current_does_not_end_a_discharge() {
+        let (mut readings, starts, setup) = two_discharges();
+        let mid = starts[0] + (starts[1] - starts[0]) / 2;
+        readings[mid].current_a = -0.06;
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let est: Vec<Estimate> = readings[..starts[1]].iter().map(|r| stream.step(r).unwrap()).collect();
+        assert!(est.iter().all(|e| e.discharge == est[0].discharge), "the blip split the discharge");
+        // The same reading as the start of a 2-minute charge: a new discharge after it.
+        let t = readings[mid].time_s;
+        let mut charged = Stream::of(&setup, None, None).unwrap();
+        for r in &readings[..mid] {
+            charged.step(r).unwrap();
+        }
+        for k in 0..=6 {
+            charged.step(&Reading { time_s: t + 20.0 * f64::from(k), current_a: -1.0, ..readings[mid] }).unwrap();
+        }
+        let after = charged.step(&Reading { time_s: t + 200.0, current_a: 0.0, ..readings[mid] }).unwrap();
+        assert_eq!(after.discharge, est[0].discharge + 1);
+    }
+
+    /// A load that pauses above the cut-off and comes back below it: the end lies between the last reading
+    /// above the cut-off (at rest, in the pause) and the first below, as `bcal calibrate` reads it, never
+    /// back across the pause.
+    #[test]
+    fn the_end_is_read_between_the_last_reading_above_the_cut_off_and_the_first_below() {
+        let (readings, starts, setup) = two_discharges();
+        let last = starts[1] - 1;
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        for r in &readings[..last] {
+            stream.step(r).unwrap();
+        }
+        // 20 minutes at rest, the voltage relaxing above the cut-off, then the last (loaded) reading.
+        let pause_s = readings[last - 1].time_s;
+        let rest_v = readings[last - 1].voltage_v + 0.2;
+        for k in 1..=20 {
+            let r =
+                Reading { time_s: pause_s + 60.0 * f64::from(k), voltage_v: rest_v, current_a: 0.0, ..readings[last] };
+            stream.step(&r).unwrap();
+        }
+        let resumed_s = pause_s + 1260.0;
+        stream.step(&Reading { time_s: resumed_s, ..readings[last] }).unwrap();
+        let end_s = stream.eod_track.ended_s.expect("the discharge ended");
+        assert!(end_s > pause_s + 1200.0 && end_s <= resumed_s, "end {end_s}, pause {pause_s}");
+    }
+
+    /// A discharge, a charge, three days at rest read every 10 minutes, a discharge: its rest runs from the
+    /// last discharge to its load, as `bcal calibrate` measures it, not to the end of the charge.
+    #[test]
+    fn the_rest_before_a_discharge_runs_to_its_load() {
+        let (readings, starts, setup) = two_discharges();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        for r in &readings[..starts[1]] {
+            stream.step(r).unwrap();
+        }
+        let end_s = readings[starts[1] - 1].time_s;
+        let mut t = end_s;
+        for k in 0..=90 {
+            t = end_s + 600.0 + 20.0 * f64::from(k);
+            let v = 3.9 + 0.3 * f64::from(k) / 90.0;
+            stream.step(&Reading { time_s: t, voltage_v: v, current_a: -1.5, temperature_c: None }).unwrap();
+        }
+        let charged_s = t;
+        while t < charged_s + 3.0 * 86_400.0 {
+            t += 600.0;
+            stream.step(&Reading { time_s: t, voltage_v: 4.15, current_a: 0.0, temperature_c: None }).unwrap();
+        }
+        let second = &readings[starts[1]..];
+        let shift = t + 20.0 - second[0].time_s;
+        for r in second {
+            stream.step(&Reading { time_s: r.time_s + shift, ..*r }).unwrap();
+        }
+        let rest_s = stream.rest_before_s.expect("a rest before the second discharge");
+        assert!(rest_s > 3.0 * 86_400.0, "rest {rest_s} s");
+        assert_eq!(stream.discharges(), 2);
+    }
+
+    /// Readings lost for an hour within a discharge: the piece after the gap starts under load, its start
+    /// unseen. It is neither scored nor measured: what the stream learns comes from whole discharges.
+    #[test]
+    fn a_piece_joined_under_load_is_not_scored() {
+        let (readings, starts, setup) = two_discharges();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let mid = starts[0] + (starts[1] - starts[0]) / 2;
+        for r in &readings[..mid] {
+            stream.step(r).unwrap();
+        }
+        for r in &readings[mid..starts[1]] {
+            stream.step(&Reading { time_s: r.time_s + 3600.0, ..*r }).unwrap();
+        }
+        assert_eq!(stream.discharges(), 2);
+        assert!(stream.eod_track.ended_s.is_some(), "the piece reached the cut-off");
+        assert!(stream.sources.iter().all(|s| s.scored.is_empty()), "a piece was scored");
+        assert_eq!(stream.capacity_ah, None);
     }
 }

@@ -201,7 +201,8 @@ impl Calibrator {
         current_a: f64,
         temperature_c: Option<f64>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let r = Reading { time_s, voltage_v, current_a, temperature_c };
+        // NaN is pandas' missing value: a reading without a temperature, as an empty CSV field is.
+        let r = Reading { time_s, voltage_v, current_a, temperature_c: temperature_c.filter(|t| !t.is_nan()) };
         let e = self.with_stream(|s| s.step(&r)).map_err(value_error)?;
         estimate_dict(py, &e)
     }
@@ -235,8 +236,9 @@ impl Calibrator {
 
     /// Feeds every row of a pandas DataFrame with columns `time_s`, `voltage_v`, `current_a` (and optionally
     /// `temperature_c`) in order, and returns a DataFrame with one row per reading: the columns of `step`
-    /// (NaN where `step` gives None) and `row`, the reading's position in `df`. A bad row raises
-    /// ValueError naming its position; the readings before it have been taken.
+    /// (NaN where `step` gives None) and `row`, the reading's position in `df`. A missing temperature (NaN)
+    /// is a reading without one, at the ambient, as an empty field of `bcal calibrate --follow`'s CSV is. A
+    /// bad row raises ValueError naming its position; the readings before it have been taken.
     fn run<'py>(&self, py: Python<'py>, df: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
         let columns: Vec<String> = df.getattr("columns")?.call_method0("tolist")?.extract()?;
         let column = |name: &str| -> PyResult<Option<Vec<f64>>> {
@@ -267,7 +269,7 @@ impl Calibrator {
                     time_s: time_s[k],
                     voltage_v: voltage_v[k],
                     current_a: current_a[k],
-                    temperature_c: temperature_c.as_ref().map(|t| t[k]),
+                    temperature_c: temperature_c.as_ref().map(|t| t[k]).filter(|t| !t.is_nan()),
                 };
                 let e = s.step(&r).map_err(|e| format!("row {k}: {e}"))?;
                 let row = [

@@ -71,6 +71,20 @@ def test_run_on_a_dataframe_equals_stepping(discharge):
             assert got == want or (math.isnan(got) and math.isnan(want)), (f, got, want)
 
 
+def test_a_missing_temperature_is_the_ambient_as_in_the_cli(bcal_cli, discharge):
+    gappy = discharge.copy()
+    gappy.loc[3:9, "temperature_c"] = np.nan
+    frame = make("ukf").run(gappy)
+    csv = gappy.to_csv(index=False, float_format="%.17g")  # NaN is written as an empty field
+    out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", "ukf", stdin=csv)
+    assert out.returncode == 0, out.stderr
+    theirs = [json.loads(line) for line in out.stdout.splitlines()]
+    assert [b["q_mobile"] for b in theirs] == frame["q_mobile"].tolist()
+    cal = make("ukf")
+    stepped = [cal.step(r.time_s, r.voltage_v, r.current_a, r.temperature_c)["q_mobile"] for r in gappy.itertuples()]
+    assert stepped == frame["q_mobile"].tolist()
+
+
 def test_two_discharges_in_one_stream_are_counted_and_the_second_starts_from_the_first(bcal_cli, discharge):
     # The same discharge again three hours after the first ended (its charge unseen).
     later = discharge.assign(time_s=discharge["time_s"] + discharge["time_s"].iloc[-1] + 3 * 3600.0)
