@@ -469,6 +469,19 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         &fit_cfg,
         &mut summary,
     );
+    // Discharges that started from a partial charge, as their neighbours' rest voltages show (the doctor's
+    // rule; later records among the neighbours, so for the scores only): their capacity is not scored.
+    let life_cfg = bcal_doctor::lifetime::LifetimeConfig::default();
+    let all_read: Vec<&Discharge> = input.train.iter().chain(&input.judged).collect();
+    let short: Vec<u32> =
+        bcal_doctor::record::short_starts(&all_read, life_cfg.load_threshold_a, life_cfg.partial_start_v)
+            .into_iter()
+            .map(|(cycle, _, _)| cycle)
+            .collect();
+    for r in train.iter_mut().chain(judged.iter_mut()) {
+        r.partial_start = short.contains(&r.cycle);
+    }
+    summary.partial_start = judged.iter().filter(|r| r.partial_start).map(|r| r.cycle).collect();
     if judged.is_empty() {
         let why = if input.judged.is_empty() {
             "no record was given to judge".to_string()
@@ -496,6 +509,14 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         summary.refused.len(),
         rests.len()
     ));
+    if !summary.partial_start.is_empty() {
+        progress(&format!(
+            "judged cycles {:?} started from a partial charge (rest voltage more than {:.0} mV below their \
+             neighbours'): their ends of discharge are scored, their capacity is not",
+            summary.partial_start,
+            life_cfg.partial_start_v * 1000.0
+        ));
+    }
 
     // The calibrators' model: the base one or the doctor's extended one, which they must be able to run.
     let (causes, shared) = model_parts(input.model.as_ref());

@@ -180,6 +180,7 @@ mod tests {
             stated_capacity_ah: None,
             ambient_k: 297.15,
             rest_before_s: rest_s,
+            partial_start: false,
             samples: Vec::new(),
         }
     }

@@ -36,6 +36,10 @@ pub struct CellRecord {
     pub ambient_k: f64,
     /// The rest before the discharge (from the end of the record before it), s; None when unknown.
     pub rest_before_s: Option<f64>,
+    /// Whether it started from a partial charge, as its neighbours' rest voltages show (records after it
+    /// among them: for the scores only). The charge it delivered is not the cell's capacity, so its
+    /// capacity is not scored; its end of discharge is.
+    pub partial_start: bool,
 }
 
 impl CellRecord {
@@ -115,6 +119,7 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
         stated_capacity_ah: d.stated_capacity_ah,
         ambient_k: d.ambient_k,
         rest_before_s: None,
+        partial_start: false,
         samples,
     })
 }
@@ -127,6 +132,9 @@ pub struct RecordSummary {
     pub cut_short: Vec<u32>,
     /// Records refused, with the reason.
     pub refused: Vec<String>,
+    /// Judged discharges that started from a partial charge ([`CellRecord::partial_start`]): their end of
+    /// discharge is scored, their capacity is not.
+    pub partial_start: Vec<u32>,
 }
 
 /// Test records: a discharge of 100 readings, 1 s apart, at 2 A from t = 0 to the cut-off at 100 s, and one
@@ -169,6 +177,7 @@ pub(crate) fn test_discharge(
         stated_capacity_ah: None,
         ambient_k: 297.0,
         rest_before_s: None,
+        partial_start: false,
         samples,
     };
     (record, crate::run::CycleRun { cycle, steps })

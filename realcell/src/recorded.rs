@@ -90,6 +90,7 @@ mod tests {
             stated_capacity_ah: None,
             ambient_k: 297.0,
             rest_before_s: None,
+            partial_start: false,
             samples,
         };
         let prior = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.1 };

@@ -99,6 +99,13 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
     for refused in &r.records.refused {
         let _ = writeln!(s, "- refused: {refused}");
     }
+    if !r.records.partial_start.is_empty() {
+        let _ = writeln!(
+            s,
+            "- started from a partial charge (cycles {:?}): ends of discharge scored, capacity not",
+            r.records.partial_start
+        );
+    }
     let _ = writeln!(s, "## Capacity (RMSE against the stated capacity, Ah; against the data's charge in brackets)\n");
     let mut head = String::from("| Method |");
     let mut rule = String::from("| --- |");

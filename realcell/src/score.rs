@@ -151,7 +151,8 @@ fn score_flat(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
     let (mut eod_in, mut eod_n, mut cap_in, mut cap_n) = (0usize, 0usize, 0usize, 0usize);
     for f in CAPACITY_FRACTIONS_PCT {
         let (mut stated, mut data) = (Vec::new(), Vec::new());
-        for (r, run) in records.iter().zip(runs) {
+        // A discharge from a partial charge delivers less than the cell holds: no capacity to score it on.
+        for (r, run) in records.iter().zip(runs).filter(|(r, _)| !r.partial_start) {
             let Some(k) = r.reading_at_fraction(f64::from(f) / 100.0) else { continue };
             let p = run.steps[k.min(run.steps.len() - 1)].capacity;
             let Some(v) = p.value else {
@@ -249,6 +250,7 @@ mod tests {
             stated_capacity_ah: Some(1.1),
             ambient_k: 298.0,
             rest_before_s: Some(2.0 * 86_400.0),
+            partial_start: false,
         };
         // Predicts an end 50 s late with an interval of +-100 s and a capacity of 1.2 Ah within [1.1, 1.3].
         let s_run = |r: &CellRecord| CycleRun {
@@ -289,5 +291,11 @@ mod tests {
         let two = score(&[r.clone(), r2], &[run.clone(), run]);
         assert_eq!(two.by_condition.keys().cloned().collect::<Vec<_>>(), vec!["2.00 A, 25 C", "4.00 A, 25 C"]);
         assert_eq!(two.by_condition["4.00 A, 25 C"].capacity["50"].n, 1);
+        // A discharge from a partial charge: its end is scored, its capacity is not.
+        let partial = CellRecord { cycle: 2, partial_start: true, ..r.clone() };
+        let both = score(&[r.clone(), partial.clone()], &[s_run(&r), s_run(&partial)]);
+        assert_eq!((both.capacity["50"].n, both.capacity_vs_data["50"].n), (1, 1));
+        assert_eq!(both.eod_error_pct["50"].n, 2);
+        assert_eq!(both.after_long_rest.as_ref().unwrap().cycles, vec![1]);
     }
 }

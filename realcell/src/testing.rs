@@ -44,6 +44,7 @@ pub fn simulated_record(
         stated_capacity_ah: None,
         ambient_k,
         rest_before_s: None,
+        partial_start: false,
         samples,
     }
 }
