@@ -321,6 +321,8 @@ pub struct Stream<'a> {
     ends: Vec<Carried>,
     /// What the last finished discharge hands on (its end fit, else its final estimate).
     carried: Option<Degradation>,
+    /// That discharge's posterior standard deviations, z units (None: its calibrator gives no interval).
+    carried_sd_z: Option<[f64; 2]>,
     /// The prior mean the current discharge started from (None for the first: the setting's own prior).
     prior_mean: Option<Degradation>,
     /// The cell's life ([`MeasuredSpec::lifetime`]), following the finished discharges.
@@ -375,7 +377,8 @@ struct Carried {
 struct EodTrack {
     /// The first loaded reading's time, s.
     load_on_s: Option<f64>,
-    /// The last loaded reading above the cut-off (time s, voltage V), to interpolate the crossing.
+    /// The last reading above the cut-off since the load-on, loaded or not (time s, voltage V), to
+    /// interpolate the crossing.
     above_cutoff: Option<(f64, f64)>,
     /// The measured end of discharge, s: the interpolated time the voltage fell below the cut-off.
     ended_s: Option<f64>,
@@ -486,6 +489,7 @@ impl<'a> Stream<'a> {
             last_loaded_t_s: None,
             ends: Vec::new(),
             carried: None,
+            carried_sd_z: None,
             prior_mean: None,
             life: None,
             discharged: 0,
@@ -574,7 +578,9 @@ impl<'a> Stream<'a> {
         let loaded = r.current_a > LOAD_THRESHOLD_A;
         if (after_gap || charged) && self.rebuild.is_some() {
             self.new_discharge(r.time_s);
-            self.joined_under_load = loaded;
+            // After lost readings a discharge seen first under load is a piece of one; after a charge it is
+            // a discharge that started at once.
+            self.joined_under_load = after_gap && loaded;
         } else if loaded && self.loaded_n == 0 && self.rebuild.is_some() {
             // The load comes on long after this discharge's calibrator was built at the end of a charge: the
             // rest before it lasted until now. It starts again from the rest reading before the load, its
@@ -686,6 +692,16 @@ impl<'a> Stream<'a> {
             let mean_z = self.prior_mean.map(|m| spec.to_z(&m));
             self.ends.push(Carried { end_z: spec.to_z(&end), rest_s: self.rest_before_s, mean_z });
             self.carried = Some(end);
+            // Its own posterior, read as 1.645 standard deviations of its 90 % interval: the width a
+            // discharge after it carries while too few changes are known to learn one.
+            self.carried_sd_z = self.cal.interval().map(|iv| {
+                let (lo, hi) = (
+                    spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[0], r_o_ohm: iv.r_o_ohm[0] }),
+                    spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[1], r_o_ohm: iv.r_o_ohm[1] }),
+                );
+                let sd = |k: usize| ((hi[k] - lo[k]) / (2.0 * 1.645)).max(crate::prior_width::MIN_SD_Z);
+                [sd(0), sd(1)]
+            });
         }
         if self.loaded_n > 0 {
             self.discharged += 1;
@@ -722,14 +738,9 @@ impl<'a> Stream<'a> {
         self.prior_width = if width.fitted() {
             Some((carry.widen_z(width.sd_z(rest_s, 1), end.q_mobile_c, span_c), WidthSource::Learned))
         } else {
-            self.cal.interval().map(|iv| {
-                let (lo, hi) = (
-                    spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[0], r_o_ohm: iv.r_o_ohm[0] }),
-                    spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[1], r_o_ohm: iv.r_o_ohm[1] }),
-                );
-                let sd = |k: usize| ((hi[k] - lo[k]) / (2.0 * 1.645)).max(crate::prior_width::MIN_SD_Z);
-                (carry.widen_z([sd(0), sd(1)], end.q_mobile_c, span_c), WidthSource::Posterior)
-            })
+            // The last discharge's own, not the calibrator's now (after a charge or a rest read since, that
+            // is a prior that has only walked).
+            self.carried_sd_z.map(|sd| (carry.widen_z(sd, end.q_mobile_c, span_c), WidthSource::Posterior))
         };
         let mut next = setup.clone();
         next.spec.tracker.prior = mean;
@@ -1526,6 +1537,34 @@ mod tests {
         let rest_s = stream.rest_before_s.expect("a rest before the second discharge");
         assert!(rest_s > 3.0 * 86_400.0, "rest {rest_s} s");
         assert_eq!(stream.discharges(), 2);
+        // Its width is the first discharge's own posterior (too few changes to learn one), not the prior
+        // that walked through the three days.
+        let (sd, source) = stream.prior_width.expect("a width");
+        assert_eq!((Some(sd), source), (stream.carried_sd_z, WidthSource::Posterior));
+    }
+
+    /// A charge and, at once, the load (a cycler with no rest after charging): a whole discharge, scored.
+    #[test]
+    fn a_charge_straight_into_a_load_is_a_whole_discharge() {
+        let (readings, starts, setup) = two_discharges();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        for r in &readings[..starts[1]] {
+            stream.step(r).unwrap();
+        }
+        let end_s = readings[starts[1] - 1].time_s;
+        for k in 0..=6 {
+            let t = end_s + 600.0 + 20.0 * f64::from(k);
+            stream.step(&Reading { time_s: t, voltage_v: 4.1, current_a: -1.0, temperature_c: None }).unwrap();
+        }
+        let second = &readings[starts[1]..];
+        let on = second.iter().position(|r| r.current_a > LOAD_THRESHOLD_A).unwrap();
+        let shift = end_s + 600.0 + 140.0 - second[on].time_s;
+        for r in &second[on..] {
+            stream.step(&Reading { time_s: r.time_s + shift, ..*r }).unwrap();
+        }
+        assert_eq!(stream.discharges(), 2);
+        assert!(!stream.joined_under_load);
+        assert_eq!(stream.sources[METHOD].scored.len(), 2, "both discharges scored");
     }
 
     /// Readings lost for an hour within a discharge: the piece after the gap starts under load, its start

@@ -262,6 +262,11 @@ fn load_model(path: &Option<PathBuf>) -> anyhow::Result<Option<bcal_doctor::mode
 }
 
 pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
+    for (flag, v) in [("--ambient-c", a.ambient_c), ("--cutoff-v", a.cutoff_v)] {
+        if let Some(v) = v.filter(|v| !v.is_finite()) {
+            bail!("{flag} {v}: not a finite number; give deg C for --ambient-c, volts for --cutoff-v");
+        }
+    }
     if let Some(source) = a.follow {
         let calibrator = match a.calibrator.as_slice() {
             [] => "ukf".to_string(),

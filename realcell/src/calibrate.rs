@@ -125,15 +125,16 @@ fn fit_samples(d: &Discharge, cfg: &FitConfig) -> usize {
 
 /// Leaves out, one by one and each named, the prepared records the offline fit cannot use (a discharge
 /// that starts from a partial charge below the fit's voltage floor, one cut short within seconds of its load
-/// step), unless none could be used: then [`fits`] says why for the whole cell (a load that switches as
-/// often as it is sampled).
+/// step), unless the training or the judged records hold none that could be used: then [`fits`] says why for
+/// the whole cell (a load that switches as often as it is sampled).
 fn refuse_unfittable(
     sets: [(&mut Vec<CellRecord>, &mut Vec<usize>, &[Discharge]); 2],
     cfg: &FitConfig,
     summary: &mut RecordSummary,
 ) {
     let usable = |ds: &[Discharge], kept: &[usize], k: usize| fit_samples(&ds[kept[k]], cfg) >= MIN_FIT_SAMPLES;
-    if !sets.iter().any(|(recs, kept, ds)| (0..recs.len()).any(|k| usable(ds, kept, k))) {
+    // A set none of whose records can be used is left whole: the fit then says why.
+    if !sets.iter().all(|(recs, kept, ds)| recs.is_empty() || (0..recs.len()).any(|k| usable(ds, kept, k))) {
         return;
     }
     for (recs, kept, ds) in sets {

@@ -77,6 +77,10 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
     let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "5..8", "--cycles", "1..4"]].concat());
     assert!(!ok && err.contains("must come after --train-cycles"), "{err}");
 
+    // A temperature or cut-off that is not a number is refused before anything is read.
+    let (ok, err) = calibrate(&[&common[..], &["--ambient-c", "nan"]].concat());
+    assert!(!ok && err.contains("--ambient-c NaN: not a finite number"), "{err}");
+
     // A NASA folder needs its cell.
     let (ok, err) = calibrate(&["--data", dir.path().to_str().unwrap(), "--out", out]);
     assert!(!ok && err.contains("--cell"), "{err}");
