@@ -675,7 +675,7 @@ impl<'a> Stream<'a> {
             src.predictions.clear();
         }
         self.discharge_start_s = Some(start_s);
-        self.joined_under_load = false;
+        let piece = std::mem::take(&mut self.joined_under_load);
         if self.loaded_n == 0 && self.carried.is_none() {
             // Nothing has discharged yet (a stream that began on a charge or at rest): the next discharge
             // starts from the setting's own prior, as the stream's first does, with no rest known before it.
@@ -703,7 +703,8 @@ impl<'a> Stream<'a> {
                 [sd(0), sd(1)]
             });
         }
-        if self.loaded_n > 0 {
+        // A piece joined under load is the rest of a discharge the life has counted already.
+        if self.loaded_n > 0 && !piece {
             self.discharged += 1;
             let at = Condition {
                 ambient_c: self.ambient_k - KELVIN_0C,
@@ -1584,5 +1585,8 @@ mod tests {
         assert!(stream.eod_track.ended_s.is_some(), "the piece reached the cut-off");
         assert!(stream.sources.iter().all(|s| s.scored.is_empty()), "a piece was scored");
         assert_eq!(stream.capacity_ah, None);
+        // The next discharge: the life has counted one, the one the piece belonged to.
+        stream.step(&Reading { time_s: readings[starts[1] - 1].time_s + 3.0 * 3600.0, ..readings[0] }).unwrap();
+        assert_eq!((stream.discharges(), stream.discharged), (3, 1));
     }
 }
