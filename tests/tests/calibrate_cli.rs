@@ -219,3 +219,69 @@ fn calibrate_carries_what_it_can_of_a_diagnosis_naming_ocv_or_voltage_offset() {
         assert!(rmse < 0.04, "{causes}: UKF capacity RMSE from 50 % {rmse} Ah");
     }
 }
+
+/// `--stride` leaves judged records out, and each still ends the rest before the next: a kept discharge
+/// after a long pause is still known to follow one. Twelve discharges of a slowly fading cell in NASA's
+/// layout, 6 h apart but for a 3-day pause before cycle 9; training 1..6, judged 7, 9, 11.
+#[test]
+fn stride_keeps_the_rest_before_each_kept_discharge() {
+    let dir = tempfile::tempdir().unwrap();
+    let nasa = dir.path().join("nasa");
+    std::fs::create_dir_all(nasa.join("data")).unwrap();
+    let m = BatteryModel::default();
+    let mut meta =
+        String::from("type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n");
+    let mut start_h = 0.0f64;
+    for cycle in 1..=12u32 {
+        start_h += if cycle == 9 { 72.0 } else { 6.0 };
+        let d = Degradation { q_mobile_c: 7000.0 - 40.0 * f64::from(cycle), r_o_ohm: 0.12 };
+        let mut x = m.initial_state(&d);
+        let mut text =
+            String::from("Voltage_measured,Current_measured,Temperature_measured,Current_load,Voltage_load,Time\n");
+        let mut t = 0.0;
+        loop {
+            let i = if t < 30.0 { 0.0 } else { 2.0 };
+            let v = m.voltage_v(&x, &d);
+            if (t as u64).is_multiple_of(10) {
+                text.push_str(&format!("{v:.5},{:.4},24.0,{i},{v:.4},{t}\n", -i));
+                if i > 0.0 && v <= CUTOFF_V {
+                    break;
+                }
+            }
+            x = m.step(&x, Load::CurrentA(i), 1.0, &d).0;
+            t += 1.0;
+        }
+        let file = format!("{cycle:05}.csv");
+        std::fs::write(nasa.join("data").join(&file), text).unwrap();
+        let (day, hour) = ((start_h / 24.0).floor(), start_h % 24.0);
+        meta.push_str(&format!(
+            "discharge,[2010. 7. {}. {hour}. 0. 0.],24,B0049,{cycle},{cycle},{file},1.6,,\n",
+            1.0 + day
+        ));
+    }
+    std::fs::write(nasa.join("metadata.csv"), meta).unwrap();
+    let out = dir.path().join("out");
+    let cut = CUTOFF_V.to_string();
+    let (ok, err) = calibrate(&[
+        "--data",
+        nasa.to_str().unwrap(),
+        "--cell",
+        "B0049",
+        "--train-cycles",
+        "1..6",
+        "--stride",
+        "2",
+        "--cutoff-v",
+        &cut,
+        "--calibrator",
+        "ukf",
+        "--quick",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap();
+    assert_eq!(report["cycles_judged"], serde_json::json!([7, 9, 11]));
+    assert_eq!(report["methods"]["ukf"]["scores"]["after_long_rest"]["cycles"], serde_json::json!([9]));
+}
