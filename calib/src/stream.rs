@@ -1418,16 +1418,35 @@ mod tests {
         (readings, starts, resolve(CalibratorKind::Ukf, None, None, None).unwrap())
     }
 
+    /// A stream of `setup` that has taken `readings`.
+    fn fed<'a>(setup: &'a Setup, readings: &[Reading]) -> Stream<'a> {
+        let mut stream = Stream::of(setup, None, None).unwrap();
+        for r in readings {
+            stream.step(r).unwrap();
+        }
+        stream
+    }
+
+    /// `n + 1` readings of a charge at `current_a` (negative), 20 s apart from `t0_s`, the voltage rising
+    /// from `v0` by `dv` over them.
+    fn charge(t0_s: f64, n: u32, current_a: f64, v0: f64, dv: f64) -> Vec<Reading> {
+        (0..=n)
+            .map(|k| Reading {
+                time_s: t0_s + 20.0 * f64::from(k),
+                voltage_v: v0 + dv * f64::from(k) / f64::from(n),
+                current_a,
+                temperature_c: None,
+            })
+            .collect()
+    }
+
     /// A discharge that stops above its cut-off (as a device's do) leaves no prediction behind: the next
     /// discharge's shares are scored on its own predictions only.
     #[test]
     fn a_discharge_stopped_above_its_cut_off_leaves_no_prediction_behind() {
         let (readings, starts, setup) = two_discharges();
-        let mut stream = Stream::of(&setup, None, None).unwrap();
         let half = starts[0] + (starts[1] - starts[0]) / 2;
-        for r in &readings[..half] {
-            stream.step(r).unwrap();
-        }
+        let mut stream = fed(&setup, &readings[..half]);
         assert!(stream.sources.iter().all(|s| !s.predictions.is_empty()));
         // Its next reading at rest, hours later: a new discharge, nothing of the last one's predictions kept.
         stream.step(&Reading { time_s: readings[half].time_s + 7200.0, ..readings[starts[1]] }).unwrap();
@@ -1442,19 +1461,8 @@ mod tests {
         let (readings, starts, setup) = two_discharges();
         let first = &readings[..starts[1]];
         let t0 = first[0].time_s - 2400.0;
-        let charge: Vec<Reading> = (0..=90)
-            .map(|k| Reading {
-                time_s: t0 + 20.0 * f64::from(k),
-                voltage_v: 3.9 + 0.3 * f64::from(k) / 90.0,
-                current_a: -1.5,
-                temperature_c: None,
-            })
-            .collect();
-        let mut charged = Stream::of(&setup, None, None).unwrap();
+        let mut charged = fed(&setup, &charge(t0, 90, -1.5, 3.9, 0.3));
         let mut plain = Stream::of(&setup, None, None).unwrap();
-        for r in &charge {
-            charged.step(r).unwrap();
-        }
         for r in first {
             let (a, b) = (charged.step(r).unwrap(), plain.step(r).unwrap());
             assert_eq!((a.q_mobile, a.r_o, a.eod_s), (b.q_mobile, b.r_o, b.eod_s), "at {} s", r.time_s);
@@ -1473,10 +1481,7 @@ mod tests {
         assert!(est.iter().all(|e| e.discharge == est[0].discharge), "the blip split the discharge");
         // The same reading as the start of a 2-minute charge: a new discharge after it.
         let t = readings[mid].time_s;
-        let mut charged = Stream::of(&setup, None, None).unwrap();
-        for r in &readings[..mid] {
-            charged.step(r).unwrap();
-        }
+        let mut charged = fed(&setup, &readings[..mid]);
         for k in 0..=6 {
             charged.step(&Reading { time_s: t + 20.0 * f64::from(k), current_a: -1.0, ..readings[mid] }).unwrap();
         }
@@ -1491,10 +1496,7 @@ mod tests {
     fn the_end_is_read_between_the_last_reading_above_the_cut_off_and_the_first_below() {
         let (readings, starts, setup) = two_discharges();
         let last = starts[1] - 1;
-        let mut stream = Stream::of(&setup, None, None).unwrap();
-        for r in &readings[..last] {
-            stream.step(r).unwrap();
-        }
+        let mut stream = fed(&setup, &readings[..last]);
         // 20 minutes at rest, the voltage relaxing above the cut-off, then the last (loaded) reading.
         let pause_s = readings[last - 1].time_s;
         let rest_v = readings[last - 1].voltage_v + 0.2;
@@ -1514,18 +1516,13 @@ mod tests {
     #[test]
     fn the_rest_before_a_discharge_runs_to_its_load() {
         let (readings, starts, setup) = two_discharges();
-        let mut stream = Stream::of(&setup, None, None).unwrap();
-        for r in &readings[..starts[1]] {
+        let mut stream = fed(&setup, &readings[..starts[1]]);
+        let end_s = readings[starts[1] - 1].time_s;
+        for r in &charge(end_s + 600.0, 90, -1.5, 3.9, 0.3) {
             stream.step(r).unwrap();
         }
-        let end_s = readings[starts[1] - 1].time_s;
-        let mut t = end_s;
-        for k in 0..=90 {
-            t = end_s + 600.0 + 20.0 * f64::from(k);
-            let v = 3.9 + 0.3 * f64::from(k) / 90.0;
-            stream.step(&Reading { time_s: t, voltage_v: v, current_a: -1.5, temperature_c: None }).unwrap();
-        }
-        let charged_s = t;
+        let charged_s = end_s + 600.0 + 20.0 * 90.0;
+        let mut t = charged_s;
         while t < charged_s + 3.0 * 86_400.0 {
             t += 600.0;
             stream.step(&Reading { time_s: t, voltage_v: 4.15, current_a: 0.0, temperature_c: None }).unwrap();
@@ -1548,14 +1545,10 @@ mod tests {
     #[test]
     fn a_charge_straight_into_a_load_is_a_whole_discharge() {
         let (readings, starts, setup) = two_discharges();
-        let mut stream = Stream::of(&setup, None, None).unwrap();
-        for r in &readings[..starts[1]] {
-            stream.step(r).unwrap();
-        }
+        let mut stream = fed(&setup, &readings[..starts[1]]);
         let end_s = readings[starts[1] - 1].time_s;
-        for k in 0..=6 {
-            let t = end_s + 600.0 + 20.0 * f64::from(k);
-            stream.step(&Reading { time_s: t, voltage_v: 4.1, current_a: -1.0, temperature_c: None }).unwrap();
+        for r in &charge(end_s + 600.0, 6, -1.0, 4.1, 0.0) {
+            stream.step(r).unwrap();
         }
         let second = &readings[starts[1]..];
         let on = second.iter().position(|r| r.current_a > LOAD_THRESHOLD_A).unwrap();
@@ -1573,11 +1566,8 @@ mod tests {
     #[test]
     fn a_piece_joined_under_load_is_not_scored() {
         let (readings, starts, setup) = two_discharges();
-        let mut stream = Stream::of(&setup, None, None).unwrap();
         let mid = starts[0] + (starts[1] - starts[0]) / 2;
-        for r in &readings[..mid] {
-            stream.step(r).unwrap();
-        }
+        let mut stream = fed(&setup, &readings[..mid]);
         for r in &readings[mid..starts[1]] {
             stream.step(&Reading { time_s: r.time_s + 3600.0, ..*r }).unwrap();
         }

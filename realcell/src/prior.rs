@@ -185,25 +185,30 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_prior_mean_follows_the_recovery_after_a_long_rest_and_its_width_grows_with_it() {
-        use bcal_doctor::lifetime::Quantity;
-        // A cell that fades 3 mAh per discharge and regains up to 65 mAh over a rest of about 15 h.
-        let life = LifetimeModel {
-            quantity: Quantity::CapacityAh,
+    /// A capacity lifetime model that fades 3 mAh per discharge from 1.8 Ah at cycle 20, `per_ampere` Ah per A
+    /// away from 2 A, regaining up to `amplitude` Ah over a rest of about 15 h.
+    fn fading_life(per_ampere: f64, amplitude: f64) -> LifetimeModel {
+        LifetimeModel {
+            quantity: bcal_doctor::lifetime::Quantity::CapacityAh,
             intercept: 1.8,
             per_cycle: -0.003,
             reference_cycle: 20.0,
             per_kelvin: 0.0,
-            per_ampere: 0.0,
+            per_ampere,
             reference: Condition { ambient_c: 24.0, current_a: 2.0 },
-            amplitude: 0.065,
+            amplitude,
             tau_rest_s: 54_720.0,
             decay_discharges: 5.0,
             usual_rest_s: 3_600.0,
             residual_sd: 0.004,
             jump_sd_fraction: 0.5,
-        };
+        }
+    }
+
+    #[test]
+    fn the_prior_mean_follows_the_recovery_after_a_long_rest_and_its_width_grows_with_it() {
+        // A cell that fades 3 mAh per discharge and regains up to 65 mAh over a rest of about 15 h.
+        let life = fading_life(0.0, 0.065);
         let spec = TrackerSpec::default();
         let width =
             RestWidth { a_z2: [1e-4; 2], b_z2: [4e-4, 0.0], usual_rest_s: 3_600.0, pairs: 20, long_rest_pairs: 2 };
@@ -233,22 +238,7 @@ mod tests {
     /// draw, the lifetime model assuming the last discharge's (a cell whose capacity depends on the current).
     #[test]
     fn the_prior_does_not_know_the_current_the_discharge_will_draw() {
-        use bcal_doctor::lifetime::Quantity;
-        let life = LifetimeModel {
-            quantity: Quantity::CapacityAh,
-            intercept: 1.8,
-            per_cycle: -0.003,
-            reference_cycle: 20.0,
-            per_kelvin: 0.0,
-            per_ampere: -0.05,
-            reference: Condition { ambient_c: 24.0, current_a: 2.0 },
-            amplitude: 0.0,
-            tau_rest_s: 54_720.0,
-            decay_discharges: 5.0,
-            usual_rest_s: 3_600.0,
-            residual_sd: 0.004,
-            jump_sd_fraction: 0.5,
-        };
+        let life = fading_life(-0.05, 0.0);
         let spec = TrackerSpec::default();
         let width = RestWidth { a_z2: [1e-4; 2], b_z2: [0.0; 2], usual_rest_s: 3_600.0, pairs: 20, long_rest_pairs: 0 };
         let mut walk = PriorWalk::new(&spec, Some(&life), width);

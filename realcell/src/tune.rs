@@ -331,15 +331,17 @@ mod tests {
         crate::record::test_discharge(cycle, 1.0, at, Predicted { value: Some(1.0), lo: None, hi: None })
     }
 
+    /// Records of `cycles` with runs predicting the end `f(t)` at each reading ([`discharge`]).
+    fn build(cycles: std::ops::Range<u32>, f: &dyn Fn(f64) -> f64) -> (Vec<CellRecord>, Vec<CycleRun>) {
+        cycles.map(|c| discharge(c, f)).unzip()
+    }
+
     /// A policy that predicts the end better mid-discharge and worse near its start and end serves only the
     /// middle once it has done so on a full window; before that, and elsewhere, the filter does.
     #[test]
     fn the_gate_serves_each_share_of_a_discharge_by_its_own_record() {
         let policy = |t: f64| if (30.0..=70.0).contains(&t) { 101.0 } else { 110.0 };
         let filter = |_: f64| 102.0;
-        let build = |cycles: std::ops::Range<u32>, f: &dyn Fn(f64) -> f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
-            cycles.map(|c| discharge(c, f)).unzip()
-        };
         let (validation, pv) = build(1..11, &policy);
         let (_, fv) = build(1..11, &filter);
         let (judged, pj) = build(11..14, &policy);
@@ -369,9 +371,6 @@ mod tests {
         let filter = |_: f64| 102.0;
         // Onto runs whose end is far out: by them, every reading would sit in the first tenth.
         let far = |_: f64| 1000.0;
-        let build = |cycles: std::ops::Range<u32>, f: &dyn Fn(f64) -> f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
-            cycles.map(|c| discharge(c, f)).unzip()
-        };
         let (validation, pv) = build(1..11, &policy);
         let (_, fv) = build(1..11, &filter);
         let (_, ov) = build(1..11, &far);

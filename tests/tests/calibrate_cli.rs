@@ -16,27 +16,34 @@ fn write_cycles(dir: &Path) -> PathBuf {
     write_cycles_with_offset(dir, 0.0)
 }
 
+/// Discharge `cycle` of the slowly fading cell, read by a voltage sensor that adds `offset_v`: 30 s at rest,
+/// then 2 A until the reading is at or below the cut-off, one row (time s, voltage V, current A) every 10 s.
+fn discharge_rows(cycle: u32, offset_v: f64) -> Vec<(f64, f64, f64)> {
+    let m = BatteryModel::default();
+    let d = Degradation { q_mobile_c: 7000.0 - 40.0 * f64::from(cycle), r_o_ohm: 0.12 };
+    let mut x = m.initial_state(&d);
+    let (mut t, mut rows) = (0.0, Vec::new());
+    loop {
+        let i = if t < 30.0 { 0.0 } else { 2.0 };
+        let v = m.voltage_v(&x, &d) + offset_v;
+        if (t as u64).is_multiple_of(10) {
+            rows.push((t, v, i));
+            if t >= 30.0 && v <= CUTOFF_V {
+                return rows;
+            }
+        }
+        x = m.step(&x, Load::CurrentA(i), 1.0, &d).0;
+        t += 1.0;
+        assert!(t < 10_000.0, "cycle {cycle} never reached the cut-off");
+    }
+}
+
 /// [`write_cycles`] read by a voltage sensor that adds `offset_v` to every reading.
 fn write_cycles_with_offset(dir: &Path, offset_v: f64) -> PathBuf {
-    let m = BatteryModel::default();
     let mut text = String::from("time_s,voltage_v,current_a,cycle\n");
     for cycle in 1..=8u32 {
-        let d = Degradation { q_mobile_c: 7000.0 - 40.0 * f64::from(cycle), r_o_ohm: 0.12 };
-        let mut x = m.initial_state(&d);
-        let mut t = 0.0;
-        loop {
-            let load = if t < 30.0 { Load::CurrentA(0.0) } else { Load::CurrentA(2.0) };
-            let v = m.voltage_v(&x, &d) + offset_v;
-            if (t as u64).is_multiple_of(10) {
-                let i = if t < 30.0 { 0.0 } else { 2.0 };
-                text.push_str(&format!("{t},{v:.5},{i},{cycle}\n"));
-                if t >= 30.0 && v <= CUTOFF_V {
-                    break;
-                }
-            }
-            x = m.step(&x, load, 1.0, &d).0;
-            t += 1.0;
-            assert!(t < 10_000.0, "cycle {cycle} never reached the cut-off");
+        for (t, v, i) in discharge_rows(cycle, offset_v) {
+            text.push_str(&format!("{t},{v:.5},{i},{cycle}\n"));
         }
     }
     let path = dir.join(if offset_v == 0.0 { "cell.csv".to_string() } else { format!("cell_offset_{offset_v}.csv") });
@@ -228,28 +235,15 @@ fn stride_keeps_the_rest_before_each_kept_discharge() {
     let dir = tempfile::tempdir().unwrap();
     let nasa = dir.path().join("nasa");
     std::fs::create_dir_all(nasa.join("data")).unwrap();
-    let m = BatteryModel::default();
     let mut meta =
         String::from("type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n");
     let mut start_h = 0.0f64;
     for cycle in 1..=12u32 {
         start_h += if cycle == 9 { 72.0 } else { 6.0 };
-        let d = Degradation { q_mobile_c: 7000.0 - 40.0 * f64::from(cycle), r_o_ohm: 0.12 };
-        let mut x = m.initial_state(&d);
         let mut text =
             String::from("Voltage_measured,Current_measured,Temperature_measured,Current_load,Voltage_load,Time\n");
-        let mut t = 0.0;
-        loop {
-            let i = if t < 30.0 { 0.0 } else { 2.0 };
-            let v = m.voltage_v(&x, &d);
-            if (t as u64).is_multiple_of(10) {
-                text.push_str(&format!("{v:.5},{:.4},24.0,{i},{v:.4},{t}\n", -i));
-                if i > 0.0 && v <= CUTOFF_V {
-                    break;
-                }
-            }
-            x = m.step(&x, Load::CurrentA(i), 1.0, &d).0;
-            t += 1.0;
+        for (t, v, i) in discharge_rows(cycle, 0.0) {
+            text.push_str(&format!("{v:.5},{:.4},24.0,{i},{v:.4},{t}\n", -i));
         }
         let file = format!("{cycle:05}.csv");
         std::fs::write(nasa.join("data").join(&file), text).unwrap();
