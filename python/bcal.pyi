@@ -179,7 +179,8 @@ class Calibrator:
         """The calibrated model state under progpy's names (qpS, qpB, qnB, qnS in C; Vo, Vsn, Vsp in V;
         tb in K), or None before the first reading."""
     def run(self, df: pd.DataFrame) -> pd.DataFrame:
-        """Feeds every row of `df` (columns time_s, voltage_v, current_a, optionally temperature_c) and
-        returns one row per reading: the keys of `step` (NaN for None) and `row`, the reading's
+        """Feeds every row of `df` (columns time_s, voltage_v, current_a, optionally temperature_c; or
+        the same quantities in other units, named as the CSV readers read them: time_ms, current_ma,
+        Voltage / mV, NASA's Voltage_measured ...) and returns one row per reading: the keys of `step` (NaN for None) and `row`, the reading's
         position. A missing temperature (NaN) reads as the ambient, as an empty CSV field of
         `bcal calibrate --follow` does. A bad row raises ValueError naming its position."""

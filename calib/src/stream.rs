@@ -43,6 +43,7 @@ use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{Request, Sample, KELVIN_0C};
 use bcal_common::measured::tracker::TrackerSpec;
+use bcal_common::measured::MAX_CELL_CURRENT_A;
 use bcal_common::policy::PolicyNet;
 use bcal_common::task::Task;
 use serde::{Deserialize, Serialize};
@@ -91,6 +92,12 @@ pub enum ReadingError {
         CELL_VOLTAGE_RANGE_V[1]
     )]
     VoltageOutOfRange { voltage_v: f64 },
+    #[error(
+        "current_a = {current_a} is more than a cell carries ({} A); give amperes (a milliampere column divided by \
+         1000, or named current_ma)",
+        MAX_CELL_CURRENT_A
+    )]
+    CurrentOutOfRange { current_a: f64 },
     #[error("time_s = {time_s} does not increase (previous reading {previous_s}); readings must come in time order")]
     TimeNotIncreasing { time_s: f64, previous_s: f64 },
 }
@@ -562,6 +569,9 @@ impl<'a> Stream<'a> {
         if !(CELL_VOLTAGE_RANGE_V[0]..=CELL_VOLTAGE_RANGE_V[1]).contains(&r.voltage_v) {
             return Err(ReadingError::VoltageOutOfRange { voltage_v: r.voltage_v });
         }
+        if r.current_a.abs() > MAX_CELL_CURRENT_A {
+            return Err(ReadingError::CurrentOutOfRange { current_a: r.current_a });
+        }
         if let Some(previous_s) = self.last_t_s.filter(|p| r.time_s <= *p) {
             return Err(ReadingError::TimeNotIncreasing { time_s: r.time_s, previous_s });
         }
@@ -923,6 +933,9 @@ mod tests {
                 assert!(matches!(stream.step(&back), Err(ReadingError::TimeNotIncreasing { .. })));
                 let mv = Reading { voltage_v: r.voltage_v * 1000.0, ..*r };
                 assert!(matches!(stream.step(&mv), Err(ReadingError::VoltageOutOfRange { .. })));
+                let ma = Reading { current_a: 2000.0, ..*r };
+                let e = stream.step(&ma).unwrap_err();
+                assert!(matches!(e, ReadingError::CurrentOutOfRange { .. }) && e.to_string().contains("current_ma"));
             }
             let s = Sample {
                 t_s: r.time_s,

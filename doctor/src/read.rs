@@ -41,9 +41,7 @@ pub const MIN_SAMPLES: usize = 10;
 /// Ambient temperature assumed for a generic CSV without a temperature column, deg C.
 pub const DEFAULT_AMBIENT_C: f64 = 25.0;
 
-/// Largest current a cell under test plausibly carries, A: a larger one is refused as milliamperes. The
-/// model is an 18650-sized cell (about 2 Ah); 100 A is 50 C for it.
-pub const MAX_CELL_CURRENT_A: f64 = 100.0;
+pub use bcal_common::measured::MAX_CELL_CURRENT_A;
 
 /// Largest charge one discharge record plausibly draws, Ah: a larger one is refused as time in
 /// milliseconds (which multiplies the charge by 1000).
@@ -805,7 +803,7 @@ struct Row {
 
 /// What a column holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Quantity {
+pub enum Quantity {
     Time,
     UnixTime,
     Voltage,
@@ -932,6 +930,75 @@ impl Columns {
         .flatten()
         .collect()
     }
+}
+
+/// One quantity of a reading as a column (or a JSON key) names it: where it is and how it converts to s, V,
+/// A or deg C.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NamedColumn {
+    /// Its position among the names given.
+    pub index: usize,
+    /// The name as given.
+    pub name: String,
+    scale: f64,
+    offset: f64,
+    /// The unit it is read in (`s`, `ms`, `V`, `mV`, `A`, `mA`, `degC`, `K`, ...).
+    pub unit: &'static str,
+}
+
+impl NamedColumn {
+    /// `value` (in the column's unit) in the doctor's unit.
+    pub fn si(&self, value: f64) -> f64 {
+        value * self.scale + self.offset
+    }
+}
+
+/// The columns of one reading (time, terminal voltage, current, and the cell's temperature if named) among
+/// `names`, in the vocabulary the CSV readers know: `time_s`, `time_ms`, `Test Time / s`, `voltage_mv`,
+/// `Voltage_measured`, `Current (mA)`, `current_ampere`, `temperature_c`, `Temperature / K`, ... So what a
+/// user's CSV is read with offline, a live stream of the same columns is read with too. The error names the
+/// quantity that is missing, or the unit that is not read, and what would be.
+pub fn reading_columns(names: &[&str]) -> Result<ReadingColumns, String> {
+    let mut found: Vec<(Quantity, NamedColumn)> = Vec::new();
+    for (index, name) in names.iter().enumerate() {
+        let Some((quantity, unit)) = classify(name) else { continue };
+        if found.iter().any(|(q, _)| *q == quantity) {
+            continue; // The first of a quantity is read, as by the CSV readers.
+        }
+        let Some((scale, offset, unit)) = unit_of(quantity, unit.as_deref()) else {
+            return Err(format!(
+                "`{}` is read in {}, not `{}`",
+                shown(name, 60),
+                accepted_units(quantity),
+                shown(unit.as_deref().unwrap_or(""), 20)
+            ));
+        };
+        found.push((quantity, NamedColumn { index, name: name.trim().to_string(), scale, offset, unit }));
+    }
+    let mut take = |q: Quantity| found.iter().position(|(fq, _)| *fq == q).map(|k| found.remove(k).1);
+    let time = take(Quantity::Time).or_else(|| take(Quantity::UnixTime));
+    let (voltage, current, temperature) =
+        (take(Quantity::Voltage), take(Quantity::Current), take(Quantity::Temperature));
+    match (time, voltage, current) {
+        (Some(time), Some(voltage), Some(current)) => Ok(ReadingColumns { time, voltage, current, temperature }),
+        (t, v, c) => {
+            let missing: Vec<&str> = [(t.is_none(), "time"), (v.is_none(), "voltage"), (c.is_none(), "current")]
+                .into_iter()
+                .filter_map(|(m, what)| m.then_some(what))
+                .collect();
+            Err(format!("no {} among `{}`; {COLUMNS_HINT}", missing.join(", no "), shown(&names.join(","), 200)))
+        }
+    }
+}
+
+/// The columns of a reading found by [`reading_columns`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReadingColumns {
+    pub time: NamedColumn,
+    pub voltage: NamedColumn,
+    pub current: NamedColumn,
+    /// The cell's temperature (an ambient column is not read as it).
+    pub temperature: Option<NamedColumn>,
 }
 
 /// The quantity a header names and the unit it gives, if the reader knows the name: `Voltage / mV`
@@ -1416,6 +1483,30 @@ fn csv_error(path: &Path, source: csv::Error, lines: &mut Lines) -> DoctorError 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A stream's or a DataFrame's columns are found as the CSV readers find them, each converted by the unit
+    /// its name gives; a missing quantity and an unknown unit are named.
+    #[test]
+    fn reading_columns_read_the_units_their_names_give() {
+        let c = reading_columns(&["Current (mA)", "time_ms", "Voltage / mV", "ambient_temperature", "Temperature / K"])
+            .unwrap();
+        assert_eq!((c.time.index, c.voltage.index, c.current.index), (1, 2, 0));
+        assert_eq!(c.time.si(1500.0), 1.5);
+        assert_eq!(c.voltage.si(3900.0), 3.9);
+        assert_eq!(c.current.si(-2000.0), -2.0);
+        let t = c.temperature.expect("the cell's temperature, not the ambient");
+        assert_eq!((t.index, t.si(300.0)), (4, 300.0 - CELSIUS_TO_KELVIN));
+        let nasa = reading_columns(&["Voltage_measured", "Current_measured", "Temperature_measured", "Time"]).unwrap();
+        assert_eq!((nasa.time.index, nasa.time.si(10.0), nasa.current.unit), (3, 10.0, "A"));
+        let plain = reading_columns(&["time_s", "voltage_v", "current_a"]).unwrap();
+        assert!(plain.temperature.is_none() && plain.time.si(7.0) == 7.0);
+        let e = reading_columns(&["time_s", "volts", "current_a"]).unwrap_err();
+        assert!(e.contains("no voltage among `time_s,volts,current_a`"), "{e}");
+        let e = reading_columns(&["time_fortnights", "voltage_v", "current_a"]).unwrap_err();
+        assert!(e.contains("no time"), "an unknown unit word is not a unit: {e}");
+        let e = reading_columns(&["Time (fortnights)", "voltage_v", "current_a"]).unwrap_err();
+        assert!(e.contains("`Time (fortnights)` is read in s, ms, min or h"), "{e}");
+    }
 
     #[test]
     fn nasa_descriptions_give_each_battery_its_cutoff() {

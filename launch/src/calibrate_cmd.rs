@@ -29,7 +29,8 @@ pub struct CalibrateArgs {
     pub data: Option<PathBuf>,
     /// Live readings instead of --data: `-` reads standard input, FILE follows a file another process is
     /// still writing (from its start, then every line appended). CSV rows under a header
-    /// `time_s,voltage_v,current_a[,temperature_c]` or JSON lines with those keys; one JSON line per reading
+    /// `time_s,voltage_v,current_a[,temperature_c]` or JSON lines with those keys (other units named as the
+    /// CSV readers read them: time_ms, voltage_mv, current_ma, NASA's Voltage_measured); one JSON line per reading
     /// on standard output (estimate, 90 % interval, predicted EOD) as soon as it is computed. A bad line is
     /// reported with its number and skipped; end of input, --idle-s or Ctrl-C ends with a summary. Runs one
     /// calibrator (--calibrator ukf by default; `fit` is then the streaming window fit) on a new cell's prior,

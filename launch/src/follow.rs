@@ -15,7 +15,7 @@ use bcal_calib::stream::{resolve, CalibratorKind, Estimate, Reading, Stream, Wid
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::PolicyFile;
-use bcal_doctor::read::CurrentSign;
+use bcal_doctor::read::{reading_columns, CurrentSign, NamedColumn, ReadingColumns};
 use std::io::{BufRead, Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -137,14 +137,14 @@ fn reader(source: String, tx: Sender<Event>) {
 
 /// The layout of the lines, decided by the first one that is not empty or a `#` comment.
 enum Layout {
-    /// CSV under a header: the positions of time_s, voltage_v, current_a and temperature_c.
-    Csv { time: usize, voltage: usize, current: usize, temperature: Option<usize>, width: usize },
-    /// One JSON object per line.
+    /// CSV under a header: where each quantity is and its unit, and how many fields a row has.
+    Csv { columns: Box<ReadingColumns>, width: usize },
+    /// One JSON object per line, its keys read as a CSV header is.
     Json,
 }
 
-const HEADER_HINT: &str = "give a CSV header time_s,voltage_v,current_a[,temperature_c] first, or JSON lines \
-                           like {\"time_s\": 0, \"voltage_v\": 4.1, \"current_a\": 2.0, \"temperature_c\": 24}";
+const JSON_HINT: &str =
+    "or give JSON lines like {\"time_s\": 0, \"voltage_v\": 4.1, \"current_a\": 2.0, \"temperature_c\": 24}";
 
 fn csv_fields(line: &str) -> Result<Vec<String>, String> {
     let mut rdr = csv::ReaderBuilder::new().has_headers(false).flexible(true).from_reader(line.as_bytes());
@@ -155,6 +155,22 @@ fn csv_fields(line: &str) -> Result<Vec<String>, String> {
     }
 }
 
+/// A reading from the fields `value` gives for each column: time, voltage and current required, the
+/// temperature read as missing (the ambient) where it gives none; each converted by its column's unit.
+fn reading_of(
+    c: &ReadingColumns,
+    value: impl Fn(&NamedColumn) -> Result<Option<f64>, String>,
+) -> Result<Reading, String> {
+    let need = |col: &NamedColumn| -> Result<f64, String> {
+        Ok(col.si(value(col)?.ok_or_else(|| format!("no value for `{}`", col.name))?))
+    };
+    let temperature_c = match &c.temperature {
+        Some(col) => value(col)?.map(|t| col.si(t)),
+        None => None,
+    };
+    Ok(Reading { time_s: need(&c.time)?, voltage_v: need(&c.voltage)?, current_a: need(&c.current)?, temperature_c })
+}
+
 impl Layout {
     /// The layout a first line sets; an error names what the header lacks.
     fn from_first(line: &str) -> Result<Self, String> {
@@ -162,25 +178,14 @@ impl Layout {
             return Ok(Layout::Json);
         }
         let names = csv_fields(line)?;
-        let at = |name: &str| names.iter().position(|n| n == name);
-        let missing: Vec<&str> = ["time_s", "voltage_v", "current_a"].into_iter().filter(|n| at(n).is_none()).collect();
-        if !missing.is_empty() {
-            return Err(format!(
-                "the header `{}` has no column {}; {HEADER_HINT}",
-                bcal_common::text::shown(line, 80),
-                missing.iter().map(|m| format!("`{m}`")).collect::<Vec<_>>().join(", ")
-            ));
-        }
-        Ok(Layout::Csv {
-            time: at("time_s").unwrap_or_default(),
-            voltage: at("voltage_v").unwrap_or_default(),
-            current: at("current_a").unwrap_or_default(),
-            temperature: at("temperature_c"),
-            width: names.len(),
-        })
+        let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+        let columns = reading_columns(&refs)
+            .map_err(|e| format!("the header `{}`: {e}; {JSON_HINT}", bcal_common::text::shown(line, 80)))?;
+        Ok(Layout::Csv { columns: Box::new(columns), width: names.len() })
     }
 
-    /// One reading from a data line, current as written (the sign is applied by the caller).
+    /// One reading from a data line, in s, V, A and deg C, current with the sign as written (the caller
+    /// applies the stream's convention).
     fn parse(&self, line: &str) -> Result<Reading, String> {
         let number = |field: &str, text: &str| -> Result<f64, String> {
             text.trim()
@@ -188,36 +193,25 @@ impl Layout {
                 .map_err(|_| format!("field `{field}` = `{}` is not a number", bcal_common::text::shown(text, 40)))
         };
         match self {
-            Layout::Csv { time, voltage, current, temperature, width } => {
+            Layout::Csv { columns, width } => {
                 let f = csv_fields(line)?;
                 if f.len() != *width {
                     return Err(format!("{} fields where the header has {width}", f.len()));
                 }
-                Ok(Reading {
-                    time_s: number("time_s", &f[*time])?,
-                    voltage_v: number("voltage_v", &f[*voltage])?,
-                    current_a: number("current_a", &f[*current])?,
-                    temperature_c: match temperature.map(|k| f[k].as_str()) {
-                        None | Some("") => None,
-                        Some(t) => Some(number("temperature_c", t)?),
-                    },
+                reading_of(columns, |c| match f[c.index].as_str() {
+                    "" => Ok(None),
+                    text => number(&c.name, text).map(Some),
                 })
             }
             Layout::Json => {
                 let v: serde_json::Value =
                     serde_json::from_str(line).map_err(|e| format!("not a JSON object ({e})"))?;
-                let get = |field: &str, required: bool| -> Result<Option<f64>, String> {
-                    match v.get(field) {
-                        None | Some(serde_json::Value::Null) if !required => Ok(None),
-                        None => Err(format!("no key `{field}`")),
-                        Some(x) => x.as_f64().map(Some).ok_or_else(|| format!("key `{field}` = {x} is not a number")),
-                    }
-                };
-                Ok(Reading {
-                    time_s: get("time_s", true)?.unwrap_or_default(),
-                    voltage_v: get("voltage_v", true)?.unwrap_or_default(),
-                    current_a: get("current_a", true)?.unwrap_or_default(),
-                    temperature_c: get("temperature_c", false)?,
+                let object = v.as_object().ok_or_else(|| format!("not a JSON object: {}", v))?;
+                let keys: Vec<&str> = object.keys().map(String::as_str).collect();
+                let columns = reading_columns(&keys)?;
+                reading_of(&columns, |c| match &object[keys[c.index]] {
+                    serde_json::Value::Null => Ok(None),
+                    x => x.as_f64().map(Some).ok_or_else(|| format!("key `{}` = {x} is not a number", c.name)),
                 })
             }
         }
@@ -529,16 +523,41 @@ mod tests {
         assert_eq!(r, Reading { time_s: 10.0, voltage_v: 3.9, current_a: 2.0, temperature_c: None });
         assert!(l.parse("2.0,abc,3.9").unwrap_err().contains("field `time_s` = `abc` is not a number"));
         assert!(l.parse("2.0,10").unwrap_err().contains("2 fields where the header has 3"));
+        assert!(l.parse("2.0,,3.9").unwrap_err().contains("no value for `time_s`"));
         let e = Layout::from_first("time_s,volts,current_a").err().unwrap();
-        assert!(e.contains("no column `voltage_v`"), "{e}");
+        assert!(e.contains("no voltage among `time_s,volts,current_a`") && e.contains("JSON lines"), "{e}");
+    }
+
+    /// A stream logged in milliseconds, millivolts and milliamperes (or NASA's own record columns) is read
+    /// as the CSV readers read the same file: each column in the unit its name gives.
+    #[test]
+    fn a_header_in_other_units_is_converted_as_the_readers_convert_it() {
+        let l = Layout::from_first("time_ms,voltage_mv,current_ma,temperature_c").unwrap();
+        let r = l.parse("1500,3900,2000,").unwrap();
+        assert_eq!(r, Reading { time_s: 1.5, voltage_v: 3.9, current_a: 2.0, temperature_c: None });
+        let l =
+            Layout::from_first("Voltage_measured,Current_measured,Temperature_measured,Current_load,Voltage_load,Time")
+                .unwrap();
+        let r = l.parse("4.19,-2.01,24.3,-2.0,3.0,18.7").unwrap();
+        assert_eq!(r, Reading { time_s: 18.7, voltage_v: 4.19, current_a: -2.01, temperature_c: Some(24.3) });
+        let e = Layout::from_first("Time (fortnights),voltage_v,current_a").err().unwrap();
+        assert!(e.contains("is read in s, ms, min or h"), "{e}");
     }
 
     #[test]
-    fn json_lines_take_optional_temperature() {
+    fn json_lines_take_optional_temperature_and_units_in_their_keys() {
         let l = Layout::from_first("{\"time_s\": 1}").unwrap();
         let r = l.parse("{\"time_s\": 1, \"voltage_v\": 4.0, \"current_a\": 0.5, \"temperature_c\": 25}").unwrap();
         assert_eq!(r.temperature_c, Some(25.0));
-        assert!(l.parse("{\"time_s\": 1, \"current_a\": 0.5}").unwrap_err().contains("no key `voltage_v`"));
+        let r =
+            l.parse("{\"time_ms\": 1000, \"voltage_v\": 4.0, \"current_ma\": 500, \"temperature_c\": null}").unwrap();
+        assert_eq!(r, Reading { time_s: 1.0, voltage_v: 4.0, current_a: 0.5, temperature_c: None });
+        assert!(l.parse("{\"time_s\": 1, \"current_a\": 0.5}").unwrap_err().contains("no voltage among"));
+        assert!(l
+            .parse("{\"time_s\": 1, \"voltage_v\": \"x\", \"current_a\": 0.5}")
+            .unwrap_err()
+            .contains("key `voltage_v`"));
         assert!(l.parse("time_s,1").unwrap_err().contains("not a JSON object"));
+        assert!(l.parse("[1, 2]").unwrap_err().contains("not a JSON object"));
     }
 }

@@ -10,6 +10,7 @@ use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::math::idx;
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::{PolicyFile, PolicyNet};
+use bcal_doctor::read::{reading_columns, NamedColumn};
 use pyo3::exceptions::PyOSError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -235,32 +236,25 @@ impl Calibrator {
     }
 
     /// Feeds every row of a pandas DataFrame with columns `time_s`, `voltage_v`, `current_a` (and optionally
-    /// `temperature_c`) in order, and returns a DataFrame with one row per reading: the columns of `step`
+    /// `temperature_c`; or the same quantities in other units named as the CSV readers read them: `time_ms`,
+    /// `current_ma`, `Voltage / mV`, NASA's `Voltage_measured`) in order, and returns a DataFrame with one row per reading: the columns of `step`
     /// (NaN where `step` gives None) and `row`, the reading's position in `df`. A missing temperature (NaN)
     /// is a reading without one, at the ambient, as an empty field of `bcal calibrate --follow`'s CSV is. A
     /// bad row raises ValueError naming its position; the readings before it have been taken.
     fn run<'py>(&self, py: Python<'py>, df: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
         let columns: Vec<String> = df.getattr("columns")?.call_method0("tolist")?.extract()?;
-        let column = |name: &str| -> PyResult<Option<Vec<f64>>> {
-            if !columns.iter().any(|c| c == name) {
-                return Ok(None);
-            }
+        let names: Vec<&str> = columns.iter().map(String::as_str).collect();
+        let cols = reading_columns(&names).map_err(|e| value_error(format!("the DataFrame's columns: {e}")))?;
+        // Each column in s, V, A or deg C, converted by the unit its name gives (`time_ms`, `current_ma`).
+        let column = |c: &NamedColumn| -> PyResult<Vec<f64>> {
             let kwargs = PyDict::new(py);
             kwargs.set_item("dtype", "float64")?;
-            let values = df.get_item(name)?.call_method("to_numpy", (), Some(&kwargs))?.call_method0("tolist")?;
-            Ok(Some(values.extract()?))
+            let values =
+                df.get_item(&columns[c.index])?.call_method("to_numpy", (), Some(&kwargs))?.call_method0("tolist")?;
+            Ok(values.extract::<Vec<f64>>()?.into_iter().map(|v| c.si(v)).collect())
         };
-        let need = |name: &str| -> PyResult<Vec<f64>> {
-            column(name)?.ok_or_else(|| {
-                value_error(format!(
-                    "the DataFrame has no column `{name}` (columns: {}); it needs time_s, voltage_v, current_a and \
-                     optionally temperature_c",
-                    columns.join(", ")
-                ))
-            })
-        };
-        let (time_s, voltage_v, current_a) = (need("time_s")?, need("voltage_v")?, need("current_a")?);
-        let temperature_c = column("temperature_c")?;
+        let (time_s, voltage_v, current_a) = (column(&cols.time)?, column(&cols.voltage)?, column(&cols.current)?);
+        let temperature_c = cols.temperature.as_ref().map(column).transpose()?;
         let mut out: Vec<Vec<f64>> = vec![Vec::with_capacity(time_s.len()); RUN_COLUMNS.len()];
         let opt = |v: Option<f64>| v.unwrap_or(f64::NAN);
         let result = self.with_stream(|s| -> Result<(), String> {

@@ -85,6 +85,22 @@ def test_a_missing_temperature_is_the_ambient_as_in_the_cli(bcal_cli, discharge)
     assert stepped == frame["q_mobile"].tolist()
 
 
+def test_columns_in_other_units_are_read_as_their_names_say_in_both_faces(bcal_cli, discharge):
+    milli = pd.DataFrame({"time_ms": discharge["time_s"] * 1000.0, "voltage_mv": discharge["voltage_v"] * 1000.0,
+                          "current_ma": discharge["current_a"] * 1000.0, "temperature_c": discharge["temperature_c"]})
+    # The same readings in s, V and A, converted as the readers convert (times 1e-3).
+    si = pd.DataFrame({"time_s": milli["time_ms"] * 1e-3, "voltage_v": milli["voltage_mv"] * 1e-3,
+                       "current_a": milli["current_ma"] * 1e-3, "temperature_c": milli["temperature_c"]})
+    frame = make("ukf").run(milli)
+    assert frame["q_mobile"].tolist() == make("ukf").run(si)["q_mobile"].tolist()
+    out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", "ukf",
+                  stdin=milli.to_csv(index=False, float_format="%.17g"))
+    assert out.returncode == 0, out.stderr
+    assert [json.loads(line)["q_mobile"] for line in out.stdout.splitlines()] == frame["q_mobile"].tolist()
+    with pytest.raises(ValueError, match="no voltage among"):
+        make("ukf").run(milli.rename(columns={"voltage_mv": "volts"}))
+
+
 def test_two_discharges_in_one_stream_are_counted_and_the_second_starts_from_the_first(bcal_cli, discharge):
     # The same discharge again three hours after the first ended (its charge unseen).
     later = discharge.assign(time_s=discharge["time_s"] + discharge["time_s"].iloc[-1] + 3 * 3600.0)
@@ -110,7 +126,7 @@ def test_two_discharges_in_one_stream_are_counted_and_the_second_starts_from_the
 
 
 def test_run_names_a_missing_column_and_a_bad_row(discharge):
-    with pytest.raises(ValueError, match="the DataFrame has no column `voltage_v`"):
+    with pytest.raises(ValueError, match="the DataFrame's columns: no voltage among"):
         make("fit").run(discharge.drop(columns=["voltage_v"]))
     bad = discharge.copy()
     bad.loc[7, "time_s"] = bad.loc[5, "time_s"]
