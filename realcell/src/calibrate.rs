@@ -326,7 +326,7 @@ impl CellHistory {
     /// The prior widths a streaming calibrator is tried with: factors on the learned width, or (without a
     /// history to learn it from) the settings' own.
     pub fn factors(&self) -> Vec<Option<f64>> {
-        prior_factors(&self.carrying.width)
+        prior_factors(&self.carrying.tuning_width)
     }
 
     /// The learned prior standard deviations after the usual rest times `factor`, z; None without them.
@@ -614,8 +614,17 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             )
         } else {
             "too few pairs: each calibrator's own prior width".into()
-        }
+        },
     ));
+    if carrying.tuning_width != width {
+        progress(&format!(
+            "prior: the training discharges (the validation cycles among them) start from the width learned on the \
+             {} pairs before the validation cycles: sd after the usual rest {:.4} / {:.4} z",
+            carrying.tuning_width.pairs,
+            carrying.tuning_width.a_z2[0].sqrt(),
+            carrying.tuning_width.a_z2[1].sqrt()
+        ));
+    }
     // What each training and judged discharge starts from, one walk through both: under the end fits (the
     // prior and every streaming calibrator) and under the voltage fits (the references that carry a fit: the
     // previous cycle's, the oracle's, with the knee against it; pinned, so the width does not matter).
@@ -625,8 +634,14 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                     judged_carried: &[(Degradation, ModelExtension)]| {
         let start = (spec.tracker.prior, neutral.clone());
         let none = Knees::default();
-        let tb =
-            before(&mut PriorWalk::new(&spec.tracker, life_tuning, width), &train, train_carried, &start, &none, cut);
+        let tb = before(
+            &mut PriorWalk::new(&spec.tracker, life_tuning, carrying.tuning_width),
+            &train,
+            train_carried,
+            &start,
+            &none,
+            cut,
+        );
         let mut walk = PriorWalk::new(&spec.tracker, life_used, width);
         for (r, f) in train.iter().zip(train_carried) {
             walk.observe(r, r.rest_before_s, &f.0);
@@ -656,7 +671,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     settings.insert(
         "prior".into(),
         serde_json::json!({"carried": "end_fit", "kept_voltage_fit": carrying.kept_voltage_fit + judged_kept,
-            "width": width, "lifetime": life.as_ref().map(|l| serde_json::json!({"model": l.used,
+            "width": width, "tuning_width": carrying.tuning_width, "lifetime": life.as_ref().map(|l| serde_json::json!({"model": l.used,
             "tuning_model": l.tuning, "verdict": l.verdict})), "judged": judged_before.iter().zip(&judged).map(|(b, r)| serde_json::json!({
             "cycle": r.cycle, "rest_before_s": b.rest_before_s, "q_mobile_c": b.prior.q_mobile_c,
             "r_o_ohm": b.prior.r_o_ohm, "sd_z": b.prior_sd_z})).collect::<Vec<_>>()}),
@@ -675,7 +690,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             2 * tune::MIN_VALIDATION
         )));
     }
-    let factors = prior_factors(&width);
+    let factors = prior_factors(&carrying.tuning_width);
     let mut widenings = serde_json::Map::new();
     // Parameters (and extended-model values) pinned for the whole discharge, each with its own model and the
     // knee every method gets: the references, and the prior every streaming calibrator is held to.

@@ -84,6 +84,10 @@ pub struct Carrying {
     pub fits: Vec<(Degradation, ModelExtension)>,
     /// The prior width learned from consecutive ones.
     pub width: RestWidth,
+    /// The same learned from the pairs before the validation records alone (the whole `width` where those
+    /// are too few to fit it): what the training records start from, so a prior width factor chosen on the
+    /// validation records sees a width learned out of sample, as a judged record will.
+    pub tuning_width: RestWidth,
     /// What each training record starts from.
     pub before: Vec<Before>,
     /// The knees of the training records, against their carried fits.
@@ -106,10 +110,14 @@ impl Carrying {
     ) -> Self {
         let width =
             if train.is_empty() { RestWidth::fallback() } else { learn_width(spec, life, train, &carried, rests) };
-        let mut walk = PriorWalk::new(spec, life, width);
+        let tuning = crate::tune::validation_records(train).first().copied().unwrap_or(train.len());
+        let tuning_width = Some(learn_width(spec, life, &train[..tuning], &carried[..tuning], rests))
+            .filter(|w| w.fitted() && tuning < train.len())
+            .unwrap_or(width);
+        let mut walk = PriorWalk::new(spec, life, tuning_width);
         let before = before(&mut walk, train, &carried, &(spec.prior, neutral.clone()), &Knees::default(), cutoff_v);
         let knees = Knees::of(train, &carried, cutoff_v);
-        Self { fits: carried, width, before, knees, kept_voltage_fit: 0 }
+        Self { fits: carried, width, tuning_width, before, knees, kept_voltage_fit: 0 }
     }
 
     /// The end fits of `train` (their voltage fits `fits`) carried along it.
@@ -173,5 +181,41 @@ mod tests {
             assert!(*v > 0.0 && e.abs() < 0.25 * v, "knee against the end fit {e} C, the voltage fit {v} C");
         }
         assert_eq!(c.knees.eod_c.len(), records.len(), "every record started at rest and reached its end");
+    }
+
+    /// The validation records (the last quarter) start from a width learned on the pairs before them: a
+    /// cell whose fits jump only there gives them the narrow width of its earlier history, and the judged
+    /// records the width of all of it.
+    #[test]
+    fn the_validation_records_start_from_a_width_learned_without_them() {
+        let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
+        let spec = TrackerSpec { cutoff_v: cfg.cutoff_v, ..TrackerSpec::default() };
+        let one = crate::testing::simulated_record(&cfg, Degradation { q_mobile_c: 7400.0, r_o_ohm: 0.12 }, 1.0, 3, 1);
+        let n = 16;
+        let records: Vec<CellRecord> = (1..=n).map(|c| CellRecord { cycle: c, ..one.clone() }).collect();
+        let validation = crate::tune::validation_records(&records);
+        assert_eq!(validation, (12..16).collect::<Vec<_>>());
+        let fits: Vec<(Degradation, ModelExtension)> = (0..n as usize)
+            .map(|k| {
+                let wobble = if k < 12 { 5.0 } else { 300.0 } * if k % 2 == 0 { 1.0 } else { -1.0 };
+                (
+                    Degradation { q_mobile_c: 7400.0 - 10.0 * k as f64 + wobble, r_o_ohm: 0.12 },
+                    ModelExtension::default(),
+                )
+            })
+            .collect();
+        let c = Carrying::along(&spec, None, &records, fits, &ModelExtension::default(), &BTreeMap::new(), 2.5);
+        let (all, before_validation) = (c.width.a_z2[0].sqrt(), c.tuning_width.a_z2[0].sqrt());
+        assert!(
+            before_validation < 0.2 * all,
+            "sd {before_validation} z before the validation records, {all} z in all"
+        );
+        for k in validation {
+            let sd = c.before[k].prior_sd_z.expect("a learned width")[0];
+            assert!(
+                (sd / before_validation - 1.0).abs() < 1e-9,
+                "record {k}: sd {sd} z, learned before {before_validation} z"
+            );
+        }
     }
 }
