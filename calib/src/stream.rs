@@ -135,7 +135,8 @@ pub struct Estimate {
     /// calibrator's own on at least 8 of the last 10 and in their mean, unless the prior alone predicts there
     /// or the rest before this discharge was longer than a day.
     pub eod_recentred: bool,
-    /// The discharge the reading belongs to, from 0 (a new one after a charge or a long gap).
+    /// The discharge the reading belongs to, from 0 (a new one after a charge or a long gap; the readings of
+    /// a charge take the number of the discharge after it).
     pub discharge: u32,
 }
 
@@ -774,8 +775,10 @@ impl<'a> Stream<'a> {
         self.samples.clear();
         self.end_fit = None;
         self.loaded_sum_a = 0.0;
+        // A stretch that never drew a load (a charge seen after lost readings, a stream that began on a
+        // charge) was no discharge: the next one keeps its number.
+        self.discharge += u32::from(self.loaded_n > 0);
         self.loaded_n = 0;
-        self.discharge += 1;
     }
 
     /// Records the reading's predictions (the calibrator's and the prior's) and, at the first loaded
@@ -1379,10 +1382,10 @@ mod tests {
         assert!(stream.recentred_serves().iter().all(|s| *s), "{:?}", stream.recentred_serves());
     }
 
-    /// A gap, then a charge the stream sees, then the next discharge: the charge is a stretch of its own (a
-    /// new one starts after the gap and again after the charge), but not a discharge to carry or learn from:
-    /// the next discharge starts from where the last discharge ended, not from where the charge left the
-    /// filter.
+    /// A gap, then a charge the stream sees, then the next discharge: a new stretch starts after the gap and
+    /// again after the charge, but the charge is no discharge: not counted (it shares the next discharge's
+    /// number), carried or learned from. The next discharge starts from where the last discharge ended, not
+    /// from where the charge left the filter.
     #[test]
     fn a_charge_after_a_gap_is_not_carried_as_a_discharge() {
         let cfg = ScenarioConfig::default();
@@ -1414,8 +1417,8 @@ mod tests {
         let mut stream = Stream::of(&setup, None, None).unwrap();
         let est: Vec<Estimate> = readings.iter().map(|r| stream.step(r).unwrap()).collect();
         let n_first = samples.len();
-        assert_eq!(stream.discharges(), 3, "the discharge, the charge, the discharge");
-        assert_eq!((est[n_first].discharge, est[n_before].discharge), (1, 2));
+        assert_eq!(stream.discharges(), 2, "the discharge, the charge, the discharge");
+        assert_eq!((est[n_first].discharge, est[n_before].discharge), (1, 1));
         // The same two discharges without the charge between them: the second starts from the same value.
         let mut plain = Stream::of(&setup, None, None).unwrap();
         let without: Vec<Estimate> =
@@ -1552,6 +1555,30 @@ mod tests {
         // that walked through the three days.
         let (sd, source) = stream.prior_width.expect("a width");
         assert_eq!((Some(sd), source), (stream.carried_sd_z, WidthSource::Posterior));
+    }
+
+    /// Readings lost for two hours after a discharge, then a charge seen whole, a rest and a discharge: the
+    /// discharge after the charge carries the first discharge's own posterior width (the gap started a
+    /// discharge that only charged; it hands on nothing of its own).
+    #[test]
+    fn a_charge_seen_after_a_gap_hands_on_the_width_of_the_discharge_before_it() {
+        let (readings, starts, setup) = two_discharges();
+        let mut stream = fed(&setup, &readings[..starts[1]]);
+        let end_s = readings[starts[1] - 1].time_s;
+        for r in &charge(end_s + 7200.0, 90, -1.5, 3.9, 0.3) {
+            stream.step(r).unwrap();
+        }
+        let first_sd = stream.carried_sd_z.expect("the first discharge's posterior width");
+        let charged_s = end_s + 7200.0 + 20.0 * 90.0;
+        let second = &readings[starts[1]..];
+        let shift = charged_s + 1200.0 - second[0].time_s;
+        for r in second {
+            stream.step(&Reading { time_s: r.time_s + shift, ..*r }).unwrap();
+        }
+        assert_eq!(stream.discharges(), 2);
+        assert_eq!(stream.carried_sd_z, Some(first_sd));
+        // Without a lifetime model nothing widens it.
+        assert_eq!(stream.prior_width, Some((first_sd, WidthSource::Posterior)));
     }
 
     /// A charge and, at once, the load (a cycler with no rest after charging): a whole discharge, scored.
