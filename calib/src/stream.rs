@@ -65,6 +65,10 @@ pub const NEW_DISCHARGE_GAP_S: f64 = 1800.0;
 /// at rest) is not a charge and does not end the discharge it falls in. Measured from the first charging
 /// reading to the first reading after it, so a charge read once an hour still counts.
 pub const MIN_CHARGE_S: f64 = 60.0;
+/// A reading later than the one before by more than this is refused as a clock error, s (a year): taken,
+/// one timestamp far in the future (a glitch, milliseconds since the epoch read as seconds) would have every
+/// later reading refused as not increasing.
+pub const MAX_GAP_S: f64 = 365.0 * 86_400.0;
 
 /// One reading as a user gives it, in the CLI's and the Python package's names and units.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -100,6 +104,12 @@ pub enum ReadingError {
     CurrentOutOfRange { current_a: f64 },
     #[error("time_s = {time_s} does not increase (previous reading {previous_s}); readings must come in time order")]
     TimeNotIncreasing { time_s: f64, previous_s: f64 },
+    #[error(
+        "time_s = {time_s} is more than a year after the previous reading ({previous_s}): a clock error, or \
+         milliseconds given as seconds (name the column time_ms); start a new stream if the cell really rested \
+         that long"
+    )]
+    TimeJump { time_s: f64, previous_s: f64 },
 }
 
 /// What the stream answers at each reading. Interval bounds and the prediction are None while the
@@ -576,6 +586,9 @@ impl<'a> Stream<'a> {
         if let Some(previous_s) = self.last_t_s.filter(|p| r.time_s <= *p) {
             return Err(ReadingError::TimeNotIncreasing { time_s: r.time_s, previous_s });
         }
+        if let Some(previous_s) = self.last_t_s.filter(|p| r.time_s - *p > MAX_GAP_S) {
+            return Err(ReadingError::TimeJump { time_s: r.time_s, previous_s });
+        }
         let s = Sample {
             t_s: r.time_s,
             voltage_v: r.voltage_v,
@@ -939,6 +952,9 @@ mod tests {
                 let ma = Reading { current_a: 2000.0, ..*r };
                 let e = stream.step(&ma).unwrap_err();
                 assert!(matches!(e, ReadingError::CurrentOutOfRange { .. }) && e.to_string().contains("current_ma"));
+                // One timestamp in milliseconds since the epoch: refused, and the readings after it go on.
+                let far = Reading { time_s: 1.7e12, ..*r };
+                assert!(matches!(stream.step(&far), Err(ReadingError::TimeJump { .. })));
             }
             let s = Sample {
                 t_s: r.time_s,
