@@ -237,10 +237,11 @@ impl Calibrator {
 
     /// Feeds every row of a pandas DataFrame with columns `time_s`, `voltage_v`, `current_a` (and optionally
     /// `temperature_c`; or the same quantities in other units named as the CSV readers read them: `time_ms`,
-    /// `current_ma`, `Voltage / mV`, NASA's `Voltage_measured`) in order, and returns a DataFrame with one row per reading: the columns of `step`
-    /// (NaN where `step` gives None) and `row`, the reading's position in `df`. A missing temperature (NaN)
-    /// is a reading without one, at the ambient, as an empty field of `bcal calibrate --follow`'s CSV is. A
-    /// bad row raises ValueError naming its position; the readings before it have been taken.
+    /// `current_ma`, `Voltage / mV`, NASA's `Voltage_measured`) in order, and returns a DataFrame with one
+    /// row per reading: the columns of `step` (NaN where `step` gives None) and `row`, the reading's position
+    /// in `df`. A missing temperature (NaN) is a reading without one, at the ambient, as an empty field of
+    /// `bcal calibrate --follow`'s CSV is. A bad row raises ValueError naming its position; the readings
+    /// before it have been taken.
     fn run<'py>(&self, py: Python<'py>, df: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
         let columns: Vec<String> = df.getattr("columns")?.call_method0("tolist")?.extract()?;
         let names: Vec<&str> = columns.iter().map(String::as_str).collect();

@@ -110,10 +110,12 @@ impl Carrying {
     ) -> Self {
         let width =
             if train.is_empty() { RestWidth::fallback() } else { learn_width(spec, life, train, &carried, rests) };
-        let tuning = crate::tune::validation_records(train).first().copied().unwrap_or(train.len());
-        let tuning_width = Some(learn_width(spec, life, &train[..tuning], &carried[..tuning], rests))
-            .filter(|w| w.fitted() && tuning < train.len())
-            .unwrap_or(width);
+        let tuning_width = match crate::tune::validation_records(train).first() {
+            Some(&k) => Some(learn_width(spec, life, &train[..k], &carried[..k], rests))
+                .filter(RestWidth::fitted)
+                .unwrap_or(width),
+            None => width,
+        };
         let mut walk = PriorWalk::new(spec, life, tuning_width);
         let before = before(&mut walk, train, &carried, &(spec.prior, neutral.clone()), &Knees::default(), cutoff_v);
         let knees = Knees::of(train, &carried, cutoff_v);

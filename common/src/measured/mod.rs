@@ -14,9 +14,9 @@ pub mod scenario;
 pub mod tracker;
 
 pub use extension::ModelExtension;
+pub use scenario::{Episode, EpisodeSpec, LoadKind, Sample, ScenarioConfig, SensorConfig};
+pub use tracker::{ActionMode, TrackerSpec, OBS_DIM};
 
 /// Largest current a cell under test plausibly carries, A: a larger one is refused as milliamperes, by the
 /// readers and by a live stream alike. The model is an 18650-sized cell (about 2 Ah); 100 A is 50 C for it.
 pub const MAX_CELL_CURRENT_A: f64 = 100.0;
-pub use scenario::{Episode, EpisodeSpec, LoadKind, Sample, ScenarioConfig, SensorConfig};
-pub use tracker::{ActionMode, TrackerSpec, OBS_DIM};
