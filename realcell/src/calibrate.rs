@@ -731,16 +731,19 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             "own_signed_pct": own_score.eod_signed_pct});
         let alone = MethodEntry::new(key, own_score);
         let (mut held, gate) = tune::gate_runs_onto(&prior_runs, &r, &own, &validation, &judged);
+        let capacity_gate = tune::gate_capacity(&prior_runs, &r, &mut held, &validation, &judged);
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
         let w = calibrate_intervals(&hist, &judged, &mut held.judged);
         widenings.insert(key.into(), serde_json::to_value(&w).unwrap_or_default());
         entry["held_to_prior"] = serde_json::json!({
             "prior_cycles": served_cycles(&judged, &gate),
+            "prior_capacity_cycles": served_cycles(&judged, &capacity_gate),
             "alone": {"capacity_rmse_ah": alone.capacity_rmse_ah, "eod_error_pct": alone.eod_error_pct},
             "what": format!("the prior alone (`prior`) serves the readings of a judged discharge near a share of it \
                 (10 / 50 / 90 %, by the predicted end) when it beat this calibrator's EOD error there on at least \
                 {:.0} % of the last {} discharges that ended before it (validation cycles first) and in their mean \
-                (`prior_cycles`, per share); `alone`: the calibrator's figures without it",
+                (`prior_cycles`, per share); the capacity there by its own record, the capacity error against \
+                the data's charge (`prior_capacity_cycles`); `alone`: the calibrator's figures without it",
                 tune::MIN_WIN_SHARE * 100.0, tune::GATE_WINDOW)});
         runs.push((key, held.judged));
     };
@@ -930,7 +933,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             // Online gate: each discharge gets the policy or the joint UKF chosen here, by their record on the
             // discharges that ended before it (`tune::gate_runs`).
             Some(filter) => {
-                let (r, gate) = tune::gate_runs(&policy, filter, &validation, &judged);
+                let (mut r, gate) = tune::gate_runs(&policy, filter, &validation, &judged);
+                let capacity_gate = tune::gate_capacity(&policy, filter, &mut r, &validation, &judged);
                 let served = served_cycles(&judged, &gate);
                 progress(&format!(
                     "RL-LAC: the policy serves {} / {} / {} of {} judged discharges at 10 / 50 / 90 % (the joint \
@@ -946,9 +950,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                     "what": format!("the readings of a judged discharge near a share of it (10 / 50 / 90 %, by the \
                         filter's predicted end) are served by the policy when it beat the joint UKF chosen here at \
                         that share on at least {:.0} % of the last {} discharges that ended before it (validation \
-                        cycles first) and in their mean (`policy_cycles`, per share), else by that filter",
+                        cycles first) and in their mean (`policy_cycles`, per share), else by that filter; the capacity \
+                        there by its own record, the capacity error against the data's charge \
+                        (`policy_capacity_cycles`)",
                         tune::MIN_WIN_SHARE * 100.0, tune::GATE_WINDOW),
-                    "policy_cycles": served, "filter": {"settings": best, "prior_factor": factor},
+                    "policy_cycles": served, "policy_capacity_cycles": served_cycles(&judged, &capacity_gate),
+                    "filter": {"settings": best, "prior_factor": factor},
                     "policy_alone": {"capacity_rmse_ah": alone.capacity_rmse_ah, "eod_error_pct": alone.eod_error_pct}});
                 r
             }

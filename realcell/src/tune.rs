@@ -7,7 +7,7 @@
 
 use crate::record::CellRecord;
 use crate::run::{run_sequence, Before, CycleRun, Streaming};
-use crate::score::{score, share_bin, EOD_FRACTIONS_PCT};
+use crate::score::{score, share_bin, CAPACITY_FRACTIONS_PCT, EOD_FRACTIONS_PCT};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -167,6 +167,74 @@ pub fn gate_runs_onto(
         judged: compose(judged, &gates, &alt.judged, &onto.judged, &base.judged),
     };
     (runs, gates)
+}
+
+/// Per discharge, the capacity error of `runs` at `fraction_pct` of it against the charge the data shows
+/// (what a BMS counts by the end), Ah: NaN where there is none to score (a partial start, a discharge cut
+/// short), infinite where the prediction failed.
+fn capacity_error_at(records: &[CellRecord], runs: &[CycleRun], fraction_pct: u32) -> Vec<f64> {
+    records
+        .iter()
+        .zip(runs)
+        .map(|(r, run)| {
+            let (Some(m), Some(k)) = (r.data_capacity_ah, r.reading_at_fraction(f64::from(fraction_pct) / 100.0))
+            else {
+                return f64::NAN;
+            };
+            if r.partial_start || run.steps.is_empty() {
+                return f64::NAN;
+            }
+            run.steps[k.min(run.steps.len() - 1)].capacity.value.map_or(f64::INFINITY, |v| (v - m).abs())
+        })
+        .collect()
+}
+
+/// The capacity's own gate, after [`gate_runs_onto`] has served the end of discharge: a reading's capacity
+/// (value and bounds) is `alt`'s where `alt` beat `base` on the capacity error where the scores take it in
+/// that share of the discharge (25, 50, 100 %; [`online_gate`], the same window, rule and long-rest
+/// exception), else `base`'s, whoever served
+/// the reading's end. The two predictions are judged on their own records: the one that carries the
+/// capacity better need not predict the end better (B0005, cycles 41 on, capacity from half the discharge:
+/// the prior alone 0.0087 Ah, the joint UKF alone 0.0136 Ah, whose end the prior served at half of 48 of 128
+/// discharges, and its capacity with it, before this gate). `onto` holds the served runs (the same
+/// readings); a reading's share is the one `base`'s predicted end puts it at.
+pub fn gate_capacity(
+    alt: &Runs,
+    base: &Runs,
+    onto: &mut Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+) -> Served {
+    let mut val_gates: Served = Default::default();
+    let mut gates: Served = Default::default();
+    let rested = |records: &[CellRecord]| -> Vec<bool> { records.iter().map(CellRecord::after_long_rest).collect() };
+    for (b, share) in EOD_FRACTIONS_PCT.iter().enumerate() {
+        // Judged where the capacity is scored within the share (25, 50, 100 %): what the share serves runs to
+        // the end of the discharge, where a correction's capacity drifts most.
+        let f =
+            CAPACITY_FRACTIONS_PCT.into_iter().find(|c| share_bin(0.0, f64::from(*c), 100.0) == b).unwrap_or(*share);
+        let pairs = |records: &[CellRecord], a: &[CycleRun], o: &[CycleRun]| -> Vec<(f64, f64)> {
+            capacity_error_at(records, a, f).into_iter().zip(capacity_error_at(records, o, f)).collect()
+        };
+        let history = pairs(validation, &alt.validation, &base.validation);
+        val_gates[b] = online_gate(&[], &history, &rested(validation));
+        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &rested(judged));
+    }
+    for (set, records, served, a, b) in [
+        (&mut onto.validation, validation, &val_gates, &alt.validation, &base.validation),
+        (&mut onto.judged, judged, &gates, &alt.judged, &base.judged),
+    ] {
+        for (k, ((run, r), (ar, br))) in set.iter_mut().zip(records).zip(a.iter().zip(b)).enumerate() {
+            if ar.steps.len() != run.steps.len() || br.steps.len() != run.steps.len() {
+                continue;
+            }
+            for ((s, sa), sb) in run.steps.iter_mut().zip(&ar.steps).zip(&br.steps) {
+                let bin = sb.eod.value.map_or(0, |v| share_bin(r.load_on_s, sb.t_s, v));
+                s.capacity = if served[bin][k] { sa.capacity } else { sb.capacity };
+            }
+        }
+    }
+    gates
 }
 
 /// Each discharge's readings from `alt` where its share's gate serves it, else from `onto` (the same
@@ -388,6 +456,67 @@ mod tests {
         for (k, r) in runs.judged.iter().enumerate() {
             assert_eq!(r.steps[50].eod.value, pj[k].steps[50].eod.value, "judged {k}: served at half");
             assert_eq!(r.steps[5].eod.value, oj[k].steps[5].eod.value, "judged {k}: onto at a tenth");
+        }
+    }
+
+    /// The capacity is served by its own record, whoever serves the end: an alternative that predicts the
+    /// end better and the capacity worse serves the end alone, one that predicts the capacity better and the
+    /// end worse serves the capacity alone, and after a long rest the base serves both.
+    #[test]
+    fn the_capacity_is_served_by_its_own_record_whoever_serves_the_end() {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 0.1), hi: Some(v + 0.1) };
+        // Each discharge ends at 100 s and delivers 1 Ah.
+        let build = |cycles: std::ops::Range<u32>, eod_s: f64, cap_ah: f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles.map(|c| crate::record::test_discharge(c, 1.0, |_| at(eod_s), at(cap_ah))).unzip()
+        };
+        let runs = |v: Vec<CycleRun>, j: Vec<CycleRun>| Runs { validation: v, judged: j };
+        // `a` predicts the end better (101 against 103 s) and the capacity worse (1.05 against 1.01 Ah).
+        let (validation, av) = build(1..11, 101.0, 1.05);
+        let (mut judged, aj) = build(11..14, 101.0, 1.05);
+        let (_, bv) = build(1..11, 103.0, 1.01);
+        let (_, bj) = build(11..14, 103.0, 1.01);
+        judged[2].rest_before_s = Some(3.0 * 86_400.0);
+        let (a, b) = (runs(av, aj), runs(bv, bj));
+        let (mut served, eod_gate) = gate_runs(&a, &b, &validation, &judged);
+        let capacity_gate = gate_capacity(&a, &b, &mut served, &validation, &judged);
+        assert!(eod_gate.iter().all(|g| g == &vec![true, true, false]), "{eod_gate:?}");
+        assert!(capacity_gate.iter().all(|g| g.iter().all(|s| !s)), "{capacity_gate:?}");
+        for (k, run) in served.judged.iter().enumerate() {
+            let want_eod = if k < 2 { 101.0 } else { 103.0 };
+            assert!(run.steps.iter().all(|s| s.eod.value == Some(want_eod)), "judged {k}: the end");
+            assert!(run.steps.iter().all(|s| s.capacity == at(1.01)), "judged {k}: the capacity, bounds too");
+        }
+        // The roles swapped: the end from the better one, the capacity from the other wherever it has won.
+        let (mut served, eod_gate) = gate_runs(&b, &a, &validation, &judged);
+        let capacity_gate = gate_capacity(&b, &a, &mut served, &validation, &judged);
+        assert!(eod_gate.iter().all(|g| g.iter().all(|s| !s)), "{eod_gate:?}");
+        assert!(capacity_gate.iter().all(|g| g == &vec![true, true, false]), "{capacity_gate:?}");
+        for (k, run) in served.judged.iter().enumerate() {
+            let want_cap = if k < 2 { 1.01 } else { 1.05 };
+            assert!(run.steps.iter().all(|s| s.eod.value == Some(101.0)), "judged {k}: the end");
+            assert!(run.steps.iter().all(|s| s.capacity.value == Some(want_cap)), "judged {k}: the capacity");
+        }
+        // A correction whose capacity is better until the last minutes and far off at the end: the last share
+        // is judged at the end, where the scores take the capacity, and is not served there.
+        let drift = |runs: &[CycleRun]| -> Vec<CycleRun> {
+            let mut runs = runs.to_vec();
+            for run in &mut runs {
+                for s in run.steps.iter_mut().filter(|s| s.t_s >= 95.0) {
+                    s.capacity = at(1.3);
+                }
+            }
+            runs
+        };
+        let (_, cv) = build(1..11, 103.0, 1.0);
+        let (_, cj) = build(11..14, 103.0, 1.0);
+        let c = runs(drift(&cv), drift(&cj));
+        let mut served = b.clone();
+        let capacity_gate = gate_capacity(&c, &b, &mut served, &validation, &judged);
+        assert_eq!(capacity_gate, [vec![true, true, false], vec![true, true, false], vec![false; 3]]);
+        for run in &served.judged[..2] {
+            assert_eq!(run.steps[50].capacity.value, Some(1.0));
+            assert_eq!(run.steps[100].capacity.value, Some(1.01));
         }
     }
 
