@@ -43,7 +43,7 @@ use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{Request, Sample, KELVIN_0C};
 use bcal_common::measured::tracker::TrackerSpec;
-use bcal_common::measured::MAX_CELL_CURRENT_A;
+use bcal_common::measured::{LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH};
 use bcal_common::policy::PolicyNet;
 use bcal_common::task::Task;
 use serde::{Deserialize, Serialize};
@@ -110,6 +110,15 @@ pub enum ReadingError {
          that long"
     )]
     TimeJump { time_s: f64, previous_s: f64 },
+    #[error(
+        "time_s = {time_s} would keep the cell under load for {:.1} days without a pause and draw {drawn_ah:.1} Ah, \
+         more than a discharge lasts ({:.0} days) or a cell holds ({} Ah): most likely milliseconds given as \
+         seconds (name the column time_ms, or divide it by 1000)",
+        loaded_s / 86_400.0,
+        MAX_LOADED_S / 86_400.0,
+        MAX_RECORD_CHARGE_AH
+    )]
+    LoadTooLong { time_s: f64, loaded_s: f64, drawn_ah: f64 },
 }
 
 /// What the stream answers at each reading. Interval bounds and the prediction are None while the
@@ -335,6 +344,9 @@ pub struct Stream<'a> {
     joined_under_load: bool,
     /// Time of the last reading that discharged the cell, s.
     last_loaded_t_s: Option<f64>,
+    /// How long the load has stayed on since it last came on, s, and the charge drawn meanwhile, Ah (across
+    /// gaps in the readings, which a stream read in the wrong time unit is made of).
+    loaded_run: (f64, f64),
     /// Each finished discharge's carried value, the rest before it and the prior mean it started from.
     ends: Vec<Carried>,
     /// What the last finished discharge hands on (its end fit, else its final estimate).
@@ -505,6 +517,7 @@ impl<'a> Stream<'a> {
             last_sample: None,
             joined_under_load: false,
             last_loaded_t_s: None,
+            loaded_run: (0.0, 0.0),
             ends: Vec::new(),
             carried: None,
             carried_sd_z: None,
@@ -589,6 +602,18 @@ impl<'a> Stream<'a> {
         if let Some(previous_s) = self.last_t_s.filter(|p| r.time_s - *p > MAX_GAP_S) {
             return Err(ReadingError::TimeJump { time_s: r.time_s, previous_s });
         }
+        // Milliseconds read as seconds stretch every interval a thousandfold: the load then seems to stay on
+        // for days and to draw more than a cell holds (the readers refuse such a record the same way).
+        let loaded_run = match self.last_sample {
+            Some(p) if p.current_a > LOADED_A && r.current_a > LOADED_A => {
+                let dt_s = r.time_s - p.t_s;
+                (self.loaded_run.0 + dt_s, self.loaded_run.1 + 0.5 * (p.current_a + r.current_a) * dt_s / 3600.0)
+            }
+            _ => (0.0, 0.0),
+        };
+        if loaded_run.0 > MAX_LOADED_S || loaded_run.1 > MAX_RECORD_CHARGE_AH {
+            return Err(ReadingError::LoadTooLong { time_s: r.time_s, loaded_s: loaded_run.0, drawn_ah: loaded_run.1 });
+        }
         let s = Sample {
             t_s: r.time_s,
             voltage_v: r.voltage_v,
@@ -625,6 +650,7 @@ impl<'a> Stream<'a> {
             }
         }
         self.charge_started_s = if charging { self.charge_started_s.or(Some(r.time_s)) } else { None };
+        self.loaded_run = loaded_run;
         self.last_sample = Some(s);
         self.cal.step(&s);
         if let Some(p) = self.prior_cal.as_mut() {
@@ -930,6 +956,35 @@ mod tests {
                 temperature_c: Some(s.temperature_k - KELVIN_0C),
             })
             .collect()
+    }
+
+    /// Milliseconds given as seconds: the load then seems to stay on for days. Each reading that would take
+    /// it past two days under load without a pause is refused, naming the likely cause; the same readings in
+    /// seconds pass.
+    #[test]
+    fn a_stream_in_milliseconds_read_as_seconds_is_refused_once_its_load_outlasts_any_discharge() {
+        let spec = TrackerSpec::default();
+        let readings = episode();
+        let mut stream = Stream::new(Box::new(WindowFitCalibrator::new(&spec)), &spec, None);
+        assert!(readings.iter().all(|r| stream.step(r).is_ok()), "the same readings in seconds");
+        let mut stream = Stream::new(Box::new(WindowFitCalibrator::new(&spec)), &spec, None);
+        let on = readings.iter().position(|r| r.current_a > LOADED_A).expect("a load");
+        let (mut taken, mut refused) = (0usize, 0usize);
+        for r in &readings {
+            match stream.step(&Reading { time_s: r.time_s * 1000.0, ..*r }) {
+                Ok(_) => taken += 1,
+                Err(e) => {
+                    assert!(matches!(e, ReadingError::LoadTooLong { .. }), "{e}");
+                    assert!(e.to_string().contains("time_ms"), "{e}");
+                    refused += 1;
+                }
+            }
+        }
+        // Every loaded reading after the first two days (in stretched time) of load is refused.
+        let load_on_s = readings[on].time_s * 1000.0;
+        let late = readings.iter().filter(|r| r.current_a > LOADED_A && r.time_s * 1000.0 - load_on_s > MAX_LOADED_S);
+        assert!(refused > 0 && refused >= late.count(), "refused {refused}, taken {taken}");
+        assert_eq!(taken + refused, readings.len());
     }
 
     /// The stream gives what the calibrator alone gives, reading by reading, and refuses a bad reading

@@ -41,16 +41,8 @@ pub const MIN_SAMPLES: usize = 10;
 /// Ambient temperature assumed for a generic CSV without a temperature column, deg C.
 pub const DEFAULT_AMBIENT_C: f64 = 25.0;
 
-pub use bcal_common::measured::MAX_CELL_CURRENT_A;
-
-/// Largest charge one discharge record plausibly draws, Ah: a larger one is refused as time in
-/// milliseconds (which multiplies the charge by 1000).
-pub const MAX_RECORD_CHARGE_AH: f64 = 500.0;
-/// Longest time a record may stay under load (above [`LOADED_A`]), s: two days, beyond a C/40 discharge. A
-/// 10-minute partial discharge logged in milliseconds reads as a week.
-pub const MAX_LOADED_S: f64 = 172_800.0;
-/// Current above which a sample counts as loaded for [`MAX_LOADED_S`], A.
-const LOADED_A: f64 = 0.05;
+use bcal_common::measured::LOADED_A;
+pub use bcal_common::measured::{MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH};
 
 /// Least evidence the sign decision needs, V of voltage change (see [`SignEvidence`]).
 pub const MIN_SIGN_EVIDENCE_V: f64 = 0.02;

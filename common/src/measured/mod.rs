@@ -20,3 +20,11 @@ pub use tracker::{ActionMode, TrackerSpec, OBS_DIM};
 /// Largest current a cell under test plausibly carries, A: a larger one is refused as milliamperes, by the
 /// readers and by a live stream alike. The model is an 18650-sized cell (about 2 Ah); 100 A is 50 C for it.
 pub const MAX_CELL_CURRENT_A: f64 = 100.0;
+/// Largest charge one discharge plausibly draws, Ah: a larger one is refused as time in milliseconds (which
+/// multiplies the charge by 1000), by the readers and by a live stream alike.
+pub const MAX_RECORD_CHARGE_AH: f64 = 500.0;
+/// Longest time a cell stays under load (above [`LOADED_A`]) without a pause, s: two days, beyond a C/40
+/// discharge. A 10-minute partial discharge logged in milliseconds reads as a week.
+pub const MAX_LOADED_S: f64 = 172_800.0;
+/// Current above which a reading counts as loaded for [`MAX_LOADED_S`], A.
+pub const LOADED_A: f64 = 0.05;
