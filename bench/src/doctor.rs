@@ -31,7 +31,8 @@ fn record(k: usize, ocv: &ExtParams) -> anyhow::Result<Discharge> {
     let time_s: Vec<f64> = (0..400).map(|j| 10.0 * j as f64).collect();
     let current_a: Vec<f64> = time_s.iter().map(|t| if *t < 30.0 { 0.0 } else { 2.0 }).collect();
     let mut voltage_v = vec![0.0; time_s.len()];
-    let drive = Drive { time_s: &time_s, current_a: &current_a, temperature_k: None, ambient_k: 297.15 };
+    let drive =
+        Drive { time_s: &time_s, current_a: &current_a, temperature_k: None, ambient_k: 297.15, alternating: false };
     simulate_voltage(&base, d, ocv, drive, 1.0, &mut voltage_v)?;
     // End the record at its first sample below 2.8 V, as a cycler stops at its cut-off.
     let end = voltage_v.iter().position(|v| *v < 2.8).map_or(voltage_v.len(), |k| k + 1);

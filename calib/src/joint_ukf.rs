@@ -28,6 +28,7 @@ use bcal_common::measured::cellmodel::{
 use bcal_common::measured::scenario::{rest_state, Sample};
 pub use bcal_common::measured::tracker::JointUkfSettings;
 use bcal_common::measured::tracker::TrackerSpec;
+use bcal_common::measured::LoadMean;
 use nalgebra::{SMatrix, SVector};
 
 const N: usize = 9;
@@ -65,6 +66,8 @@ pub struct JointUkf {
     wc: [f64; N_SIGMA],
     gamma: f64,
     settle: Settle,
+    /// The load read so far: whether it alternates (`interval_drive`).
+    load: LoadMean,
     /// The model's rate constants at the Arrhenius reference, the reference (K, set at the first reading)
     /// and the Ro factor at the current temperature (the doctor's `thermal`; 1 without it).
     kn_kp: (f64, f64),
@@ -149,6 +152,7 @@ impl JointUkf {
             wc,
             gamma: (n + lambda).sqrt(),
             settle: Settle::default(),
+            load: LoadMean::default(),
             kn_kp,
             ref_k,
             ro_factor: 1.0,
@@ -187,6 +191,7 @@ impl JointUkf {
     /// The starting distribution from the first (rest) reading: the unscented transform of the starting
     /// mole fraction and the two parameters through the rest state.
     fn start(&mut self, s: &Sample) {
+        self.load.push(s.t_s, s.current_a);
         if self.spec.use_measured_temperature {
             self.t_k = s.temperature_k;
         }
@@ -288,10 +293,16 @@ impl JointUkf {
         }
         let prev = self.last.expect("started after a reading");
         let dt = (s.t_s - prev.t_s).max(0.0);
-        let parts = interval_drive(&prev, s, self.spec.max_substep_s);
+        // A load that alternates as often as it is sampled runs each reading's load over the interval before
+        // it (`interval_drive`): no switch of unknown time there.
+        let alternating = self.load.alternating();
+        self.load.push(s.t_s, s.current_a);
+        let parts = interval_drive(&prev, s, self.spec.max_substep_s, alternating);
         // After a switch of unknown time the predicted voltage is off by up to dI Ro, by how much depends on
         // when it came: that uncertainty joins the measurement noise.
-        self.settle.unsettled(&prev, s, self.spec.max_substep_s, self.spec.settle_s);
+        if !alternating {
+            self.settle.unsettled(&prev, s, self.spec.max_substep_s, self.spec.settle_s);
+        }
         if self.spec.use_measured_temperature {
             self.t_k = s.temperature_k;
             self.at_temperature();
@@ -341,7 +352,7 @@ impl JointUkf {
         }
         // A switch at an unknown time within the interval moves an unknown charge, uniform over dI dt: it
         // leaves the positive electrode's surface and the negative's together (faster than diffusion).
-        if switch_time_unknown(&prev, s, self.spec.max_substep_s) {
+        if !alternating && switch_time_unknown(&prev, s, self.spec.max_substep_s) {
             let var_c2 = (s.current_a - prev.current_a).powi(2) * dt * dt / 12.0;
             let v = [1.0 / q_max, 0.0, 0.0, -1.0 / q_max];
             for a in 0..4 {

@@ -38,6 +38,7 @@ pub mod widening;
 pub mod window;
 
 pub use adaptive::{AdaptiveRule, AdaptiveUkf, CovarianceMatching};
+pub use bcal_common::measured::LoadMean;
 pub use correction::{Correction, CorrectionCalibrator};
 pub use eod::{predict_eod_s, EodQuery};
 pub use joint_ukf::{JointUkf, JointUkfSettings};

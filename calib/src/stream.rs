@@ -43,7 +43,7 @@ use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{Request, Sample, KELVIN_0C};
 use bcal_common::measured::tracker::TrackerSpec;
-use bcal_common::measured::{LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH};
+use bcal_common::measured::{LoadMean, LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH};
 use bcal_common::policy::PolicyNet;
 use bcal_common::task::Task;
 use serde::{Deserialize, Serialize};
@@ -326,8 +326,10 @@ pub struct Stream<'a> {
     spec: TrackerSpec,
     ambient_k: f64,
     last_t_s: Option<f64>,
-    loaded_sum_a: f64,
     loaded_n: u64,
+    /// The current this discharge's predictions assume (the loaded mean, or the mean over time where the
+    /// load alternates: [`LoadMean`]).
+    load: LoadMean,
     readings: u64,
     /// What builds the calibrator of a new discharge (streams made by [`Stream::of`]).
     rebuild: Option<(Setup, Option<&'a PolicyNet>)>,
@@ -507,8 +509,8 @@ impl<'a> Stream<'a> {
             spec: spec.clone(),
             ambient_k,
             last_t_s: None,
-            loaded_sum_a: 0.0,
             loaded_n: 0,
+            load: LoadMean::default(),
             readings: 0,
             rebuild: None,
             discharge: 0,
@@ -658,12 +660,12 @@ impl<'a> Stream<'a> {
         }
         self.last_t_s = Some(r.time_s);
         self.readings += 1;
+        self.load.push(r.time_s, r.current_a);
         if r.current_a > LOAD_THRESHOLD_A {
-            self.loaded_sum_a += r.current_a;
             self.loaded_n += 1;
             self.last_loaded_t_s = Some(r.time_s);
         }
-        let eod_current_a = (self.loaded_n > 0).then(|| self.loaded_sum_a / self.loaded_n as f64);
+        let eod_current_a = self.load.current_a();
         let eod_method_s = eod_current_a.and_then(|i| self.predict_eod_s(i));
         let eod_prior_s = eod_current_a.and_then(|i| self.prior_cal.as_deref().and_then(|p| self.predict_from(p, i)));
         // The load-on: the first loaded reading of the discharge (this one, when it is).
@@ -756,10 +758,8 @@ impl<'a> Stream<'a> {
         // A piece joined under load is the rest of a discharge the life has counted already.
         if self.loaded_n > 0 && !piece {
             self.discharged += 1;
-            let at = Condition {
-                ambient_c: self.ambient_k - KELVIN_0C,
-                current_a: self.loaded_sum_a / self.loaded_n as f64,
-            };
+            let at =
+                Condition { ambient_c: self.ambient_k - KELVIN_0C, current_a: self.load.current_a().unwrap_or(0.0) };
             if let Some(t) = self.life.as_mut() {
                 t.advance_to(self.discharged, self.rest_before_s, at);
                 if let Some(c) = self.capacity_ah {
@@ -813,7 +813,7 @@ impl<'a> Stream<'a> {
         self.eod_track = EodTrack::default();
         self.samples.clear();
         self.end_fit = None;
-        self.loaded_sum_a = 0.0;
+        self.load = LoadMean::default();
         // A stretch that never drew a load (a charge seen after lost readings, a stream that began on a
         // charge) was no discharge: the next one keeps its number.
         self.discharge += u32::from(self.loaded_n > 0);
@@ -956,6 +956,28 @@ mod tests {
                 temperature_c: Some(s.temperature_k - KELVIN_0C),
             })
             .collect()
+    }
+
+    /// A square wave read once per half-period (B0025's logger) is predicted at its mean current over time,
+    /// once its loaded readings have been seen to alternate; a constant load at its loaded mean.
+    #[test]
+    fn an_alternating_load_is_predicted_at_its_mean_current_over_time() {
+        let spec = MeasuredSpec::default();
+        let ukf = JointUkf::new(spec.ukf_settings(), &spec.tracker);
+        let mut stream = Stream::new(Box::new(ukf), &spec.tracker, None);
+        let mut last = None;
+        for k in 0..200u32 {
+            let on = k >= 3 && k % 2 == 1;
+            let r = Reading {
+                time_s: 10.2 * f64::from(k),
+                voltage_v: if on { 3.75 } else { 4.15 } - 0.001 * f64::from(k),
+                current_a: if on { 4.02 } else { 0.001 },
+                temperature_c: None,
+            };
+            last = Some(stream.step(&r).expect("a plausible reading"));
+        }
+        let i = last.and_then(|e| e.eod_current_a).expect("a load");
+        assert!((i - 2.01).abs() < 0.05, "{i} A");
     }
 
     /// Milliseconds given as seconds: the load then seems to stay on for days. Each reading that would take

@@ -139,6 +139,10 @@ pub fn structure(records: &[&Discharge], residuals: &[RecordResidual]) -> Struct
     for (d, r) in records.iter().zip(residuals) {
         let w = r.windows;
         let span_s = (r.time_s[w.fit_end - 1]).max(1e-9);
+        // Where the load alternates from sample to sample, so may the residual's bias (loaded and unloaded
+        // samples): the noise is read off samples of one kind, two apart.
+        let lag =
+            if d.alternating_load(bcal_common::measured::LOADED_A, bcal_common::measured::STEP_A) { 2 } else { 1 };
         for k in 0..d.len() {
             let e = r.residual_mv[k];
             if k < w.load_on {
@@ -161,8 +165,8 @@ pub fn structure(records: &[&Discharge], residuals: &[RecordResidual]) -> Struct
                 cols[2].push(d.current_a[k]);
                 cols[3].push(r.time_s[k]);
                 cols[4].push(d.temperature_at_k(k) - d.ambient_k);
-                if k >= w.load_on + 2 && r.fitted[k - 1] && r.fitted[k - 2] {
-                    second_diffs.push((e - 2.0 * r.residual_mv[k - 1] + r.residual_mv[k - 2]).abs());
+                if k >= w.load_on + 2 * lag && r.fitted[k - lag] && r.fitted[k - 2 * lag] {
+                    second_diffs.push((e - 2.0 * r.residual_mv[k - lag] + r.residual_mv[k - 2 * lag]).abs());
                 }
             } else if k >= w.load_end {
                 relax.add(e);

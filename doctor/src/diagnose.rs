@@ -292,6 +292,14 @@ fn prepare<'a>(cfg: &DiagnoseConfig, train: &'a [Discharge], heldout: &'a [Disch
                         last_v(&w)
                     )),
                 ),
+                Some(_) if d.alternating_load(fc.load_threshold_a, fc.step_threshold_a) => (
+                    role,
+                    Some(
+                        "the load switches about as often as it is sampled: every sample fitted, the load each reads \
+                         run over the interval before it"
+                            .into(),
+                    ),
+                ),
                 Some(_) => (role, None),
             };
             let truncated = w.is_some_and(|w| w.truncated);

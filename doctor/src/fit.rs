@@ -72,8 +72,11 @@ pub fn degradation_specs() -> [ParamSpec; 2] {
 pub struct FitRecord<'a> {
     pub d: &'a Discharge,
     pub w: Windows,
-    /// Indices in `w.load_on..w.fit_end` not right after a load step.
+    /// Indices in `w.load_on..w.fit_end` not right after a load step (every one where the load alternates).
     pub used: Vec<usize>,
+    /// Whether the load switches about as often as the record samples it
+    /// ([`Discharge::alternating_load`]): then each sample's current runs the interval before it.
+    pub alternating: bool,
     /// Where the simulation starts: `None` for a full cell, else the rest voltage and temperature of a
     /// record that did not start full ([`start_rest`]).
     pub start_rest: Option<(f64, f64)>,
@@ -95,7 +98,13 @@ pub fn after_step(d: &Discharge, k: usize, step_threshold_a: f64) -> bool {
 impl<'a> FitRecord<'a> {
     /// Prepares a record: the fit window without the samples that follow a load step by less than
     /// `cfg.settle_s` (counted from the last sample before the step, the earliest the step can have come).
+    /// Where the load alternates every sample follows a step and none would be left: each is fitted, the
+    /// load each reads run over the interval before it, as the streaming calibrators run it there.
     pub fn new(d: &'a Discharge, w: Windows, cfg: &FitConfig) -> Self {
+        if d.alternating_load(cfg.load_threshold_a, cfg.step_threshold_a) {
+            let used = (w.load_on..w.fit_end).collect();
+            return Self { d, w, used, alternating: true, start_rest: start_rest(cfg, d) };
+        }
         let mut step_from_s = f64::NEG_INFINITY;
         let mut used = Vec::with_capacity(w.fit_len());
         for k in 0..w.fit_end {
@@ -107,7 +116,7 @@ impl<'a> FitRecord<'a> {
                 used.push(k);
             }
         }
-        Self { d, w, used, start_rest: start_rest(cfg, d) }
+        Self { d, w, used, alternating: false, start_rest: start_rest(cfg, d) }
     }
 
     /// The record with the samples of its rest before the load added to the fitted ones: the model predicts
@@ -125,6 +134,7 @@ impl<'a> FitRecord<'a> {
             current_a: &self.d.current_a,
             temperature_k: self.d.temperature_k.as_deref(),
             ambient_k: self.d.ambient_k,
+            alternating: self.alternating,
         }
     }
 }
@@ -191,6 +201,7 @@ pub fn simulate_record(
         current_a: &d.current_a,
         temperature_k: d.temperature_k.as_deref(),
         ambient_k: d.ambient_k,
+        alternating: d.alternating_load(cfg.load_threshold_a, cfg.step_threshold_a),
     };
     simulate_voltage_from(&cfg.base, deg, ext, drive, start_rest(cfg, d), cfg.dt_max_s, &mut out)?;
     Ok(out)
@@ -714,7 +725,13 @@ mod tests {
         // A cell resting at 55 % of its negative electrode's window.
         let rest_v = ocv_v(&model, 0.33, 297.15);
         let mut d = synthetic(5600.0, 0.19, &ExtParams::default());
-        let drive = Drive { time_s: &d.time_s, current_a: &d.current_a, temperature_k: None, ambient_k: d.ambient_k };
+        let drive = Drive {
+            time_s: &d.time_s,
+            current_a: &d.current_a,
+            temperature_k: None,
+            ambient_k: d.ambient_k,
+            alternating: false,
+        };
         let (deg, mut v) = (Degradation { q_mobile_c: 5600.0, r_o_ohm: 0.19 }, vec![0.0; d.len()]);
         simulate_voltage_from(&cfg.base, deg, &ExtParams::default(), drive, Some((rest_v, 297.15)), 2.0, &mut v)
             .unwrap();

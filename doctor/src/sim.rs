@@ -469,10 +469,16 @@ pub struct Drive<'a> {
     pub current_a: &'a [f64],
     pub temperature_k: Option<&'a [f64]>,
     pub ambient_k: f64,
+    /// How the current runs between samples: `false` linearly interpolated; `true` (a load that switches
+    /// about as often as it is sampled, [`crate::record::Discharge::alternating_load`]) the current a sample
+    /// reads runs the whole interval before it, as the streaming calibrators run it there
+    /// (`bcal_common::measured::cellmodel::interval_drive`).
+    pub alternating: bool,
 }
 
 /// Simulates the record's first `out.len()` samples and writes the model's voltage at each sample time.
-/// The current between samples is linearly interpolated (taken at each step's midpoint).
+/// The current between samples is linearly interpolated (taken at each step's midpoint), or, where the load
+/// alternates, the current each sample reads ([`Drive::alternating`]).
 pub fn simulate_voltage(
     base: &BatteryParams,
     d: Degradation,
@@ -517,7 +523,8 @@ pub fn simulate_voltage_from(
             if let Some(tk) = drive.temperature_k {
                 cell.set_temperature_k(tk[k - 1] + (tk[k] - tk[k - 1]) * (j as f64 / steps));
             }
-            cell.step(i[k - 1] + (i[k] - i[k - 1]) * frac, h_s);
+            let i_a = if drive.alternating { i[k] } else { i[k - 1] + (i[k] - i[k - 1]) * frac };
+            cell.step(i_a, h_s);
         }
         if let Some(tk) = drive.temperature_k {
             cell.set_temperature_k(tk[k]);
@@ -568,7 +575,13 @@ mod tests {
         let time_s: Vec<f64> = (0..n).map(|k| k as f64).collect();
         let current_a = vec![2.0; n];
         let mut got = vec![0.0; n];
-        let drive = Drive { time_s: &time_s, current_a: &current_a, temperature_k: None, ambient_k: 297.15 };
+        let drive = Drive {
+            time_s: &time_s,
+            current_a: &current_a,
+            temperature_k: None,
+            ambient_k: 297.15,
+            alternating: false,
+        };
         simulate_voltage(&BatteryParams::default(), d, &ExtParams::default(), drive, 1.0, &mut got).unwrap();
         let gap = |a: &[f64]| a.iter().zip(&fine).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
         // ... are met by the doctor's 1 s steps within a fraction of a millivolt, where the common model's
@@ -655,7 +668,13 @@ mod tests {
         let hot_k: Vec<f64> = (0..200).map(|k| 297.15 + 0.05 * k as f64).collect();
         let run = |ext: ExtParams, temps: Option<&[f64]>| {
             let mut v = vec![0.0; 200];
-            let drive = Drive { time_s: &time_s, current_a: &current_a, temperature_k: temps, ambient_k: 297.15 };
+            let drive = Drive {
+                time_s: &time_s,
+                current_a: &current_a,
+                temperature_k: temps,
+                ambient_k: 297.15,
+                alternating: false,
+            };
             simulate_voltage(&base, d, &ext, drive, 2.0, &mut v).unwrap();
             v[199]
         };

@@ -40,7 +40,7 @@ fn doctor_volts(d: Degradation, ext: &ExtParams, ambient_k: f64, n: usize, dt_s:
     let time_s: Vec<f64> = (0..n).map(|k| k as f64).collect();
     let current_a: Vec<f64> = time_s.iter().map(|t| load_a(*t)).collect();
     let mut out = vec![0.0; n];
-    let drive = Drive { time_s: &time_s, current_a: &current_a, temperature_k: None, ambient_k };
+    let drive = Drive { time_s: &time_s, current_a: &current_a, temperature_k: None, ambient_k, alternating: false };
     simulate_voltage(&BatteryParams::default(), d, ext, drive, dt_s, &mut out).unwrap();
     out
 }

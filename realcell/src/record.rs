@@ -103,8 +103,13 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
             request: Request::Unknown,
         })
         .collect();
-    let loaded: Vec<f64> = (on..=last).map(|k| d.current_a[k]).filter(|i| *i > LOAD_THRESHOLD_A).collect();
-    let current_a = loaded.iter().sum::<f64>() / loaded.len().max(1) as f64;
+    // The discharge's current as its predictions assume it at its end (`bcal_calib::LoadMean`): the mean of
+    // its loaded readings, or over time where the load alternates.
+    let mut load = bcal_calib::LoadMean::default();
+    for s in &samples {
+        load.push(s.t_s, s.current_a);
+    }
+    let current_a = load.current_a().unwrap_or(0.0);
     // The charge drawn up to the interpolated cut-off, not to the first reading below it (which can lie a
     // sample interval, 10-20 s on a NASA cycler, past it).
     let data_capacity_ah = cut.zip(eod_s).map(|(k, eod)| charge_to_ah(&samples[on.saturating_sub(1)..=k], eod));

@@ -220,15 +220,13 @@ pub fn run_cycle_with(
         .iter()
         .map(|_| CycleRun { cycle: record.cycle, steps: Vec::with_capacity(record.samples.len()) })
         .collect();
-    // The current the predictions assume: the mean of the loaded readings so far (no look-ahead).
-    let (mut loaded_sum_a, mut loaded_n) = (0.0, 0u32);
+    // The current the predictions assume: the mean of the loaded readings so far, or over time where the
+    // load alternates (no look-ahead; `bcal_calib::LoadMean`).
+    let mut load = bcal_calib::LoadMean::default();
     for (k, s) in record.samples.iter().enumerate() {
         c.step(s);
-        if s.current_a > crate::record::LOAD_THRESHOLD_A {
-            loaded_sum_a += s.current_a;
-            loaded_n += 1;
-        }
-        let current_a = (loaded_n > 0).then(|| loaded_sum_a / f64::from(loaded_n));
+        load.push(s.t_s, s.current_a);
+        let current_a = load.current_a();
         let d = c.estimate();
         let iv = c.interval();
         let predict_here = only.is_none_or(|o| o.binary_search(&k).is_ok()) && current_a.is_some();

@@ -10,10 +10,12 @@
 pub mod cellmodel;
 pub mod env;
 pub mod extension;
+pub mod load_mean;
 pub mod scenario;
 pub mod tracker;
 
 pub use extension::ModelExtension;
+pub use load_mean::LoadMean;
 pub use scenario::{Episode, EpisodeSpec, LoadKind, Sample, ScenarioConfig, SensorConfig};
 pub use tracker::{ActionMode, TrackerSpec, OBS_DIM};
 
@@ -28,3 +30,8 @@ pub const MAX_RECORD_CHARGE_AH: f64 = 500.0;
 pub const MAX_LOADED_S: f64 = 172_800.0;
 /// Current above which a reading counts as loaded for [`MAX_LOADED_S`], A.
 pub const LOADED_A: f64 = 0.05;
+/// A change of current between two readings larger than this is a load step, A (the doctor's default).
+pub const STEP_A: f64 = 0.2;
+/// Loaded readings a discharge needs before its load can be called alternating (switching about as often as
+/// it is sampled: more than half of them follow a step): fewer say nothing of a pattern.
+pub const MIN_ALTERNATING_LOADED: u32 = 10;
