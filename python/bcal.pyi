@@ -54,7 +54,8 @@ class Estimate(TypedDict):
     eod_s: Optional[float]
     """Predicted end of discharge, absolute time, s, at eod_current_a."""
     eod_current_a: Optional[float]
-    """Mean discharge current of the readings so far, A."""
+    """Mean discharge current of the loaded readings so far, A; where the load switches about as often as it
+    is sampled (a square wave read once per half-period), the mean current over time since the load came on."""
     eod_lo_s: Optional[float]
     eod_hi_s: Optional[float]
     """The prediction's 90 % interval, absolute times, s: learned from how the stream's predictions fared
