@@ -14,7 +14,7 @@
 use crate::error::DoctorError;
 use bcal_common::battery::{BatteryModel, BatteryParams};
 use bcal_common::measured::cellmodel::{ocv_v, xn_from_rest_voltage};
-use bcal_common::measured::MIN_ALTERNATING_LOADED;
+use bcal_common::measured::load_mean::alternates;
 use serde::Serialize;
 use std::path::PathBuf;
 
@@ -179,15 +179,15 @@ impl Discharge {
         Some(Windows { load_on, fit_end, load_end, truncated: under_load_at_end && !ended_at_cutoff, ended_at_cutoff })
     }
 
-    /// Whether the load switches about as often as the record samples it: more than half of at least
-    /// [`MIN_ALTERNATING_LOADED`] loaded samples follow a load step (the current changed by more than
-    /// `step_threshold_a` since the sample before). B0025's square wave (4 A at half duty, a 20 s period)
+    /// Whether the load switches about as often as the record samples it ([`alternates`]: more than half of
+    /// enough loaded samples follow a load step, the current changed by more than `step_threshold_a` since the
+    /// sample before; a stream's `LoadMean` applies the same rule). B0025's square wave (4 A at half duty, a 20 s period)
     /// is read every 10-12 s in step with it, so every loaded sample follows a switch of unknown time.
     pub fn alternating_load(&self, load_threshold_a: f64, step_threshold_a: f64) -> bool {
         let loaded: Vec<usize> = (1..self.len()).filter(|&k| self.current_a[k] > load_threshold_a).collect();
         let stepped =
             loaded.iter().filter(|&&k| (self.current_a[k] - self.current_a[k - 1]).abs() > step_threshold_a).count();
-        loaded.len() >= MIN_ALTERNATING_LOADED as usize && 2 * stepped > loaded.len()
+        alternates(loaded.len(), stepped)
     }
 
     /// Index of the first sample under load (`current_a > load_threshold_a`).

@@ -150,23 +150,37 @@ pub fn gate_runs_onto(
     validation: &[CellRecord],
     judged: &[CellRecord],
 ) -> (Runs, Served) {
-    let mut val_gates: Served = Default::default();
-    let mut gates: Served = Default::default();
-    let rested = |records: &[CellRecord]| -> Vec<bool> { records.iter().map(CellRecord::after_long_rest).collect() };
-    let (val_rested, judged_rested) = (rested(validation), rested(judged));
-    for (b, f) in EOD_FRACTIONS_PCT.iter().enumerate() {
-        let pairs = |records: &[CellRecord], a: &[CycleRun], o: &[CycleRun]| -> Vec<(f64, f64)> {
-            per_cycle_at(records, a, &[*f]).into_iter().zip(per_cycle_at(records, o, &[*f])).collect()
-        };
-        let history = pairs(validation, &alt.validation, &base.validation);
-        val_gates[b] = online_gate(&[], &history, &val_rested);
-        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &judged_rested);
-    }
+    let (val_gates, gates) =
+        share_gates(alt, base, validation, judged, |r, runs, b| per_cycle_at(r, runs, &[EOD_FRACTIONS_PCT[b]]));
     let runs = Runs {
         validation: compose(validation, &val_gates, &alt.validation, &onto.validation, &base.validation),
         judged: compose(judged, &gates, &alt.judged, &onto.judged, &base.judged),
     };
     (runs, gates)
+}
+
+/// Per share of the discharge ([`EOD_FRACTIONS_PCT`], by index), whether `alt` serves each discharge against
+/// `base` ([`online_gate`]) by their per-discharge errors `err(records, runs, share)`: along the validation
+/// cycles (each on the ones before it) and along the judged ones (on every discharge that ended before).
+fn share_gates(
+    alt: &Runs,
+    base: &Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+    err: impl Fn(&[CellRecord], &[CycleRun], usize) -> Vec<f64>,
+) -> (Served, Served) {
+    let (mut val_gates, mut gates): (Served, Served) = Default::default();
+    let rested = |records: &[CellRecord]| -> Vec<bool> { records.iter().map(CellRecord::after_long_rest).collect() };
+    let (val_rested, judged_rested) = (rested(validation), rested(judged));
+    for b in 0..EOD_FRACTIONS_PCT.len() {
+        let pairs = |records: &[CellRecord], a: &[CycleRun], o: &[CycleRun]| -> Vec<(f64, f64)> {
+            err(records, a, b).into_iter().zip(err(records, o, b)).collect()
+        };
+        let history = pairs(validation, &alt.validation, &base.validation);
+        val_gates[b] = online_gate(&[], &history, &val_rested);
+        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &judged_rested);
+    }
+    (val_gates, gates)
 }
 
 /// Per discharge, the capacity error of `runs` at `fraction_pct` of it against the charge the data shows
@@ -192,8 +206,7 @@ fn capacity_error_at(records: &[CellRecord], runs: &[CycleRun], fraction_pct: u3
 /// The capacity's own gate, after [`gate_runs_onto`] has served the end of discharge: a reading's capacity
 /// (value and bounds) is `alt`'s where `alt` beat `base` on the capacity error where the scores take it in
 /// that share of the discharge (25, 50, 100 %; [`online_gate`], the same window, rule and long-rest
-/// exception), else `base`'s, whoever served
-/// the reading's end. The two predictions are judged on their own records: the one that carries the
+/// exception), else `base`'s, whoever served the reading's end. The two predictions are judged on their own records: the one that carries the
 /// capacity better need not predict the end better (B0005, cycles 41 on, capacity from half the discharge:
 /// the prior alone 0.0087 Ah, the joint UKF alone 0.0136 Ah, whose end the prior served at half of 48 of 128
 /// discharges, and its capacity with it, before this gate). `onto` holds the served runs (the same
@@ -205,21 +218,16 @@ pub fn gate_capacity(
     validation: &[CellRecord],
     judged: &[CellRecord],
 ) -> Served {
-    let mut val_gates: Served = Default::default();
-    let mut gates: Served = Default::default();
-    let rested = |records: &[CellRecord]| -> Vec<bool> { records.iter().map(CellRecord::after_long_rest).collect() };
-    for (b, share) in EOD_FRACTIONS_PCT.iter().enumerate() {
-        // Judged where the capacity is scored within the share (25, 50, 100 %): what the share serves runs to
-        // the end of the discharge, where a correction's capacity drifts most.
-        let f =
-            CAPACITY_FRACTIONS_PCT.into_iter().find(|c| share_bin(0.0, f64::from(*c), 100.0) == b).unwrap_or(*share);
-        let pairs = |records: &[CellRecord], a: &[CycleRun], o: &[CycleRun]| -> Vec<(f64, f64)> {
-            capacity_error_at(records, a, f).into_iter().zip(capacity_error_at(records, o, f)).collect()
-        };
-        let history = pairs(validation, &alt.validation, &base.validation);
-        val_gates[b] = online_gate(&[], &history, &rested(validation));
-        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &rested(judged));
-    }
+    // Judged where the capacity is scored within the share (25, 50, 100 %): what the share serves runs to the
+    // end of the discharge, where a correction's capacity drifts most.
+    let scored_at = |b: usize| {
+        CAPACITY_FRACTIONS_PCT
+            .into_iter()
+            .find(|c| share_bin(0.0, f64::from(*c), 100.0) == b)
+            .unwrap_or(EOD_FRACTIONS_PCT[b])
+    };
+    let (val_gates, gates) =
+        share_gates(alt, base, validation, judged, |r, runs, b| capacity_error_at(r, runs, scored_at(b)));
     for (set, records, served, a, b) in [
         (&mut onto.validation, validation, &val_gates, &alt.validation, &base.validation),
         (&mut onto.judged, judged, &gates, &alt.judged, &base.judged),

@@ -8,6 +8,12 @@
 
 use super::{LOADED_A, MIN_ALTERNATING_LOADED, STEP_A};
 
+/// The rule of an alternating load, for a stream and a whole record alike: at least
+/// [`MIN_ALTERNATING_LOADED`] loaded readings, more than half of which followed a load step.
+pub fn alternates(loaded: usize, followed_a_step: usize) -> bool {
+    loaded >= MIN_ALTERNATING_LOADED as usize && 2 * followed_a_step > loaded
+}
+
 /// The running means of one discharge's current.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct LoadMean {
@@ -45,7 +51,7 @@ impl LoadMean {
     /// Whether the load switches about as often as it is sampled: more than half of at least
     /// [`MIN_ALTERNATING_LOADED`] loaded readings followed a step.
     pub fn alternating(&self) -> bool {
-        self.loaded_n >= MIN_ALTERNATING_LOADED && 2 * self.switched_n > self.loaded_n
+        alternates(self.loaded_n as usize, self.switched_n as usize)
     }
 
     /// The current to assume, A: None before the first loaded reading.
