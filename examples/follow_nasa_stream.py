@@ -32,6 +32,8 @@ HEADER = "time_s,voltage_v,current_a,temperature_c\n"
 PRIOR_SERVED: list = []
 # The same for the calibrator's own prediction recentred on its bias over the last discharges.
 RECENTRED_SERVED: list = []
+# The same for the calibrator's own prediction moved on the voltage change against the discharge before.
+VOLTAGE_SERVED: list = []
 
 
 def find_bcal() -> str:
@@ -110,6 +112,8 @@ def eod_error_pct(rows: list, est: list, cutoff_v: float, fraction: float = 0.5)
         PRIOR_SERVED.append(True)
     if est[k].get("eod_recentred") and fraction == 0.5:
         RECENTRED_SERVED.append(True)
+    if est[k].get("eod_on_voltage_change") and fraction == 0.5:
+        VOLTAGE_SERVED.append(True)
     # Whether the interval held the end, and its width (hi - lo) in % of the time to the end.
     held = None if lo is None or hi is None else (lo <= eod <= hi, 100.0 * (hi - lo) / (eod - t_on))
     return (None if p is None else 100.0 * (p - eod) / (eod - t_on)), held
@@ -184,7 +188,8 @@ def main() -> None:
     served = len(PRIOR_SERVED)
     summary(f"{a.cell} {a.cycles}, {a.kind}, one stream", joined, joined_at)
     print(f"  (the prior alone predicted at half of {served} of the {len(records)} discharges, the calibrator's own "
-          f"recentred on its bias at half of {len(RECENTRED_SERVED)})")
+          f"recentred on its bias at half of {len(RECENTRED_SERVED)}, moved on the voltage change against the "
+          f"discharge before at half of {len(VOLTAGE_SERVED)})")
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone, alone_at)
 
 

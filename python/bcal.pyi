@@ -62,13 +62,20 @@ class Estimate(TypedDict):
     on its last 10 discharges followed to the cut-off; None until 9 of them are scored."""
     eod_from_prior: bool
     """Whether eod_s is the prior alone's prediction (the estimate the discharge started from, never moved
-    by its readings): where the prior beat the calibrator on at least 8 of the last 10 discharges followed
-    to the cut-off and in their mean, except after a rest of more than a day."""
+    by its readings): where the prior beat what it replaces (the calibrator's own, recentred where that
+    serves) on at least 8 of the last 10 discharges followed to the cut-off and in their mean, except after
+    a rest of more than a day."""
     eod_recentred: bool
     """Whether eod_s is the calibrator's own prediction moved by its median signed error at this share of
     the discharge over the last 10 discharges followed to the cut-off: where that beat the calibrator's own
     on at least 8 of them and in their mean, except where the prior alone predicts or after a rest of more
     than a day."""
+    eod_on_voltage_change: bool
+    """Whether eod_s is the calibrator's own prediction moved by the error its last 15 discharges followed to
+    the cut-off expect at this share, as a line in the voltage change (this discharge's voltage against the
+    one before at the same time since the load came on, the last minute's mean): where that beat what the
+    recentring gives on at least 8 of the last 10 and in their mean, except where the prior alone predicts
+    or after a rest of more than a day."""
     discharge: int
     """The discharge the reading belongs to, from 0: a new one after a charge or a gap of more than
     half an hour, started from what the last one told (the charge its end measured where it reached

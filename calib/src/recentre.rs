@@ -38,8 +38,151 @@ pub fn biases(ended: &[Vec<Outcome>]) -> [Option<f64>; 3] {
 /// `load_on_s` under `biases` (to be added to the prediction and its bounds; 0 without a bias at its share).
 /// The recentred end is never before `t_s`: the discharge is still running when the prediction is made.
 pub fn shift_s(biases: &[Option<f64>; 3], load_on_s: f64, t_s: f64, eod_s: f64) -> f64 {
-    biases[share_bin(load_on_s, t_s, eod_s)]
-        .map_or(0.0, |bias| (-bias * (eod_s - load_on_s).max(1.0)).max((t_s - eod_s).min(0.0)))
+    shift_by(biases[share_bin(load_on_s, t_s, eod_s)], load_on_s, t_s, eod_s)
+}
+
+/// The shift, s, that takes a relative `bias` (signed error, positive late) off a predicted end.
+fn shift_by(bias: Option<f64>, load_on_s: f64, t_s: f64, eod_s: f64) -> f64 {
+    bias.map_or(0.0, |bias| (-bias * (eod_s - load_on_s).max(1.0)).max((t_s - eod_s).min(0.0)))
+}
+
+/// Discharges the voltage-change regression learns on: the last that ended with a voltage change at the
+/// share. Two coefficients want more pairs than the median's [`WINDOW`].
+pub const VOLTAGE_WINDOW: usize = 15;
+/// Fewest pairs a regression is fitted on.
+const MIN_PAIRS: usize = 8;
+/// The voltage change is averaged over the readings of the last minute (3-6 readings at a NASA cell's
+/// 10-20 s sampling, 60 at 1 s), not one reading's noise.
+pub const VOLTAGE_SPAN_S: f64 = 60.0;
+/// Two readings compare when their currents differ by at most this share of the larger (a discharge at
+/// another current, or a square wave out of step with the one before, has no voltage change).
+const SAME_LOAD: f64 = 0.05;
+
+/// The loaded readings of the discharge before: its voltage and current against the time since its load
+/// came on. What the end of the next discharge follows beyond what its filter reads: a discharge whose
+/// voltage runs above the one before it at the same time since the load came on lasts longer than the
+/// filter predicts, on B0018 and B0006 (docs/calibrator.md, "the voltage against the discharge before").
+#[derive(Clone, Debug, PartialEq)]
+pub struct Previous {
+    elapsed_s: Vec<f64>,
+    voltage_v: Vec<f64>,
+    current_a: Vec<f64>,
+}
+
+impl Previous {
+    /// From a discharge's readings `(time since its load came on s, voltage V, current A)`, from the
+    /// load-on to the cut-off, in time order; None with fewer than two.
+    pub fn new(readings: impl IntoIterator<Item = (f64, f64, f64)>) -> Option<Self> {
+        let mut p = Previous { elapsed_s: Vec::new(), voltage_v: Vec::new(), current_a: Vec::new() };
+        for (t, v, i) in readings {
+            let later = p.elapsed_s.last().is_none_or(|&last| t > last);
+            if t >= 0.0 && later && t.is_finite() && v.is_finite() && i.is_finite() {
+                p.elapsed_s.push(t);
+                p.voltage_v.push(v);
+                p.current_a.push(i);
+            }
+        }
+        (p.elapsed_s.len() >= 2).then_some(p)
+    }
+
+    /// Its voltage and current `elapsed_s` after its load came on, linear between its readings; None
+    /// outside them.
+    fn at(&self, elapsed_s: f64) -> Option<(f64, f64)> {
+        let k = self.elapsed_s.partition_point(|&t| t <= elapsed_s);
+        if k == 0 || (k == self.elapsed_s.len() && elapsed_s > self.elapsed_s[k - 1]) {
+            return None;
+        }
+        if k == self.elapsed_s.len() {
+            return Some((self.voltage_v[k - 1], self.current_a[k - 1]));
+        }
+        let (t0, t1) = (self.elapsed_s[k - 1], self.elapsed_s[k]);
+        let w = (elapsed_s - t0) / (t1 - t0);
+        let lerp = |x: &[f64]| x[k - 1] + w * (x[k] - x[k - 1]);
+        Some((lerp(&self.voltage_v), lerp(&self.current_a)))
+    }
+}
+
+/// A discharge's voltage against the one before it at the same time since the load came on, averaged
+/// over the readings of the last [`VOLTAGE_SPAN_S`] that compare (the same load within 5 %), fed one
+/// loaded reading at a time: `bcal calibrate` and a live stream both keep one.
+#[derive(Clone, Debug)]
+pub struct VoltageChange {
+    previous: Option<Previous>,
+    recent: std::collections::VecDeque<(f64, f64)>,
+}
+
+impl VoltageChange {
+    /// For a discharge that follows `previous` (None: the first one, or one whose predecessor is unknown).
+    pub fn new(previous: Option<Previous>) -> Self {
+        VoltageChange { previous, recent: Default::default() }
+    }
+
+    /// Takes a reading `elapsed_s` after the load came on, and returns the voltage change now (V); None
+    /// without a discharge before, past its end, or without a reading that compares in the last minute.
+    pub fn push(&mut self, elapsed_s: f64, voltage_v: f64, current_a: f64) -> Option<f64> {
+        let prev = self.previous.as_ref()?;
+        if let Some((v, i)) = prev.at(elapsed_s) {
+            let same = (current_a - i).abs() <= SAME_LOAD * current_a.abs().max(i.abs());
+            if same && voltage_v.is_finite() {
+                self.recent.push_back((elapsed_s, voltage_v - v));
+            }
+        } else {
+            self.recent.clear();
+            return None;
+        }
+        while self.recent.front().is_some_and(|&(t, _)| t < elapsed_s - VOLTAGE_SPAN_S) {
+            self.recent.pop_front();
+        }
+        (!self.recent.is_empty()).then(|| self.recent.iter().map(|&(_, d)| d).sum::<f64>() / self.recent.len() as f64)
+    }
+}
+
+/// Per share ([`EOD_FRACTIONS_PCT`]), the signed relative error as a line in the voltage change, `(a, b)`
+/// of `a + b dv`, by least squares over the last [`VOLTAGE_WINDOW`] discharges that ended with a voltage
+/// change at the share (`ended`: each discharge's scored predictions, each with the voltage change at its
+/// reading; oldest first). None with fewer than 8 pairs or voltage changes that do not vary (spread under
+/// 0.1 mV).
+pub fn voltage_regressions(ended: &[Vec<(Outcome, Option<f64>)>]) -> [Option<(f64, f64)>; 3] {
+    std::array::from_fn(|b| {
+        let mut pairs: Vec<(f64, f64)> = ended
+            .iter()
+            .rev()
+            .filter_map(|d| {
+                d.iter()
+                    .find(|(o, _)| o.fraction == EOD_FRACTIONS_PCT[b])
+                    .and_then(|(o, dv)| Some((dv.as_ref().copied()?, signed_error(o))))
+            })
+            .filter(|(x, y)| x.is_finite() && y.is_finite())
+            .take(VOLTAGE_WINDOW)
+            .collect();
+        if pairs.len() < MIN_PAIRS {
+            return None;
+        }
+        pairs.reverse();
+        let n = pairs.len() as f64;
+        let (mx, my) = (pairs.iter().map(|p| p.0).sum::<f64>() / n, pairs.iter().map(|p| p.1).sum::<f64>() / n);
+        let sxx: f64 = pairs.iter().map(|p| (p.0 - mx).powi(2)).sum();
+        let sxy: f64 = pairs.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+        if (sxx / n).sqrt() < 1e-4 {
+            return None;
+        }
+        let slope = sxy / sxx;
+        Some((my - slope * mx, slope))
+    })
+}
+
+/// The shift, s, that takes off a predicted end the error its share's regression expects at voltage
+/// change `dv` (0 without a regression there or a voltage change now); never before `t_s`, as
+/// [`shift_s`].
+pub fn regressed_shift_s(
+    regressions: &[Option<(f64, f64)>; 3],
+    dv: Option<f64>,
+    load_on_s: f64,
+    t_s: f64,
+    eod_s: f64,
+) -> f64 {
+    let line = regressions[share_bin(load_on_s, t_s, eod_s)];
+    shift_by(line.zip(dv).map(|((a, b), dv)| a + b * dv), load_on_s, t_s, eod_s)
 }
 
 #[cfg(test)]
@@ -48,6 +191,69 @@ mod tests {
 
     fn outcome(fraction: u32, value: f64, measured: f64) -> Outcome {
         Outcome { value, below: 0.0, above: 0.0, size: value, measured, fraction }
+    }
+
+    /// The voltage change reads the discharge before at the same time since its load came on, averages
+    /// the last minute, leaves out readings at another load, and has nothing to say past the end of the
+    /// one before or without one.
+    #[test]
+    fn the_voltage_change_compares_like_with_like_over_the_last_minute() {
+        // The discharge before: 2 A for 100 s, its voltage falling from 4.0 V by 1 mV a second.
+        let prev = Previous::new((0..=100).map(|t| (f64::from(t), 4.0 - 0.001 * f64::from(t), 2.0))).unwrap();
+        assert_eq!(prev.at(50.5).map(|(v, _)| (v * 1e4).round() / 1e4), Some(3.9495));
+        assert!(prev.at(100.5).is_none() && prev.at(-1.0).is_none());
+        let mut dv = VoltageChange::new(Some(prev.clone()));
+        // 5 mV above it until 30 s, then 15 mV above: at 60 s the minute holds 31 readings of the first and
+        // 30 of the second, by 90 s only the second.
+        for t in 0..=100 {
+            let up = if t <= 30 { 0.005 } else { 0.015 };
+            let now = dv.push(f64::from(t), 4.0 - 0.001 * f64::from(t) + up, 2.0).unwrap();
+            if t == 60 {
+                assert!((now - (31.0 * 0.005 + 30.0 * 0.015) / 61.0).abs() < 1e-12, "{now}");
+            }
+            if t >= 91 {
+                assert!((now - 0.015).abs() < 1e-12, "{t}: {now}");
+            }
+        }
+        // A reading at another load does not count: one at 1 A, 100 mV higher, leaves the mean as it was.
+        let mut dv = VoltageChange::new(Some(prev.clone()));
+        assert!((dv.push(10.0, 4.0 - 0.010 + 0.002, 2.0).unwrap() - 0.002).abs() < 1e-12);
+        assert!((dv.push(11.0, 4.0 - 0.011 + 0.100, 1.0).unwrap() - 0.002).abs() < 1e-12);
+        // Past the end of the discharge before there is nothing to compare with.
+        assert_eq!(dv.push(101.0, 3.0, 2.0), None);
+        // Nor without one, or at another load from the start.
+        assert_eq!(VoltageChange::new(None).push(10.0, 4.0, 2.0), None);
+        assert_eq!(VoltageChange::new(Some(prev)).push(10.0, 4.0, 4.0), None);
+    }
+
+    /// Errors that are a line in the voltage change are read back as that line from the last 15
+    /// discharges, and the shift takes the expected error off; with too few discharges, or a voltage
+    /// change that never varies, there is no line.
+    #[test]
+    fn an_error_that_follows_the_voltage_change_is_regressed_and_taken_off() {
+        let ended: Vec<Vec<(Outcome, Option<f64>)>> = (0..20)
+            .map(|k| {
+                let dv = 0.01 * ((k as f64) * 1.3).sin();
+                // The end predicted (0.002 - 0.5 dv) late, relative to its size.
+                let e = 0.002 - 0.5 * dv;
+                EOD_FRACTIONS_PCT.iter().map(|&f| (outcome(f, 1000.0, 1000.0 * (1.0 - e)), Some(dv))).collect()
+            })
+            .collect();
+        for line in voltage_regressions(&ended) {
+            let (a, b) = line.unwrap();
+            assert!((a - 0.002).abs() < 1e-9 && (b + 0.5).abs() < 1e-9, "{a} {b}");
+        }
+        // A prediction of 2000 s from a load-on at 0, made at 1000 s, with the voltage 10 mV above the
+        // discharge before: the line expects it 0.3 % early, so it moves 6 s later.
+        let lines = voltage_regressions(&ended);
+        let s = regressed_shift_s(&lines, Some(0.01), 0.0, 1000.0, 2000.0);
+        assert!((s - 0.003 * 2000.0).abs() < 1e-6, "{s}");
+        assert_eq!(regressed_shift_s(&lines, None, 0.0, 1000.0, 2000.0), 0.0);
+        // Seven discharges are too few; a voltage change that never varies has no slope.
+        assert!(voltage_regressions(&ended[..7]).iter().all(Option::is_none));
+        let flat: Vec<Vec<(Outcome, Option<f64>)>> =
+            (0..15).map(|_| vec![(outcome(50, 1010.0, 1000.0), Some(0.004))]).collect();
+        assert!(voltage_regressions(&flat)[1].is_none());
     }
 
     /// A method that ends 1 % late at every share is shifted back onto the measured end; the window forgets

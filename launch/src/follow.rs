@@ -471,16 +471,30 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
         .collect();
     if !held.is_empty() {
         s.push_str(&format!(
-            "; the prior alone predicts the end at {} of a discharge (it beat the calibrator there on at least 8 of \
-             the last 10)",
+            "; the prior alone predicts the end at {} of a discharge (it beat the calibrator's, recentred where that \
+             serves, there on at least 8 of the last 10)",
             held.join(", ")
+        ));
+    }
+    let on_voltage: Vec<String> = bcal_calib::widening::EOD_FRACTIONS_PCT
+        .iter()
+        .zip(stream.voltage_serves())
+        .zip(stream.prior_serves())
+        .filter(|((_, on), prior)| *on && !*prior)
+        .map(|((f, _), _)| format!("{f} %"))
+        .collect();
+    if !on_voltage.is_empty() {
+        s.push_str(&format!(
+            "; its own prediction moved by the error its last 15 discharges expect at the voltage against the one \
+             before gives the end at {} of a discharge (it beat the recentring there on at least 8 of the last 10)",
+            on_voltage.join(", ")
         ));
     }
     let moved: Vec<String> = bcal_calib::widening::EOD_FRACTIONS_PCT
         .iter()
         .zip(stream.recentred_serves())
-        .zip(stream.prior_serves())
-        .filter(|((_, on), prior)| *on && !*prior)
+        .zip(stream.prior_serves().iter().zip(stream.voltage_serves()).map(|(p, v)| *p || v))
+        .filter(|((_, on), other)| *on && !*other)
         .map(|((f, _), _)| format!("{f} %"))
         .collect();
     if !moved.is_empty() {

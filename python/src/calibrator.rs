@@ -84,12 +84,13 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
     d.set_item("eod_hi_s", e.eod_hi_s)?;
     d.set_item("eod_from_prior", e.eod_from_prior)?;
     d.set_item("eod_recentred", e.eod_recentred)?;
+    d.set_item("eod_on_voltage_change", e.eod_on_voltage_change)?;
     d.set_item("discharge", e.discharge)?;
     Ok(d)
 }
 
 /// The columns `run` returns, in order.
-const RUN_COLUMNS: [&str; 15] = [
+const RUN_COLUMNS: [&str; 16] = [
     "time_s",
     "q_mobile",
     "q_mobile_lo",
@@ -103,6 +104,7 @@ const RUN_COLUMNS: [&str; 15] = [
     "eod_hi_s",
     "eod_from_prior",
     "eod_recentred",
+    "eod_on_voltage_change",
     "discharge",
     "row",
 ];
@@ -187,8 +189,12 @@ impl Calibrator {
     /// `r_o_lo`, `r_o_hi`, `eod_s` (predicted end of discharge, absolute time, s, at `eod_current_a`: the
     /// mean discharge current so far), `eod_lo_s`, `eod_hi_s` (its 90 % interval, learned from the
     /// stream's own discharges followed to the cut-off: from the ninth on), `eod_from_prior` (the prediction
-    /// is the prior alone's, where it beat the calibrator on 8 of the last 10 discharges), `eod_recentred` (the
-    /// calibrator's own moved by its median error over the last 10, where that beat it on 8 of them) and `discharge` (from 0: a new
+    /// is the prior alone's, where it beat the calibrator's, recentred where that serves, on 8 of the last 10
+    /// discharges), `eod_recentred` (the
+    /// calibrator's own moved by its median error over the last 10, where that beat it on 8 of them),
+    /// `eod_on_voltage_change` (the calibrator's own moved by the error its last 15 discharges expect at the
+    /// voltage this one reads against the one before at the same time since the load came on, where that beat
+    /// the recentring on 8 of the last 10) and `discharge` (from 0: a new
     /// one after a charge or a gap of more than half an hour, started from what the last one told: the charge its end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
     /// A reading that is not finite, not a cell's voltage or not later than the last raises ValueError and
@@ -281,6 +287,7 @@ impl Calibrator {
                     opt(e.eod_hi_s),
                     f64::from(u8::from(e.eod_from_prior)),
                     f64::from(u8::from(e.eod_recentred)),
+                    f64::from(u8::from(e.eod_on_voltage_change)),
                     f64::from(e.discharge),
                     k as f64,
                 ];

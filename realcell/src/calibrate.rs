@@ -716,8 +716,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         judged: pinned(&prior_pin, &judged, &judged_before),
     };
     // Every streaming calibrator is held to the prior it starts from (issue 18, item 5): the prior alone
-    // serves a share of a discharge where it beat the calibrator there on most of the last that ended
-    // (`tune::gate_runs`).
+    // serves a share of a discharge where it beat the calibrator there, as delivered (recentred where that
+    // serves: what it would replace), on most of the last that ended (`tune::gate_runs_onto`).
     // Then its intervals are widened from its runs along the validation cycles and each judged discharge
     // that has ended.
     let deliver = |key: &'static str,
@@ -726,11 +726,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                    widenings: &mut serde_json::Map<String, serde_json::Value>,
                    runs: &mut Vec<(&'static str, Vec<CycleRun>)>| {
         let own_score = score(&judged, &r.judged);
-        let (own, recentred) = crate::recentre::serve(&r, &validation, &judged);
+        let (own, recentred, on_voltage) = crate::recentre::serve(&r, &validation, &judged);
         entry["recentred"] = serde_json::json!({"cycles": served_cycles(&judged, &recentred),
+            "voltage_change_cycles": served_cycles(&judged, &on_voltage),
             "own_signed_pct": own_score.eod_signed_pct});
         let alone = MethodEntry::new(key, own_score);
-        let (mut held, gate) = tune::gate_runs_onto(&prior_runs, &r, &own, &validation, &judged);
+        let (mut held, gate) = tune::gate_runs_onto(&prior_runs, &own, &own, &r, &validation, &judged);
         let capacity_gate = tune::gate_capacity(&prior_runs, &r, &mut held, &validation, &judged);
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
         let w = calibrate_intervals(&hist, &judged, &mut held.judged);
@@ -740,7 +741,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             "prior_capacity_cycles": served_cycles(&judged, &capacity_gate),
             "alone": {"capacity_rmse_ah": alone.capacity_rmse_ah, "eod_error_pct": alone.eod_error_pct},
             "what": format!("the prior alone (`prior`) serves the readings of a judged discharge near a share of it \
-                (10 / 50 / 90 %, by the predicted end) when it beat this calibrator's EOD error there on at least \
+                (10 / 50 / 90 %, by the predicted end) when it beat this calibrator's EOD error there as delivered \
+                (recentred where that serves: what it replaces) on at least \
                 {:.0} % of the last {} discharges that ended before it (validation cycles first) and in their mean \
                 (`prior_cycles`, per share); the capacity there by its own record, the capacity error against \
                 the data's charge (`prior_capacity_cycles`); `alone`: the calibrator's figures without it",
@@ -1025,9 +1027,13 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let own = if *key == "uncalibrated" {
             tune::Runs { validation: hist_runs, judged: r }
         } else {
-            let (own, recentred) =
+            let (own, recentred, on_voltage) =
                 crate::recentre::serve(&tune::Runs { validation: hist_runs, judged: r }, &validation, &judged);
-            recentrings.insert(key.to_string(), served_cycles(&judged, &recentred));
+            recentrings.insert(
+                key.to_string(),
+                serde_json::json!({"cycles": served_cycles(&judged, &recentred),
+                    "voltage_change_cycles": served_cycles(&judged, &on_voltage)}),
+            );
             own
         };
         let mut r = own.judged;

@@ -8,7 +8,7 @@ use crate::interval::outcomes;
 use crate::record::CellRecord;
 use crate::run::CycleRun;
 use crate::tune::{self, Runs, Served};
-use bcal_calib::recentre::{biases, shift_s, Outcome};
+use bcal_calib::recentre::{biases, regressed_shift_s, shift_s, voltage_regressions, Outcome, Previous, VoltageChange};
 
 /// `runs` along `records` (in order) with every predicted end of discharge, and its interval, moved by the
 /// bias of the discharges before it in the sequence.
@@ -34,14 +34,73 @@ fn recentred_along(records: &[&CellRecord], runs: &[&CycleRun]) -> Vec<CycleRun>
         .collect()
 }
 
+/// The voltage change at each reading of each record against the record before it in the sequence
+/// ([`VoltageChange`]; None before the load came on and on the first record).
+fn voltage_changes(records: &[&CellRecord]) -> Vec<Vec<Option<f64>>> {
+    fn loaded(r: &CellRecord) -> impl Iterator<Item = (f64, f64, f64)> + '_ {
+        r.samples.iter().filter(|s| s.t_s >= r.load_on_s).map(|s| (s.t_s - r.load_on_s, s.voltage_v, s.current_a))
+    }
+    records
+        .iter()
+        .enumerate()
+        .map(|(k, r)| {
+            let previous = k.checked_sub(1).and_then(|j| Previous::new(loaded(records[j])));
+            let mut change = VoltageChange::new(previous);
+            r.samples
+                .iter()
+                .map(|s| {
+                    (s.t_s >= r.load_on_s).then(|| change.push(s.t_s - r.load_on_s, s.voltage_v, s.current_a)).flatten()
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// `runs` along `records` (in order) with every predicted end of discharge, and its interval, moved by the
+/// error its share's regression on the voltage change expects ([`voltage_regressions`] of the method's own
+/// errors on the discharges before it in the sequence).
+fn regressed_along(records: &[&CellRecord], runs: &[&CycleRun]) -> Vec<CycleRun> {
+    let changes = voltage_changes(records);
+    let mut ended: Vec<Vec<(Outcome, Option<f64>)>> = Vec::new();
+    records
+        .iter()
+        .zip(runs)
+        .zip(&changes)
+        .map(|((r, run), dv)| {
+            let lines = voltage_regressions(&ended);
+            let mut out = (*run).clone();
+            for (k, s) in out.steps.iter_mut().enumerate() {
+                if let Some(v) = s.eod.value {
+                    let d = dv.get(k).copied().flatten();
+                    s.eod = s.eod.shifted(regressed_shift_s(&lines, d, r.load_on_s, s.t_s, v));
+                }
+            }
+            let (eod, _) = outcomes(r, run);
+            if !eod.is_empty() {
+                let at =
+                    |f: u32| r.reading_at_fraction(f64::from(f) / 100.0).and_then(|k| dv.get(k).copied().flatten());
+                ended.push(eod.into_iter().map(|o| (o, at(o.fraction))).collect());
+            }
+            out
+        })
+        .collect()
+}
+
 /// A method's runs along the validation and judged cycles, recentred where that has earned it, and the
-/// judged discharges where it did, per share.
-pub fn serve(runs: &Runs, validation: &[CellRecord], judged: &[CellRecord]) -> (Runs, Served) {
+/// judged discharges where it did, per share: first on its median bias, then, where that has earned it
+/// against the median's, on the voltage change against the discharge before (the second gate's
+/// discharges, per share).
+pub fn serve(runs: &Runs, validation: &[CellRecord], judged: &[CellRecord]) -> (Runs, Served, Served) {
     let records: Vec<&CellRecord> = validation.iter().chain(judged).collect();
     let all: Vec<&CycleRun> = runs.validation.iter().chain(&runs.judged).collect();
-    let mut moved = recentred_along(&records, &all);
-    let moved_judged = moved.split_off(runs.validation.len().min(moved.len()));
-    tune::gate_runs(&Runs { validation: moved, judged: moved_judged }, runs, validation, judged)
+    let split = |mut moved: Vec<CycleRun>| {
+        let judged = moved.split_off(runs.validation.len().min(moved.len()));
+        Runs { validation: moved, judged }
+    };
+    let (median, median_gates) = tune::gate_runs(&split(recentred_along(&records, &all)), runs, validation, judged);
+    let moved = split(regressed_along(&records, &all));
+    let (served, voltage_gates) = tune::gate_runs_onto(&moved, &median, &median, runs, validation, judged);
+    (served, median_gates, voltage_gates)
 }
 
 #[cfg(test)]
@@ -84,7 +143,7 @@ mod tests {
         records[12 + 5].rest_before_s = Some(2.0 * 86_400.0);
         let (val, judged) = records.split_at(12);
         let runs = Runs { validation: runs.judged[..12].to_vec(), judged: runs.judged[12..].to_vec() };
-        let (served, gates) = serve(&runs, val, judged);
+        let (served, gates, _) = serve(&runs, val, judged);
         for (k, run) in served.judged.iter().enumerate() {
             let p = eod_at_half(run);
             if gates[1][k] {
@@ -102,13 +161,49 @@ mod tests {
         }
     }
 
+    /// A method whose end comes late by an amount that follows the voltage against the discharge before
+    /// (0.5 % of the duration, less 5 % for every volt the discharge reads above the one before at the same
+    /// time since the load came on, the voltage swinging by +-8 mV from one discharge to the next): the
+    /// median cannot take that off, the regression on the voltage change can. Once it has beaten the
+    /// recentred (or the method's own) predictions on a window of discharges it serves, on the measured end.
+    #[test]
+    fn an_error_that_follows_the_voltage_change_is_served_regressed() {
+        let offset_v = |k: usize| 0.008 * ((k as f64) * 2.1).sin();
+        // Late by 0.5 % of the predicted duration, less 5 % for every volt above the discharge before.
+        let error = |k: usize| 0.005 - 5.0 * (offset_v(k) - if k == 0 { 0.0 } else { offset_v(k - 1) });
+        let (mut records, runs) = sequence(45, |k| 100.0 / (1.0 - error(k)) - 100.0);
+        for (k, r) in records.iter_mut().enumerate() {
+            for s in &mut r.samples {
+                s.voltage_v += offset_v(k);
+            }
+        }
+        let (val, judged) = records.split_at(10);
+        let runs = Runs { validation: runs.judged[..10].to_vec(), judged: runs.judged[10..].to_vec() };
+        let (served, _, on_voltage) = serve(&runs, val, judged);
+        let served_at_half: Vec<usize> = (0..judged.len()).filter(|&k| on_voltage[1][k]).collect();
+        // The regression needs 8 discharges that ended with a voltage change, then a window of 10 scored to
+        // earn its place: it serves the last judged discharges at least.
+        assert!(served_at_half.len() >= 15, "served at half: {served_at_half:?}");
+        // On the measured end, where the method's own were up to 8 s off.
+        let mut own_off = 0.0f64;
+        for &k in &served_at_half {
+            let v = eod_at_half(&served.judged[k]).value.unwrap();
+            assert!((v - 100.0).abs() < 1e-6, "judged {k}: {v}");
+            own_off = own_off.max((eod_at_half(&runs.judged[k]).value.unwrap() - 100.0).abs());
+        }
+        assert!(own_off > 5.0, "{own_off}");
+        // Where it does not serve, the prediction is the method's own or the median's.
+        let first = served_at_half[0];
+        assert!(first > 0 && !on_voltage[1][..first].iter().any(|s| *s));
+    }
+
     /// A bias that flips sign from one discharge to the next (late 4 s, then early 2 s): the median of
     /// the window shifts every prediction the wrong way half the time, so the recentred predictions never
     /// earn their place and the method's own are served throughout.
     #[test]
     fn a_bias_that_flips_is_not_served() {
         let (records, runs) = sequence(3 * WINDOW, |k| if k.is_multiple_of(2) { 4.0 } else { -2.0 });
-        let (served, gates) = serve(&runs, &[], &records);
+        let (served, gates, _) = serve(&runs, &[], &records);
         assert!(gates.iter().flatten().all(|g| !g));
         for (a, b) in served.judged.iter().zip(&runs.judged) {
             assert_eq!(eod_at_half(a), eod_at_half(b));

@@ -137,24 +137,26 @@ pub type Served = [Vec<bool>; EOD_FRACTIONS_PCT.len()];
 /// ended before. Each calibrator runs every discharge from its own prior, so choosing after the fact is
 /// what running the gate live would give.
 pub fn gate_runs(alt: &Runs, base: &Runs, validation: &[CellRecord], judged: &[CellRecord]) -> (Runs, Served) {
-    gate_runs_onto(alt, base, base, validation, judged)
+    gate_runs_onto(alt, base, base, base, validation, judged)
 }
 
-/// [`gate_runs`] decided against `base` and composed onto `onto` (the same readings): the prior alone is
-/// judged against a calibrator's own predictions and served in place of them as delivered (recentred where
-/// that serves, [`crate::recentre`]), as a live stream does.
+/// [`gate_runs`] decided against `base` and composed onto `onto` (the same readings), a reading's share read
+/// off `shares` (the calibrator's own predictions, as a live stream reads it): the prior alone is judged
+/// against a calibrator's predictions as delivered (recentred where that serves, [`crate::recentre`]) and
+/// served in place of them, as a live stream does.
 pub fn gate_runs_onto(
     alt: &Runs,
     base: &Runs,
     onto: &Runs,
+    shares: &Runs,
     validation: &[CellRecord],
     judged: &[CellRecord],
 ) -> (Runs, Served) {
     let (val_gates, gates) =
         share_gates(alt, base, validation, judged, |r, runs, b| per_cycle_at(r, runs, &[EOD_FRACTIONS_PCT[b]]));
     let runs = Runs {
-        validation: compose(validation, &val_gates, &alt.validation, &onto.validation, &base.validation),
-        judged: compose(judged, &gates, &alt.judged, &onto.judged, &base.judged),
+        validation: compose(validation, &val_gates, &alt.validation, &onto.validation, &shares.validation),
+        judged: compose(judged, &gates, &alt.judged, &onto.judged, &shares.judged),
     };
     (runs, gates)
 }
@@ -453,10 +455,12 @@ mod tests {
         let (judged, pj) = build(11..14, &policy);
         let (_, fj) = build(11..14, &filter);
         let (_, oj) = build(11..14, &far);
+        let filter_runs = Runs { validation: fv, judged: fj };
         let (runs, served) = gate_runs_onto(
             &Runs { validation: pv, judged: pj.clone() },
-            &Runs { validation: fv, judged: fj },
+            &filter_runs,
             &Runs { validation: ov, judged: oj.clone() },
+            &filter_runs,
             &validation,
             &judged,
         );
