@@ -57,6 +57,10 @@ pub const VOLTAGE_SPAN_S: f64 = 60.0;
 /// Two readings compare when their currents differ by at most this share of the larger (a discharge at
 /// another current, or a square wave out of step with the one before, has no voltage change).
 const SAME_LOAD: f64 = 0.05;
+/// Two discharges compare when they start within this of each other's temperature, K: a cell cycled at
+/// several ambients (NASA's B0038-B0040 alternate 24 and 44 C) reads tens of mV apart from one to the next
+/// for the temperature alone; NASA's chambers run 19 K or more apart, a chamber's own swing is 2-3 K.
+pub const SAME_AMBIENT_K: f64 = 5.0;
 
 /// The loaded readings of the discharge before: its voltage and current against the time since its load
 /// came on. What the end of the next discharge follows beyond what its filter reads: a discharge whose
@@ -67,13 +71,15 @@ pub struct Previous {
     elapsed_s: Vec<f64>,
     voltage_v: Vec<f64>,
     current_a: Vec<f64>,
+    /// The temperature it started at, K (its ambient).
+    start_k: f64,
 }
 
 impl Previous {
     /// From a discharge's readings `(time since its load came on s, voltage V, current A)`, from the
-    /// load-on to the cut-off, in time order; None with fewer than two.
-    pub fn new(readings: impl IntoIterator<Item = (f64, f64, f64)>) -> Option<Self> {
-        let mut p = Previous { elapsed_s: Vec::new(), voltage_v: Vec::new(), current_a: Vec::new() };
+    /// load-on to the cut-off, in time order, and the temperature it started at (K); None with fewer than two.
+    pub fn new(readings: impl IntoIterator<Item = (f64, f64, f64)>, start_k: f64) -> Option<Self> {
+        let mut p = Previous { elapsed_s: Vec::new(), voltage_v: Vec::new(), current_a: Vec::new(), start_k };
         for (t, v, i) in readings {
             let later = p.elapsed_s.last().is_none_or(|&last| t > last);
             if t >= 0.0 && later && t.is_finite() && v.is_finite() && i.is_finite() {
@@ -112,8 +118,10 @@ pub struct VoltageChange {
 }
 
 impl VoltageChange {
-    /// For a discharge that follows `previous` (None: the first one, or one whose predecessor is unknown).
-    pub fn new(previous: Option<Previous>) -> Self {
+    /// For a discharge that starts at `start_k` (K) and follows `previous` (None: the first one, or one
+    /// whose predecessor is unknown); one that started more than [`SAME_AMBIENT_K`] away does not compare.
+    pub fn new(previous: Option<Previous>, start_k: f64) -> Self {
+        let previous = previous.filter(|p| (p.start_k - start_k).abs() <= SAME_AMBIENT_K);
         VoltageChange { previous, recent: Default::default() }
     }
 
@@ -195,14 +203,14 @@ mod tests {
 
     /// The voltage change reads the discharge before at the same time since its load came on, averages
     /// the last minute, leaves out readings at another load, and has nothing to say past the end of the
-    /// one before or without one.
+    /// one before, without one, or after one at another ambient.
     #[test]
     fn the_voltage_change_compares_like_with_like_over_the_last_minute() {
         // The discharge before: 2 A for 100 s, its voltage falling from 4.0 V by 1 mV a second.
-        let prev = Previous::new((0..=100).map(|t| (f64::from(t), 4.0 - 0.001 * f64::from(t), 2.0))).unwrap();
+        let prev = Previous::new((0..=100).map(|t| (f64::from(t), 4.0 - 0.001 * f64::from(t), 2.0)), 297.0).unwrap();
         assert_eq!(prev.at(50.5).map(|(v, _)| (v * 1e4).round() / 1e4), Some(3.9495));
         assert!(prev.at(100.5).is_none() && prev.at(-1.0).is_none());
-        let mut dv = VoltageChange::new(Some(prev.clone()));
+        let mut dv = VoltageChange::new(Some(prev.clone()), 298.0);
         // 5 mV above it until 30 s, then 15 mV above: at 60 s the minute holds 31 readings of the first and
         // 30 of the second, by 90 s only the second.
         for t in 0..=100 {
@@ -216,14 +224,15 @@ mod tests {
             }
         }
         // A reading at another load does not count: one at 1 A, 100 mV higher, leaves the mean as it was.
-        let mut dv = VoltageChange::new(Some(prev.clone()));
+        let mut dv = VoltageChange::new(Some(prev.clone()), 297.0);
         assert!((dv.push(10.0, 4.0 - 0.010 + 0.002, 2.0).unwrap() - 0.002).abs() < 1e-12);
         assert!((dv.push(11.0, 4.0 - 0.011 + 0.100, 1.0).unwrap() - 0.002).abs() < 1e-12);
         // Past the end of the discharge before there is nothing to compare with.
         assert_eq!(dv.push(101.0, 3.0, 2.0), None);
-        // Nor without one, or at another load from the start.
-        assert_eq!(VoltageChange::new(None).push(10.0, 4.0, 2.0), None);
-        assert_eq!(VoltageChange::new(Some(prev)).push(10.0, 4.0, 4.0), None);
+        // Nor without one, at another load from the start, or after one at another ambient (44 C after 24 C).
+        assert_eq!(VoltageChange::new(None, 297.0).push(10.0, 4.0, 2.0), None);
+        assert_eq!(VoltageChange::new(Some(prev.clone()), 297.0).push(10.0, 4.0, 4.0), None);
+        assert_eq!(VoltageChange::new(Some(prev), 317.0).push(10.0, 4.0, 2.0), None);
     }
 
     /// Errors that are a line in the voltage change are read back as that line from the last 15

@@ -714,7 +714,8 @@ impl<'a> Stream<'a> {
             && !self.joined_under_load;
         let dv = if loaded_since {
             let previous = &self.previous_loaded;
-            let change = self.voltage_change.get_or_insert_with(|| VoltageChange::new(previous.clone()));
+            let start_k = s.temperature_k;
+            let change = self.voltage_change.get_or_insert_with(|| VoltageChange::new(previous.clone(), start_k));
             change.push(r.time_s - load_on_s, r.voltage_v, r.current_a)
         } else {
             None
@@ -878,14 +879,16 @@ impl<'a> Stream<'a> {
     fn loaded_readings(&self) -> Option<Previous> {
         let on = self.eod_track.load_on_s?;
         let end = self.eod_track.ended_s;
+        let start_k = self.samples.iter().find(|x| x.t_s >= on)?.temperature_k;
         let mut past_end = false;
-        Previous::new(self.samples.iter().filter(|x| x.t_s >= on).map_while(|x| {
+        let readings = self.samples.iter().filter(|x| x.t_s >= on).map_while(|x| {
             if past_end {
                 return None;
             }
             past_end = end.is_some_and(|e| x.t_s >= e);
             Some((x.t_s - on, x.voltage_v, x.current_a))
-        }))
+        });
+        Previous::new(readings, start_k)
     }
 
     /// What the current discharge has measured, cleared for the next one.

@@ -44,8 +44,8 @@ fn voltage_changes(records: &[&CellRecord]) -> Vec<Vec<Option<f64>>> {
         .iter()
         .enumerate()
         .map(|(k, r)| {
-            let previous = k.checked_sub(1).and_then(|j| Previous::new(loaded(records[j])));
-            let mut change = VoltageChange::new(previous);
+            let previous = k.checked_sub(1).and_then(|j| Previous::new(loaded(records[j]), records[j].ambient_k));
+            let mut change = VoltageChange::new(previous, r.ambient_k);
             r.samples
                 .iter()
                 .map(|s| {
