@@ -7,8 +7,11 @@
 //! it at ([`share_bin`]). The recentred prediction is an alternative, not a replacement: it serves where it
 //! has beaten the method's own on the last discharges, by the rule that gates every alternative
 //! ([`crate::tune::earns`]), since a bias that flips from one discharge to the next (B0055's, after rests
-//! of alternating length) is made worse by a shift. `bcal calibrate` (`bcal_realcell::recentre`) and a live
-//! stream ([`crate::stream`]) both use this. Pure arithmetic: nothing here reads or prints.
+//! of alternating length) is made worse by a shift. A second twin takes off what a median cannot, the part
+//! of a discharge's error that follows its voltage against the discharge before at the same time since the
+//! load came on ([`VoltageChange`], [`voltage_regressions`]); it serves where it beat the first. `bcal
+//! calibrate` (`bcal_realcell::recentre`) and a live stream ([`crate::stream`]) both use this. Pure
+//! arithmetic: nothing here reads or prints.
 
 pub use crate::widening::{share_bin, Outcome, EOD_FRACTIONS_PCT, WINDOW};
 

@@ -910,8 +910,8 @@ impl<'a> Stream<'a> {
     /// reading below the cut-off, scores the discharge's predictions at each share of it against the
     /// interpolated crossing, learns the EOD intervals again from the last [`WINDOW`] scored discharges (a
     /// discharge's own interval is never set by its own outcome: a prediction is made before its end is
-    /// known), learns the calibrator's bias per share again, and decides again at which shares the prior
-    /// alone and the recentred twin predict.
+    /// known), learns the calibrator's bias and its line in the voltage change per share again, and decides
+    /// again at which shares the prior alone and the two twins predict.
     fn track_eod(&mut self, r: &Reading, eod_s: [Option<f64>; 6], dv: Option<f64>) {
         let t = &mut self.eod_track;
         let cutoff_v = self.spec.cutoff_v;

@@ -1058,8 +1058,13 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             where it beat the method's own predictions on at least {:.0} % of the last {} and in their mean, never \
             after a rest of more than a day (judged cycles served, per share: under each streaming calibrator's \
             `recentred.cycles`, beside its own predictions' signed errors, and here for the references; not \
-            `uncalibrated`, a new cell's model that learns nothing of this one)", crate::interval::WINDOW,
-            tune::MIN_WIN_SHARE * 100.0, tune::GATE_WINDOW),
+            `uncalibrated`, a new cell's model that learns nothing of this one); then moved instead by what a \
+            line in the voltage change (the last minute's mean of the voltage minus the discharge before's at \
+            the same time since the load came on, at the same load and ambient), fitted on the method's own \
+            signed errors at that share over its last {} discharges that ended with one, expects, served where \
+            that beat the first twin's delivery by the same rule (`voltage_change_cycles`)",
+            crate::interval::WINDOW, tune::MIN_WIN_SHARE * 100.0, tune::GATE_WINDOW,
+            bcal_calib::recentre::VOLTAGE_WINDOW),
             "references": recentrings}),
     );
     let train_capacities: Vec<(u32, f64)> = train
