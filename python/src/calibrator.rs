@@ -190,12 +190,12 @@ impl Calibrator {
     /// mean discharge current so far), `eod_lo_s`, `eod_hi_s` (its 90 % interval, learned from the
     /// stream's own discharges followed to the cut-off: from the ninth on), `eod_from_prior` (the prediction
     /// is the prior alone's, where it beat the calibrator's, recentred where that serves, on 8 of the last 10
-    /// discharges), `eod_recentred` (the
-    /// calibrator's own moved by its median error over the last 10, where that beat it on 8 of them),
-    /// `eod_on_voltage_change` (the calibrator's own moved by the error its last 15 discharges expect at the
-    /// voltage this one reads against the one before at the same time since the load came on, where that beat
-    /// the recentring on 8 of the last 10) and `discharge` (from 0: a new
-    /// one after a charge or a gap of more than half an hour, started from what the last one told: the charge its end measured, else its final estimate).
+    /// discharges), `eod_recentred` (the calibrator's own moved by its median error over the last 10, where
+    /// that beat it on 8 of them), `eod_on_voltage_change` (the calibrator's own moved by the error its last
+    /// 15 discharges expect at the voltage this one reads against the one before at the same time since the
+    /// load came on, where that beat the recentring on 8 of the last 10) and `discharge` (from 0: a new one
+    /// after a charge or a gap of more than half an hour, started from what the last one told: the charge its
+    /// end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
     /// A reading that is not finite, not a cell's voltage or not later than the last raises ValueError and
     /// leaves the calibrator as it was.

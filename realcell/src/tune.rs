@@ -208,11 +208,11 @@ fn capacity_error_at(records: &[CellRecord], runs: &[CycleRun], fraction_pct: u3
 /// The capacity's own gate, after [`gate_runs_onto`] has served the end of discharge: a reading's capacity
 /// (value and bounds) is `alt`'s where `alt` beat `base` on the capacity error where the scores take it in
 /// that share of the discharge (25, 50, 100 %; [`online_gate`], the same window, rule and long-rest
-/// exception), else `base`'s, whoever served the reading's end. The two predictions are judged on their own records: the one that carries the
-/// capacity better need not predict the end better (B0005, cycles 41 on, capacity from half the discharge:
-/// the prior alone 0.0087 Ah, the joint UKF alone 0.0136 Ah, whose end the prior served at half of 48 of 128
-/// discharges, and its capacity with it, before this gate). `onto` holds the served runs (the same
-/// readings); a reading's share is the one `base`'s predicted end puts it at.
+/// exception), else `base`'s, whoever served the reading's end. The two predictions are judged on their own
+/// records: the one that carries the capacity better need not predict the end better (B0005, cycles 41 on,
+/// capacity from half the discharge: the prior alone 0.0087 Ah, the joint UKF alone 0.0136 Ah, whose end the
+/// prior served at half of 48 of 128 discharges, and its capacity with it, before this gate). `onto` holds
+/// the served runs (the same readings); a reading's share is the one `base`'s predicted end puts it at.
 pub fn gate_capacity(
     alt: &Runs,
     base: &Runs,
