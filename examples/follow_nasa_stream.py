@@ -34,6 +34,8 @@ PRIOR_SERVED: list = []
 RECENTRED_SERVED: list = []
 # The same for the calibrator's own prediction moved on the voltage change against the discharge before.
 VOLTAGE_SERVED: list = []
+# The prior alone's weight in each scored prediction at half a discharge blended with it (0 < weight < 1).
+BLEND_WEIGHTS: list = []
 
 
 def find_bcal() -> str:
@@ -114,6 +116,8 @@ def eod_error_pct(rows: list, est: list, cutoff_v: float, fraction: float = 0.5)
         RECENTRED_SERVED.append(True)
     if est[k].get("eod_on_voltage_change") and fraction == 0.5:
         VOLTAGE_SERVED.append(True)
+    if 0.0 < (est[k].get("eod_prior_weight") or 0.0) < 1.0 and fraction == 0.5:
+        BLEND_WEIGHTS.append(est[k]["eod_prior_weight"])
     # Whether the interval held the end, and its width (hi - lo) in % of the time to the end.
     held = None if lo is None or hi is None else (lo <= eod <= hi, 100.0 * (hi - lo) / (eod - t_on))
     return (None if p is None else 100.0 * (p - eod) / (eod - t_on)), held
@@ -189,7 +193,9 @@ def main() -> None:
     summary(f"{a.cell} {a.cycles}, {a.kind}, one stream", joined, joined_at)
     print(f"  (the prior alone predicted at half of {served} of the {len(records)} discharges, the calibrator's own "
           f"recentred on its bias at half of {len(RECENTRED_SERVED)}, moved on the voltage change against the "
-          f"discharge before at half of {len(VOLTAGE_SERVED)})")
+          f"discharge before at half of {len(VOLTAGE_SERVED)}; blended with the prior alone at half of "
+          f"{len(BLEND_WEIGHTS)}, the prior's median weight "
+          f"{statistics.median(BLEND_WEIGHTS) if BLEND_WEIGHTS else 0.0:.2f})")
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone, alone_at)
 
 

@@ -76,6 +76,12 @@ class Estimate(TypedDict):
     one before at the same time since the load came on, the last minute's mean): where that beat what the
     recentring gives on at least 8 of the last 10 and in their mean, except where the prior alone predicts
     or after a rest of more than a day."""
+    eod_prior_weight: float
+    """The prior alone's weight in eod_s: 1 where it predicts alone (eod_from_prior), its weight in the blend
+    of the calibrator's prediction (as delivered) with the prior's where one is learned (by inverse mean
+    squared error at this share over the last 15 discharges followed to the cut-off, from the ninth on),
+    else 0. Where it is below 1, eod_recentred and eod_on_voltage_change tell which of the calibrator's
+    predictions is blended."""
     discharge: int
     """The discharge the reading belongs to, from 0: a new one after a charge or a gap of more than
     half an hour, started from what the last one told (the charge its end measured where it reached

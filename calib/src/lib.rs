@@ -20,6 +20,7 @@
 //! No libtorch here (the learner and the direct mapping's training own it), and nothing prints.
 
 pub mod adaptive;
+pub mod blend;
 pub mod correction;
 pub mod cost;
 pub mod direct;

@@ -161,6 +161,11 @@ pub struct Estimate {
     /// (recentred or not) on at least 8 of the last 10 and in their mean, unless the prior alone predicts
     /// there or the rest before this discharge was longer than a day.
     pub eod_on_voltage_change: bool,
+    /// The prior alone's weight in the prediction: 1 where it predicts alone (`eod_from_prior`), its weight
+    /// in the blend of the two ([`crate::blend`]) where one is learned (from the ninth discharge, once eight
+    /// have been followed to the cut-off), else 0. Where it is below 1, `eod_recentred` and
+    /// `eod_on_voltage_change` tell which of the calibrator's predictions is blended.
+    pub eod_prior_weight: f64,
     /// The discharge the reading belongs to, from 0 (a new one after a charge or a long gap; the readings of
     /// a charge take the number of the discharge after it).
     pub discharge: u32,
@@ -378,24 +383,14 @@ pub struct Stream<'a> {
     prior_width: Option<([f64; 2], WidthSource)>,
     /// The current discharge's end-of-discharge record (for its predictions' scores).
     eod_track: EodTrack,
-    /// The predictions of the calibrator ([`METHOD`]), of its prior alone ([`PRIOR`]), the calibrator's
-    /// recentred on its bias ([`RECENTRED`]), what the recentring serves ([`RECENTRING`]), the
-    /// calibrator's moved on the voltage change ([`ON_VOLTAGE`]), what is served where the prior alone
-    /// does not ([`DELIVERED`]) and what is served ([`SERVED`], whose interval every prediction takes), with
-    /// their scores.
-    sources: [EodSource; 7],
-    /// The calibrator's bias per share ([`crate::recentre::biases`] of its last scored discharges).
-    method_bias: [Option<f64>; 3],
-    /// Per share: whether the recentred predictions serve there ([`crate::tune::earns`] against the
-    /// calibrator's own on the last [`WINDOW`] discharges scored).
-    recentred_serves: [bool; 3],
-    /// The calibrator's error per share as a line in the voltage change ([`crate::recentre::voltage_regressions`]
-    /// of its last scored discharges, each with the voltage change at its scored readings) ...
-    method_lines: [Option<(f64, f64)>; 3],
-    /// ... those discharges (the last [`crate::recentre::VOLTAGE_WINDOW`]) ...
-    voltage_record: VecDeque<Vec<(Outcome, Option<f64>)>>,
-    /// ... and per share whether the moved predictions serve there (against [`RECENTRING`]).
-    voltage_serves: [bool; 3],
+    /// The predictions of the calibrator ([`METHOD`]), of its prior alone ([`PRIOR`]), each one's twins
+    /// ([`Twins`]: the calibrator's from [`METHOD_TWINS`], as delivered at [`DELIVERED`], the prior's from
+    /// [`PRIOR_TWINS`]), the two as delivered blended ([`BLENDED`]) and what is served
+    /// ([`SERVED`], whose interval every prediction takes), with their scores.
+    sources: [EodSource; 12],
+    /// The twins of the calibrator's own predictions and of the prior alone's ([`METHOD_TWINS`],
+    /// [`PRIOR_TWINS`]), as `bcal calibrate` recentres every method, the prior alone too.
+    twins: [Twins; 2],
     /// The last discharge's loaded readings, to the cut-off (None: no discharge before, or a piece).
     previous_loaded: Option<Previous>,
     /// The current discharge's voltage against the last one's (None before its load came on).
@@ -408,6 +403,13 @@ pub struct Stream<'a> {
     /// Per share ([`EOD_FRACTIONS_PCT`]): whether the prior alone predicts the end there ([`crate::tune::earns`]
     /// on the last [`WINDOW`] discharges scored).
     prior_serves: [bool; 3],
+    /// Per discharge scored (the last [`crate::blend::BLEND_WINDOW`]) and share, the relative errors of the
+    /// calibrator and of the prior alone, each as delivered (recentred where that serves), where both
+    /// predicted there ...
+    blend_record: VecDeque<[Option<(f64, f64)>; 3]>,
+    /// ... and per share the calibrator's weight in the blend learned from them
+    /// ([`crate::blend::blend_weight`]; None: too few yet).
+    blend_weights: [Option<f64>; 3],
     /// The current discharge's readings (streams made by [`Stream::of`]: for its end fit).
     samples: Vec<Sample>,
     /// The current discharge's end fit: qMobile putting the model's end at the measured one, at the
@@ -443,19 +445,133 @@ struct EodTrack {
 const METHOD: usize = 0;
 /// Index of the prior alone's.
 const PRIOR: usize = 1;
-/// Index of the calibrator's own recentred on its bias.
-const RECENTRED: usize = 2;
-/// Index of what the recentring serves: [`RECENTRED`] where it has earned it, else [`METHOD`].
-const RECENTRING: usize = 3;
-/// Index of the calibrator's own moved by the error its record expects at the voltage change.
-const ON_VOLTAGE: usize = 4;
-/// Index of what is served where the prior alone does not: [`ON_VOLTAGE`], [`RECENTRED`] or [`METHOD`] (the
-/// base the prior alone is judged against: what it would replace).
-const DELIVERED: usize = 5;
+/// Index of the first of the calibrator's twins' four sources ([`Twins`]).
+const METHOD_TWINS: usize = 2;
+/// Index of the calibrator as delivered: moved on the voltage change, recentred or its own ([`Twins`]).
+const DELIVERED: usize = METHOD_TWINS + TWIN_DELIVERED;
+/// Index of the first of the prior alone's twins' four sources.
+const PRIOR_TWINS: usize = 6;
+/// Index of the calibrator blended with the prior alone, both as delivered ([`crate::blend`]) where a
+/// weight is learned, else [`DELIVERED`] (the base the prior alone is judged against: what it would replace).
+const BLENDED: usize = 10;
 /// Index of what is served: its scores learn the interval of every prediction given, as `bcal calibrate`
 /// learns the intervals on what was delivered (a source's own interval, learned on the discharges after
 /// which it was chosen for its small errors, covered 81 % of B0055's ends).
-const SERVED: usize = 6;
+const SERVED: usize = 11;
+/// Offsets of a [`Twins`]' sources from its first: its base recentred on its bias ...
+const TWIN_RECENTRED: usize = 0;
+/// ... what the recentring serves (the recentred where it has earned it, else the base) ...
+const TWIN_RECENTRING: usize = 1;
+/// ... the base moved by the error its record expects at the voltage change ...
+const TWIN_ON_VOLTAGE: usize = 2;
+/// ... and the base as delivered (moved, recentred or its own).
+const TWIN_DELIVERED: usize = 3;
+
+/// Whether `alt`'s scores at share index `b` earn it its place against `base`'s ([`crate::tune::earns`] on
+/// the last [`WINDOW`] discharges both were scored on).
+fn earns(sources: &[EodSource], alt: usize, base: usize, b: usize) -> bool {
+    let f = EOD_FRACTIONS_PCT[b];
+    let (mine, theirs): (Vec<f64>, Vec<f64>) =
+        sources[alt].errors_at(f).into_iter().zip(sources[base].errors_at(f)).filter_map(|(p, m)| p.zip(m)).unzip();
+    mine.len() == WINDOW && crate::tune::earns(&mine, &theirs)
+}
+
+/// The two twins of one source of predictions ([`crate::recentre`]): its bias and its line in the voltage
+/// change per share, learned from its scored discharges, and where each serves. Its four sources sit at
+/// `at` ([`TWIN_RECENTRED`] and the offsets after it).
+#[derive(Clone, Debug)]
+struct Twins {
+    /// Index of the source the twins move ([`METHOD`] or [`PRIOR`]) ...
+    base: usize,
+    /// ... and of the first of its twins' sources.
+    at: usize,
+    /// The base's bias per share ([`crate::recentre::biases`] of its last scored discharges).
+    bias: [Option<f64>; 3],
+    /// Per share: whether the recentred predictions serve there (against the base).
+    recentred_serves: [bool; 3],
+    /// The base's error per share as a line in the voltage change ([`crate::recentre::voltage_regressions`]
+    /// of its last scored discharges, each with the voltage change at its scored readings) ...
+    lines: [Option<(f64, f64)>; 3],
+    /// ... those discharges (the last [`crate::recentre::VOLTAGE_WINDOW`]) ...
+    record: VecDeque<Vec<(Outcome, Option<f64>)>>,
+    /// ... and per share whether the moved predictions serve there (against what the recentring serves).
+    voltage_serves: [bool; 3],
+}
+
+/// Which of a [`Twins`]' predictions is delivered.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Twin {
+    Own,
+    Recentred,
+    OnVoltage,
+}
+
+impl Twins {
+    fn new(base: usize, at: usize) -> Self {
+        Self {
+            base,
+            at,
+            bias: [None; 3],
+            recentred_serves: [false; 3],
+            lines: [None; 3],
+            record: VecDeque::new(),
+            voltage_serves: [false; 3],
+        }
+    }
+
+    /// At a reading (time `t_s` of a discharge loaded at `load_on_s`, voltage change `dv`) where the base
+    /// predicts `own_s`: the recentred, the recentring's, the moved and the delivered predictions (by the
+    /// offsets), and which twin is delivered. None of them serves after a rest of more than a day.
+    fn predict(
+        &self,
+        own_s: Option<f64>,
+        dv: Option<f64>,
+        load_on_s: f64,
+        t_s: f64,
+        long_rest: bool,
+    ) -> ([Option<f64>; 4], Twin) {
+        let recentred = own_s.map(|e| e + crate::recentre::shift_s(&self.bias, load_on_s, t_s, e));
+        let moved = own_s.map(|e| e + crate::recentre::regressed_shift_s(&self.lines, dv, load_on_s, t_s, e));
+        let bin = own_s.map(|e| share_bin(load_on_s, t_s, e));
+        let recentring = match bin {
+            Some(b) if self.recentred_serves[b] && !long_rest => recentred,
+            _ => own_s,
+        };
+        let (delivered, from) = match bin {
+            Some(b) if self.voltage_serves[b] && !long_rest => (moved, Twin::OnVoltage),
+            Some(b) if self.recentred_serves[b] && !long_rest => (recentred, Twin::Recentred),
+            _ => (own_s, Twin::Own),
+        };
+        ([recentred, recentring, moved, delivered], from)
+    }
+
+    /// Learns again, once a discharge (load-on `on_s`, measured end `end_s`) has been scored in `sources`:
+    /// where each twin serves, the bias, and the line in the voltage change from the base's scored
+    /// predictions, each with the voltage change at the reading it was made (`changes`, time s and change).
+    fn learn(&mut self, sources: &[EodSource], on_s: f64, end_s: f64, changes: &[(f64, Option<f64>)]) {
+        let (base, at) = (self.base, self.at);
+        self.recentred_serves = std::array::from_fn(|b| earns(sources, at + TWIN_RECENTRED, base, b));
+        self.voltage_serves = std::array::from_fn(|b| earns(sources, at + TWIN_ON_VOLTAGE, at + TWIN_RECENTRING, b));
+        let scored = &sources[base].scored;
+        self.bias = crate::recentre::biases(&scored.iter().cloned().collect::<Vec<_>>());
+        // The last made by then, as the scores take them.
+        let last: Vec<(Outcome, Option<f64>)> = scored
+            .back()
+            .into_iter()
+            .flatten()
+            .map(|o| {
+                let at_s = on_s + f64::from(o.fraction) / 100.0 * (end_s - on_s);
+                let k = changes.partition_point(|x| x.0 <= at_s).checked_sub(1);
+                (*o, k.and_then(|k| changes[k].1))
+            })
+            .collect();
+        if self.record.len() == crate::recentre::VOLTAGE_WINDOW {
+            self.record.pop_front();
+        }
+        self.record.push_back(last);
+        self.lines = crate::recentre::voltage_regressions(self.record.make_contiguous());
+    }
+}
 
 /// One source of end-of-discharge predictions: its predictions in the current discharge, the scores of
 /// the last discharges followed to their cut-off, and the interval learned from them.
@@ -568,11 +684,9 @@ impl<'a> Stream<'a> {
             sources: Default::default(),
             prior_cal: None,
             prior_serves: [false; 3],
-            method_bias: [None; 3],
-            recentred_serves: [false; 3],
-            method_lines: [None; 3],
-            voltage_record: VecDeque::new(),
-            voltage_serves: [false; 3],
+            blend_record: VecDeque::new(),
+            blend_weights: [None; 3],
+            twins: [Twins::new(METHOD, METHOD_TWINS), Twins::new(PRIOR, PRIOR_TWINS)],
             previous_loaded: None,
             voltage_change: None,
             voltage_changes: Vec::new(),
@@ -711,8 +825,6 @@ impl<'a> Stream<'a> {
         // The load-on: the first loaded reading of the discharge (this one, when it is).
         let load_on_s =
             self.eod_track.load_on_s.or((r.current_a > LOAD_THRESHOLD_A).then_some(r.time_s)).unwrap_or(r.time_s);
-        let eod_recentred_s =
-            eod_method_s.map(|e| e + crate::recentre::shift_s(&self.method_bias, load_on_s, r.time_s, e));
         // The voltage against the last discharge's at the same time since the load came on, until the end.
         let loaded_since = (r.current_a > LOAD_THRESHOLD_A || self.eod_track.load_on_s.is_some())
             && self.eod_track.ended_s.is_none()
@@ -725,18 +837,21 @@ impl<'a> Stream<'a> {
         } else {
             None
         };
-        let eod_voltage_s = eod_method_s
-            .map(|e| e + crate::recentre::regressed_shift_s(&self.method_lines, dv, load_on_s, r.time_s, e));
-        // What the recentring serves at this reading (the base the voltage change is judged against).
+        // Each twin of the calibrator's and of the prior's, and each as delivered (none after a long rest).
         let long_rest = self.rest_before_s.is_some_and(|x| x > LONG_REST_S);
+        let (own, delivered_from) = self.twins[0].predict(eod_method_s, dv, load_on_s, r.time_s, long_rest);
+        let (prior, _) = self.twins[1].predict(eod_prior_s, dv, load_on_s, r.time_s, long_rest);
+        let (delivered_s, prior_delivered_s) = (own[TWIN_DELIVERED], prior[TWIN_DELIVERED]);
+        // The two blended by their records at this share (after a long rest too: a weighted mean of two
+        // estimates is no switch to one whose record does not speak for the rest).
         let own_bin = eod_method_s.map(|e| share_bin(load_on_s, r.time_s, e));
-        let recentring_s = match own_bin {
-            Some(b) if self.recentred_serves[b] && !long_rest => eod_recentred_s,
-            _ => eod_method_s,
+        let prior_share = match (own_bin.and_then(|b| self.blend_weights[b]), delivered_s, prior_delivered_s) {
+            (Some(w), Some(_), Some(_)) => 1.0 - w,
+            _ => 0.0,
         };
-        let delivered_s = match own_bin {
-            Some(b) if self.voltage_serves[b] && !long_rest => eod_voltage_s,
-            _ => recentring_s,
+        let blended_s = match (delivered_s, prior_delivered_s) {
+            (Some(d), Some(p)) if prior_share > 0.0 => Some(crate::blend::blended(1.0 - prior_share, d, p)),
+            _ => delivered_s,
         };
         if self.rebuild.is_some() {
             self.samples.push(s);
@@ -744,15 +859,16 @@ impl<'a> Stream<'a> {
         // Who predicts: the prior alone at a share of the discharge where it has earned it, except after a
         // rest of more than a day (the record of ordinary rests does not speak for it; `bcal calibrate`'s rule).
         let bin = eod_method_s.or(eod_prior_s).map(|e| share_bin(load_on_s, r.time_s, e));
-        let source = match bin {
-            Some(b) if self.prior_serves[b] && eod_prior_s.is_some() && !long_rest => PRIOR,
-            Some(b) if self.voltage_serves[b] && eod_voltage_s.is_some() && !long_rest => ON_VOLTAGE,
-            Some(b) if self.recentred_serves[b] && eod_recentred_s.is_some() && !long_rest => RECENTRED,
-            _ => METHOD,
-        };
-        let eods = [eod_method_s, eod_prior_s, eod_recentred_s, recentring_s, eod_voltage_s, delivered_s];
-        let eod_s = eods[source];
-        self.track_eod(r, [eods[0], eods[1], eods[2], eods[3], eods[4], eods[5], eod_s], dv);
+        let from_prior = matches!(bin, Some(b) if self.prior_serves[b] && eod_prior_s.is_some() && !long_rest);
+        let eod_s = if from_prior { eod_prior_s } else { blended_s };
+        let mut eods = [None; 12];
+        eods[METHOD] = eod_method_s;
+        eods[PRIOR] = eod_prior_s;
+        eods[METHOD_TWINS..METHOD_TWINS + 4].copy_from_slice(&own);
+        eods[PRIOR_TWINS..PRIOR_TWINS + 4].copy_from_slice(&prior);
+        eods[BLENDED] = blended_s;
+        eods[SERVED] = eod_s;
+        self.track_eod(r, eods, dv);
         let on = self.eod_track.load_on_s;
         let (eod_lo_s, eod_hi_s) = match (eod_s, on, bin.and_then(|b| self.sources[SERVED].interval(b))) {
             (Some(eod), Some(on), Some(w)) => {
@@ -775,9 +891,10 @@ impl<'a> Stream<'a> {
             eod_current_a,
             eod_lo_s,
             eod_hi_s,
-            eod_from_prior: source == PRIOR,
-            eod_recentred: source == RECENTRED,
-            eod_on_voltage_change: source == ON_VOLTAGE,
+            eod_from_prior: from_prior,
+            eod_recentred: !from_prior && delivered_s.is_some() && delivered_from == Twin::Recentred,
+            eod_on_voltage_change: !from_prior && delivered_s.is_some() && delivered_from == Twin::OnVoltage,
+            eod_prior_weight: if from_prior { 1.0 } else { prior_share },
             discharge: self.discharge,
         })
     }
@@ -917,7 +1034,7 @@ impl<'a> Stream<'a> {
     /// discharge's own interval is never set by its own outcome: a prediction is made before its end is
     /// known), learns the calibrator's bias and its line in the voltage change per share again, and decides
     /// again at which shares the prior alone and the two twins predict.
-    fn track_eod(&mut self, r: &Reading, eod_s: [Option<f64>; 7], dv: Option<f64>) {
+    fn track_eod(&mut self, r: &Reading, eod_s: [Option<f64>; 12], dv: Option<f64>) {
         let t = &mut self.eod_track;
         let cutoff_v = self.spec.cutoff_v;
         if t.ended_s.is_some() {
@@ -939,7 +1056,7 @@ impl<'a> Stream<'a> {
                     src.predictions.push((r.time_s, e));
                 }
             }
-            if eod_s[METHOD].is_some() {
+            if eod_s[METHOD].is_some() || eod_s[PRIOR].is_some() {
                 self.voltage_changes.push((r.time_s, dv));
             }
             return;
@@ -955,39 +1072,26 @@ impl<'a> Stream<'a> {
         for src in &mut self.sources {
             src.score(on, end_s);
         }
-        let earns = |alt: usize, base: usize, b: usize| {
+        self.prior_serves =
+            std::array::from_fn(|b| self.prior_cal.is_some() && earns(&self.sources, PRIOR, BLENDED, b));
+        // The blend's record: this discharge's errors of the two as delivered, per share.
+        let last = |src: usize, f: u32| self.sources[src].errors_at(f).last().copied().flatten();
+        let pairs = std::array::from_fn(|b| {
             let f = EOD_FRACTIONS_PCT[b];
-            let (mine, theirs): (Vec<f64>, Vec<f64>) = self.sources[alt]
-                .errors_at(f)
-                .into_iter()
-                .zip(self.sources[base].errors_at(f))
-                .filter_map(|(p, m)| p.zip(m))
-                .unzip();
-            mine.len() == WINDOW && crate::tune::earns(&mine, &theirs)
-        };
-        self.prior_serves = std::array::from_fn(|b| self.prior_cal.is_some() && earns(PRIOR, DELIVERED, b));
-        self.recentred_serves = std::array::from_fn(|b| earns(RECENTRED, METHOD, b));
-        self.voltage_serves = std::array::from_fn(|b| earns(ON_VOLTAGE, RECENTRING, b));
-        self.method_bias = crate::recentre::biases(self.sources[METHOD].scored.make_contiguous());
-        // The method's scored predictions with the voltage change at the reading each was made (the last
-        // made by then, as the scores take them), for its regression.
-        let changes = std::mem::take(&mut self.voltage_changes);
-        let scored: Vec<(Outcome, Option<f64>)> = self.sources[METHOD]
-            .scored
-            .back()
-            .into_iter()
-            .flatten()
-            .map(|o| {
-                let at_s = on + f64::from(o.fraction) / 100.0 * (end_s - on);
-                let k = changes.partition_point(|x| x.0 <= at_s).checked_sub(1);
-                (*o, k.and_then(|k| changes[k].1))
-            })
-            .collect();
-        if self.voltage_record.len() == crate::recentre::VOLTAGE_WINDOW {
-            self.voltage_record.pop_front();
+            last(DELIVERED, f).zip(last(PRIOR_TWINS + TWIN_DELIVERED, f))
+        });
+        if self.blend_record.len() == crate::blend::BLEND_WINDOW {
+            self.blend_record.pop_front();
         }
-        self.voltage_record.push_back(scored);
-        self.method_lines = crate::recentre::voltage_regressions(self.voltage_record.make_contiguous());
+        self.blend_record.push_back(pairs);
+        self.blend_weights = std::array::from_fn(|b| {
+            let pairs: Vec<(f64, f64)> = self.blend_record.iter().filter_map(|d| d[b]).collect();
+            crate::blend::blend_weight(&pairs)
+        });
+        let changes = std::mem::take(&mut self.voltage_changes);
+        for twins in &mut self.twins {
+            twins.learn(&self.sources, on, end_s, &changes);
+        }
         // The charge the cell held, measured by its end: what the next discharge starts from.
         if self.rebuild.is_some() {
             self.capacity_ah = Some(crate::eod::charge_to_ah(&self.samples, end_s));
@@ -1015,13 +1119,13 @@ impl<'a> Stream<'a> {
     /// Per share of the discharge: whether the calibrator's own prediction recentred on its bias is given
     /// there now (where the prior alone does not predict; [`Estimate::eod_recentred`]).
     pub fn recentred_serves(&self) -> [bool; 3] {
-        self.recentred_serves
+        self.twins[0].recentred_serves
     }
 
     /// Per share of the discharge: whether the calibrator's own prediction moved on the voltage change is
     /// given there now (where the prior alone does not predict; [`Estimate::eod_on_voltage_change`]).
     pub fn voltage_serves(&self) -> [bool; 3] {
-        self.voltage_serves
+        self.twins[0].voltage_serves
     }
 
     /// The end of discharge (absolute time, s) if the cell now draws `current_a` until the cut-off, from the
@@ -1587,6 +1691,54 @@ mod tests {
         let plain = resolve(CalibratorKind::Uncalibrated, None, None, None).unwrap();
         let mut un = Stream::of(&plain, None, None).unwrap();
         assert!(readings.iter().all(|r| !un.step(r).unwrap().eod_from_prior));
+    }
+
+    /// The cell of the test before, followed by the joint UKF for ten discharges: once eight have been
+    /// followed to the cut-off, every prediction is the weighted mean of the calibrator's (as delivered) and
+    /// the prior alone's, the prior's weight (`eod_prior_weight`) between 0 and 1, and at half of the ninth
+    /// and tenth discharges the blend is nearer the end than the calibrator's own; before, the calibrator's
+    /// own alone.
+    #[test]
+    fn the_calibrator_is_blended_with_its_prior_once_their_records_tell_the_weight() {
+        let (readings, starts) = cycler_life(10, |k, spec| EpisodeSpec {
+            soc0: 0.85 + 0.01 * (k % 10) as f64,
+            cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
+            ..spec
+        });
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let cutoff_v = stream.spec().cutoff_v;
+        for d in 0..10 {
+            let run = &readings[starts[d]..starts[d + 1]];
+            let on = run.iter().find(|r| r.current_a > LOAD_THRESHOLD_A).unwrap().time_s;
+            let end = run.last().unwrap().time_s;
+            let mut at_half = None;
+            for r in run {
+                let e = stream.step(r).unwrap();
+                // Predictions under load above the cut-off are recorded for their scores.
+                let Some(eod_s) = e.eod_s.filter(|_| r.current_a > LOAD_THRESHOLD_A && r.voltage_v >= cutoff_v) else {
+                    continue;
+                };
+                if d < 8 {
+                    assert_eq!(e.eod_prior_weight, 0.0, "discharge {d}");
+                    continue;
+                }
+                let w = e.eod_prior_weight;
+                assert!(w > 0.0 && w < 1.0, "discharge {d}: prior weight {w}");
+                let last = |src: usize| stream.sources[src].predictions.last().unwrap();
+                let (delivered, prior) = (last(DELIVERED), last(PRIOR_TWINS + TWIN_DELIVERED));
+                assert_eq!((delivered.0, prior.0), (r.time_s, r.time_s), "both predicted at this reading");
+                let want = (1.0 - w) * delivered.1 + w * prior.1;
+                assert!((eod_s - want).abs() < 1e-9 * want, "discharge {d}: {eod_s} against {want}");
+                if at_half.is_none() && r.time_s >= on + 0.5 * (end - on) {
+                    let own = stream.predict_eod_s(e.eod_current_a.unwrap()).unwrap();
+                    at_half = Some(((eod_s - end).abs(), (own - end).abs()));
+                }
+            }
+            if let Some((blend_off, own_off)) = at_half {
+                assert!(blend_off < own_off, "discharge {d} at half: blend {blend_off} s off, own {own_off} s");
+            }
+        }
     }
 
     /// Twenty constant-current discharges of a cell that loses 1.5 % of its mobile charge per discharge,

@@ -85,12 +85,13 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
     d.set_item("eod_from_prior", e.eod_from_prior)?;
     d.set_item("eod_recentred", e.eod_recentred)?;
     d.set_item("eod_on_voltage_change", e.eod_on_voltage_change)?;
+    d.set_item("eod_prior_weight", e.eod_prior_weight)?;
     d.set_item("discharge", e.discharge)?;
     Ok(d)
 }
 
 /// The columns `run` returns, in order.
-const RUN_COLUMNS: [&str; 16] = [
+const RUN_COLUMNS: [&str; 17] = [
     "time_s",
     "q_mobile",
     "q_mobile_lo",
@@ -105,6 +106,7 @@ const RUN_COLUMNS: [&str; 16] = [
     "eod_from_prior",
     "eod_recentred",
     "eod_on_voltage_change",
+    "eod_prior_weight",
     "discharge",
     "row",
 ];
@@ -193,7 +195,9 @@ impl Calibrator {
     /// discharges), `eod_recentred` (the calibrator's own moved by its median error over the last 10, where
     /// that beat it on 8 of them), `eod_on_voltage_change` (the calibrator's own moved by the error its last
     /// 15 discharges expect at the voltage this one reads against the one before at the same time since the
-    /// load came on, where that beat the recentring on 8 of the last 10) and `discharge` (from 0: a new one
+    /// load came on, where that beat the recentring on 8 of the last 10), `eod_prior_weight` (the prior
+    /// alone's weight in eod_s: 1 where it predicts alone, its weight in the blend of the two, learned by
+    /// inverse mean squared error over the last 15 discharges, from the ninth on, else 0) and `discharge` (from 0: a new one
     /// after a charge or a gap of more than half an hour, started from what the last one told: the charge its
     /// end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
@@ -288,6 +292,7 @@ impl Calibrator {
                     f64::from(u8::from(e.eod_from_prior)),
                     f64::from(u8::from(e.eod_recentred)),
                     f64::from(u8::from(e.eod_on_voltage_change)),
+                    e.eod_prior_weight,
                     f64::from(e.discharge),
                     k as f64,
                 ];

@@ -432,6 +432,21 @@ fn choose_announced(
 }
 
 /// The judged cycles each share's gate served ([`tune::gate_runs`]), keyed by the share, %.
+/// Per share, the judged discharges' weights of a blend ([`tune::blend_runs`]): their median and how many
+/// were blended.
+fn weights_json(weights: &tune::Weights) -> serde_json::Value {
+    let per: serde_json::Map<String, serde_json::Value> = EOD_FRACTIONS_PCT
+        .iter()
+        .zip(weights)
+        .map(|(f, w)| {
+            let mut v: Vec<f64> = w.iter().flatten().copied().collect();
+            let n = v.len();
+            (f.to_string(), serde_json::json!({"median": bcal_common::stats::median(&mut v), "blended": n}))
+        })
+        .collect();
+    per.into()
+}
+
 fn served_cycles(judged: &[CellRecord], gates: &tune::Served) -> serde_json::Value {
     let per: serde_json::Map<String, serde_json::Value> = EOD_FRACTIONS_PCT
         .iter()
@@ -715,6 +730,9 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         validation: pinned(&prior_pin, &validation, &validation_before),
         judged: pinned(&prior_pin, &judged, &judged_before),
     };
+    // The prior alone recentred where that serves (as the reference it is delivered as, below): what each
+    // streaming calibrator is blended with.
+    let prior_twins = crate::recentre::serve(&prior_runs, &validation, &judged);
     // Every streaming calibrator is held to the prior it starts from (issue 18, item 5): the prior alone
     // serves a share of a discharge where it beat the calibrator there, as delivered (recentred where that
     // serves: what it would replace), on most of the last that ended (`tune::gate_runs_onto`).
@@ -731,8 +749,18 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             "voltage_change_cycles": served_cycles(&judged, &on_voltage),
             "own_signed_pct": own_score.eod_signed_pct});
         let alone = MethodEntry::new(key, own_score);
+        let (own, eod_weights, capacity_weights) = tune::blend_runs(&prior_twins.0, &own, &r, &validation, &judged);
+        entry["blended"] = serde_json::json!({"eod_weight": weights_json(&eod_weights),
+            "capacity_weight": weights_json(&capacity_weights),
+            "what": format!("each reading's predicted end and capacity (values and bounds) are the weighted mean of \
+                this calibrator's, recentred where that serves, and the prior alone's, recentred where that serves; \
+                its weight per share of the discharge (10 / 50 / 90 %) is the prior's mean squared error over the sum \
+                of both over the last {} discharges that ended (validation cycles first; none before {}), on the end \
+                and on the capacity each by its own record (`eod_weight`, `capacity_weight`: the calibrator's \
+                median weight over the judged discharges blended, and how many)",
+                bcal_calib::blend::BLEND_WINDOW, bcal_calib::blend::MIN_BLEND_PAIRS)});
         let (mut held, gate) = tune::gate_runs_onto(&prior_runs, &own, &own, &r, &validation, &judged);
-        let capacity_gate = tune::gate_capacity(&prior_runs, &r, &mut held, &validation, &judged);
+        let capacity_gate = tune::gate_capacity(&prior_runs, &own, &mut held, &validation, &judged);
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
         let w = calibrate_intervals(&hist, &judged, &mut held.judged);
         widenings.insert(key.into(), serde_json::to_value(&w).unwrap_or_default());
@@ -1014,27 +1042,27 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     settings.insert("uncalibrated".into(), serde_json::to_value(Degradation::default()).unwrap_or_default());
     let mut recentrings = serde_json::Map::new();
     for (key, pin) in &references {
-        // The prior's runs were made for the streaming calibrators' hold: not run twice.
-        let (hist_runs, r) = if *key == "prior" {
-            (prior_runs.validation.clone(), prior_runs.judged.clone())
-        } else {
-            (
-                pinned(&|b, r, k| pin(b, r, k, false), &validation, &validation_ref_before),
-                pinned(&|b, r, k| pin(b, r, k, true), &judged, &judged_ref_before),
-            )
+        let pinned_runs = || tune::Runs {
+            validation: pinned(&|b, r, k| pin(b, r, k, false), &validation, &validation_ref_before),
+            judged: pinned(&|b, r, k| pin(b, r, k, true), &judged, &judged_ref_before),
         };
-        // A new cell's model knows nothing of this cell: it learns nothing from its record either.
-        let own = if *key == "uncalibrated" {
-            tune::Runs { validation: hist_runs, judged: r }
-        } else {
-            let (own, recentred, on_voltage) =
-                crate::recentre::serve(&tune::Runs { validation: hist_runs, judged: r }, &validation, &judged);
-            recentrings.insert(
-                key.to_string(),
-                serde_json::json!({"cycles": served_cycles(&judged, &recentred),
-                    "voltage_change_cycles": served_cycles(&judged, &on_voltage)}),
-            );
-            own
+        let own = match *key {
+            // A new cell's model knows nothing of this cell: it learns nothing from its record either.
+            "uncalibrated" => pinned_runs(),
+            key => {
+                // The prior's runs and twins were made for the streaming calibrators: not made twice.
+                let (own, recentred, on_voltage) = if key == "prior" {
+                    prior_twins.clone()
+                } else {
+                    crate::recentre::serve(&pinned_runs(), &validation, &judged)
+                };
+                recentrings.insert(
+                    key.to_string(),
+                    serde_json::json!({"cycles": served_cycles(&judged, &recentred),
+                        "voltage_change_cycles": served_cycles(&judged, &on_voltage)}),
+                );
+                own
+            }
         };
         let mut r = own.judged;
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&own.validation).collect();

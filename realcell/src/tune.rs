@@ -5,6 +5,7 @@
 //! end-of-discharge error there. Their 90 % intervals start from the validation cycles' errors and follow
 //! the cell as it ages ([`crate::interval`]).
 
+use crate::predict::Predicted;
 use crate::record::CellRecord;
 use crate::run::{run_sequence, Before, CycleRun, Streaming};
 use crate::score::{score, share_bin, CAPACITY_FRACTIONS_PCT, EOD_FRACTIONS_PCT};
@@ -205,6 +206,16 @@ fn capacity_error_at(records: &[CellRecord], runs: &[CycleRun], fraction_pct: u3
         .collect()
 }
 
+/// Where the capacity of share index `b` is judged: where the scores take the capacity within the share (25,
+/// 50, 100 %), since what the share serves runs to the end of the discharge, where a correction's capacity
+/// drifts most.
+fn capacity_scored_at(b: usize) -> u32 {
+    CAPACITY_FRACTIONS_PCT
+        .into_iter()
+        .find(|c| share_bin(0.0, f64::from(*c), 100.0) == b)
+        .unwrap_or(EOD_FRACTIONS_PCT[b])
+}
+
 /// The capacity's own gate, after [`gate_runs_onto`] has served the end of discharge: a reading's capacity
 /// (value and bounds) is `alt`'s where `alt` beat `base` on the capacity error where the scores take it in
 /// that share of the discharge (25, 50, 100 %; [`online_gate`], the same window, rule and long-rest
@@ -220,16 +231,8 @@ pub fn gate_capacity(
     validation: &[CellRecord],
     judged: &[CellRecord],
 ) -> Served {
-    // Judged where the capacity is scored within the share (25, 50, 100 %): what the share serves runs to the
-    // end of the discharge, where a correction's capacity drifts most.
-    let scored_at = |b: usize| {
-        CAPACITY_FRACTIONS_PCT
-            .into_iter()
-            .find(|c| share_bin(0.0, f64::from(*c), 100.0) == b)
-            .unwrap_or(EOD_FRACTIONS_PCT[b])
-    };
     let (val_gates, gates) =
-        share_gates(alt, base, validation, judged, |r, runs, b| capacity_error_at(r, runs, scored_at(b)));
+        share_gates(alt, base, validation, judged, |r, runs, b| capacity_error_at(r, runs, capacity_scored_at(b)));
     for (set, records, served, a, b) in [
         (&mut onto.validation, validation, &val_gates, &alt.validation, &base.validation),
         (&mut onto.judged, judged, &gates, &alt.judged, &base.judged),
@@ -245,6 +248,99 @@ pub fn gate_capacity(
         }
     }
     gates
+}
+
+/// Per share of the discharge ([`EOD_FRACTIONS_PCT`], by index), the calibrator's weight in its blend with
+/// the prior alone at each judged discharge (None: too few discharges had ended to learn one).
+pub type Weights = [Vec<Option<f64>>; EOD_FRACTIONS_PCT.len()];
+
+/// `own` blended with `prior` ([`bcal_calib::blend`]): at each reading the predicted end (value and bounds)
+/// is the weighted mean of the two, the weight learned per share from both EOD errors there over the
+/// discharges that ended before (validation cycles first), and the capacity likewise from both capacity
+/// errors where the scores take the capacity in that share (as [`gate_capacity`] judges it). A reading's
+/// share is the one `shares`' prediction puts it at (the calibrator's own, as a live stream reads it).
+/// Where either has no prediction at a reading, `own`'s. Returns the blended runs and the judged
+/// discharges' weights on the end and on the capacity.
+pub fn blend_runs(
+    prior: &Runs,
+    own: &Runs,
+    shares: &Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+) -> (Runs, Weights, Weights) {
+    let weights =
+        |err: fn(&[CellRecord], &[CycleRun], usize) -> Vec<f64>| share_weights(prior, own, validation, judged, err);
+    let (val_eod, jud_eod) = weights(|r, runs, b| per_cycle_at(r, runs, &[EOD_FRACTIONS_PCT[b]]));
+    let (val_cap, jud_cap) = weights(|r, runs, b| capacity_error_at(r, runs, capacity_scored_at(b)));
+    let mix = |w: Option<f64>, o: Predicted, p: Predicted| -> Predicted {
+        let (Some(w), Some(_), Some(_)) = (w, o.value, p.value) else { return o };
+        let at = |a: Option<f64>, b: Option<f64>| match (a, b) {
+            (Some(a), Some(b)) => Some(bcal_calib::blend::blended(w, a, b)),
+            _ => a,
+        };
+        Predicted { value: at(o.value, p.value), lo: at(o.lo, p.lo), hi: at(o.hi, p.hi) }
+    };
+    let set = |records: &[CellRecord], o: &[CycleRun], p: &[CycleRun], s: &[CycleRun], we: &Weights, wc: &Weights| {
+        records
+            .iter()
+            .zip(o.iter().zip(p).zip(s))
+            .enumerate()
+            .map(|(k, (r, ((o, p), s)))| {
+                if p.steps.len() != o.steps.len() || s.steps.len() != o.steps.len() {
+                    return o.clone();
+                }
+                let steps = o
+                    .steps
+                    .iter()
+                    .zip(&p.steps)
+                    .zip(&s.steps)
+                    .map(|((so, sp), ss)| {
+                        let bin = ss.eod.value.map_or(0, |v| share_bin(r.load_on_s, ss.t_s, v));
+                        let mut step = so.clone();
+                        step.eod = mix(we[bin][k], so.eod, sp.eod);
+                        step.capacity = mix(wc[bin][k], so.capacity, sp.capacity);
+                        step
+                    })
+                    .collect();
+                CycleRun { cycle: o.cycle, steps }
+            })
+            .collect::<Vec<_>>()
+    };
+    let runs = Runs {
+        validation: set(validation, &own.validation, &prior.validation, &shares.validation, &val_eod, &val_cap),
+        judged: set(judged, &own.judged, &prior.judged, &shares.judged, &jud_eod, &jud_cap),
+    };
+    (runs, jud_eod, jud_cap)
+}
+
+/// Per share of the discharge ([`EOD_FRACTIONS_PCT`], by index), `own`'s weight in its blend with `prior`
+/// ([`bcal_calib::blend::blend_weight`]) at each discharge, by their per-discharge errors `err(records, runs,
+/// share)` over the discharges that ended before it: along the validation cycles and along the judged ones
+/// (the validation cycles first).
+fn share_weights(
+    prior: &Runs,
+    own: &Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+    err: impl Fn(&[CellRecord], &[CycleRun], usize) -> Vec<f64>,
+) -> (Weights, Weights) {
+    let (mut val, mut jud): (Weights, Weights) = Default::default();
+    for b in 0..EOD_FRACTIONS_PCT.len() {
+        let pairs = |records: &[CellRecord], o: &[CycleRun], p: &[CycleRun]| -> Vec<(f64, f64)> {
+            err(records, o, b).into_iter().zip(err(records, p, b)).collect()
+        };
+        let mut past = pairs(validation, &own.validation, &prior.validation);
+        val[b] = (0..past.len()).map(|k| bcal_calib::blend::blend_weight(&past[..k])).collect();
+        jud[b] = pairs(judged, &own.judged, &prior.judged)
+            .into_iter()
+            .map(|pair| {
+                let w = bcal_calib::blend::blend_weight(&past);
+                past.push(pair);
+                w
+            })
+            .collect();
+    }
+    (val, jud)
 }
 
 /// Each discharge's readings from `alt` where its share's gate serves it, else from `onto` (the same
@@ -572,5 +668,45 @@ mod tests {
         let (_, served) =
             gate_runs(&Runs { validation: fv, judged: fj }, &Runs { validation: pv, judged: pj }, &validation, &judged);
         assert!(served.iter().all(|g| g.iter().all(|s| !s)));
+    }
+
+    /// Two predictions that err in turn, each 2 s one way and then the other, the prior always against the
+    /// calibrator: their blend errs 0 once enough discharges have ended to learn its weight, and the capacity
+    /// takes its own weight from its own record (the prior's capacity 5 times nearer: 1/26 on the
+    /// calibrator's). Before 8 discharges have ended, the calibrator's alone.
+    #[test]
+    fn a_blend_with_the_prior_weighs_each_by_its_record_and_takes_off_what_they_err_in_turn() {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 1.0), hi: Some(v + 1.0) };
+        let build = |cycles: std::ops::Range<u32>, sign: f64, cap_ah: f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles
+                .map(|c| {
+                    let e = if c % 2 == 0 { 2.0 } else { -2.0 };
+                    crate::record::test_discharge(c, 1.0, |_| at(100.0 + sign * e), at(cap_ah))
+                })
+                .unzip()
+        };
+        let (validation, ov) = build(1..11, 1.0, 1.05);
+        let (judged, oj) = build(11..15, 1.0, 1.05);
+        let (_, pv) = build(1..11, -1.0, 1.01);
+        let (_, pj) = build(11..15, -1.0, 1.01);
+        let own = Runs { validation: ov, judged: oj };
+        let prior = Runs { validation: pv, judged: pj };
+        let (runs, eod_w, cap_w) = blend_runs(&prior, &own, &own, &validation, &judged);
+        assert!(eod_w.iter().flatten().all(|w| w.is_some_and(|w| (w - 0.5).abs() < 1e-12)), "{eod_w:?}");
+        let cap_want = 0.01_f64.powi(2) / (0.05_f64.powi(2) + 0.01_f64.powi(2));
+        assert!(cap_w.iter().flatten().all(|w| w.is_some_and(|w| (w - cap_want).abs() < 1e-9)), "{cap_w:?}");
+        for (k, run) in runs.judged.iter().enumerate() {
+            for s in &run.steps {
+                assert!((s.eod.value.unwrap() - 100.0).abs() < 1e-9, "judged {k}: {:?}", s.eod);
+                assert!((s.eod.hi.unwrap() - 101.0).abs() < 1e-9, "judged {k}: the bounds blend too");
+                let cap = cap_want * 1.05 + (1.0 - cap_want) * 1.01;
+                assert!((s.capacity.value.unwrap() - cap).abs() < 1e-12, "judged {k}: {:?}", s.capacity);
+            }
+        }
+        for (k, run) in runs.validation.iter().enumerate() {
+            let blended = run.steps.iter().all(|s| (s.eod.value.unwrap() - 100.0).abs() < 1e-9);
+            assert_eq!(blended, k >= bcal_calib::blend::MIN_BLEND_PAIRS, "validation {k}");
+        }
     }
 }
