@@ -1116,6 +1116,13 @@ impl<'a> Stream<'a> {
         self.prior_serves
     }
 
+    /// Per share of the discharge ([`EOD_FRACTIONS_PCT`]): the prior alone's weight in the blend given there
+    /// now ([`Estimate::eod_prior_weight`] where the prior alone does not predict; None before 8 discharges
+    /// have been followed to the cut-off with both predicting there).
+    pub fn prior_blend_weights(&self) -> [Option<f64>; 3] {
+        self.blend_weights.map(|w| w.map(|w| 1.0 - w))
+    }
+
     /// Per share of the discharge: whether the calibrator's own prediction recentred on its bias is given
     /// there now (where the prior alone does not predict; [`Estimate::eod_recentred`]).
     pub fn recentred_serves(&self) -> [bool; 3] {

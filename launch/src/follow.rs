@@ -504,6 +504,19 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
             moved.join(", ")
         ));
     }
+    let weights = stream.prior_blend_weights();
+    if weights.iter().any(Option::is_some) {
+        let shown: Vec<String> = bcal_calib::widening::EOD_FRACTIONS_PCT
+            .iter()
+            .zip(weights)
+            .map(|(f, w)| format!("{f} %: {}", w.map_or("-".to_string(), |w| format!("{w:.2}"))))
+            .collect();
+        s.push_str(&format!(
+            "; where the prior alone does not predict alone, the end is blended with it, the prior's weight by the \
+             two records over the last 15 discharges ({})",
+            shown.join(", ")
+        ));
+    }
     if let Some(e) = last {
         s.push_str(&format!(
             "; last estimate at {} s: q_mobile {:.1} C, r_o {:.5} ohm, EOD {}{}",
