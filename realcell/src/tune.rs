@@ -7,7 +7,7 @@
 
 use crate::predict::Predicted;
 use crate::record::CellRecord;
-use crate::run::{run_sequence, Before, CycleRun, Streaming};
+use crate::run::{run_sequence, Before, CycleRun, Step, Streaming};
 use crate::score::{score, share_bin, CAPACITY_FRACTIONS_PCT, EOD_FRACTIONS_PCT};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -281,30 +281,19 @@ pub fn blend_runs(
         Predicted { value: at(o.value, p.value), lo: at(o.lo, p.lo), hi: at(o.hi, p.hi) }
     };
     let set = |records: &[CellRecord], o: &[CycleRun], p: &[CycleRun], s: &[CycleRun], we: &Weights, wc: &Weights| {
-        records
-            .iter()
-            .zip(o.iter().zip(p).zip(s))
-            .enumerate()
-            .map(|(k, (r, ((o, p), s)))| {
-                if p.steps.len() != o.steps.len() || s.steps.len() != o.steps.len() {
-                    return o.clone();
-                }
-                let steps = o
-                    .steps
-                    .iter()
-                    .zip(&p.steps)
-                    .zip(&s.steps)
-                    .map(|((so, sp), ss)| {
-                        let bin = ss.eod.value.map_or(0, |v| share_bin(r.load_on_s, ss.t_s, v));
-                        let mut step = so.clone();
-                        step.eod = mix(we[bin][k], so.eod, sp.eod);
-                        step.capacity = mix(wc[bin][k], so.capacity, sp.capacity);
-                        step
-                    })
-                    .collect();
-                CycleRun { cycle: o.cycle, steps }
-            })
-            .collect::<Vec<_>>()
+        by_share(
+            records,
+            p,
+            o,
+            s,
+            |_| true,
+            |k, bin, sp, so| {
+                let mut step = so.clone();
+                step.eod = mix(we[bin][k], so.eod, sp.eod);
+                step.capacity = mix(wc[bin][k], so.capacity, sp.capacity);
+                step
+            },
+        )
     };
     let runs = Runs {
         validation: set(validation, &own.validation, &prior.validation, &shares.validation, &val_eod, &val_cap),
@@ -353,12 +342,34 @@ fn compose(
     onto: &[CycleRun],
     by: &[CycleRun],
 ) -> Vec<CycleRun> {
+    by_share(
+        records,
+        alt,
+        onto,
+        by,
+        |k| gates.iter().any(|g| g[k]),
+        |k, bin, sa, so| if gates[bin][k] { sa.clone() } else { so.clone() },
+    )
+}
+
+/// Each discharge `k` of `records` made anew where `touch(k)`, from its readings in `alt` and `onto` (the same
+/// readings, so the steps pair up): each step is `make(k, share index, alt's step, onto's step)`, the share
+/// the one `by`'s prediction puts the reading at (a reading without one: the first). A discharge left alone,
+/// or whose runs do not pair up, is `onto`'s.
+fn by_share(
+    records: &[CellRecord],
+    alt: &[CycleRun],
+    onto: &[CycleRun],
+    by: &[CycleRun],
+    touch: impl Fn(usize) -> bool,
+    make: impl Fn(usize, usize, &Step, &Step) -> Step,
+) -> Vec<CycleRun> {
     records
         .iter()
         .zip(alt.iter().zip(onto).zip(by))
         .enumerate()
         .map(|(k, (r, ((a, o), b)))| {
-            if gates.iter().all(|g| !g[k]) || a.steps.len() != o.steps.len() || b.steps.len() != o.steps.len() {
+            if !touch(k) || a.steps.len() != o.steps.len() || b.steps.len() != o.steps.len() {
                 return o.clone();
             }
             let steps = a
@@ -368,11 +379,7 @@ fn compose(
                 .zip(&b.steps)
                 .map(|((sa, so), sb)| {
                     let bin = sb.eod.value.map_or(0, |v| share_bin(r.load_on_s, sb.t_s, v));
-                    if gates[bin][k] {
-                        sa.clone()
-                    } else {
-                        so.clone()
-                    }
+                    make(k, bin, sa, so)
                 })
                 .collect();
             CycleRun { cycle: o.cycle, steps }
