@@ -744,14 +744,13 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                    widenings: &mut serde_json::Map<String, serde_json::Value>,
                    runs: &mut Vec<(&'static str, Vec<CycleRun>)>| {
         let own_score = score(&judged, &r.judged);
-        let (own, recentred, on_voltage) = crate::recentre::serve(&r, &validation, &judged);
-        entry["recentred"] = serde_json::json!({"cycles": served_cycles(&judged, &recentred),
-            "voltage_change_cycles": served_cycles(&judged, &on_voltage),
+        let d = tune::deliver(&r, &prior_runs, &prior_twins.0, &validation, &judged);
+        entry["recentred"] = serde_json::json!({"cycles": served_cycles(&judged, &d.recentred),
+            "voltage_change_cycles": served_cycles(&judged, &d.on_voltage),
             "own_signed_pct": own_score.eod_signed_pct});
         let alone = MethodEntry::new(key, own_score);
-        let (own, eod_weights, capacity_weights) = tune::blend_runs(&prior_twins.0, &own, &r, &validation, &judged);
-        entry["blended"] = serde_json::json!({"eod_weight": weights_json(&eod_weights),
-            "capacity_weight": weights_json(&capacity_weights),
+        entry["blended"] = serde_json::json!({"eod_weight": weights_json(&d.eod_weights),
+            "capacity_weight": weights_json(&d.capacity_weights),
             "what": format!("each reading's predicted end and capacity (values and bounds) are the weighted mean of \
                 this calibrator's, recentred where that serves, and the prior alone's, recentred where that serves; \
                 its weight per share of the discharge (10 / 50 / 90 %) is the prior's mean squared error over the sum \
@@ -759,8 +758,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 and on the capacity each by its own record (`eod_weight`, `capacity_weight`: the calibrator's \
                 median weight over the judged discharges blended, and how many)",
                 bcal_calib::blend::BLEND_WINDOW, bcal_calib::blend::MIN_BLEND_PAIRS)});
-        let (mut held, gate) = tune::gate_runs_onto(&prior_runs, &own, &own, &r, &validation, &judged);
-        let capacity_gate = tune::gate_capacity(&prior_runs, &own, &mut held, &validation, &judged);
+        let (mut held, gate, capacity_gate) = (d.runs, d.prior_gate, d.capacity_gate);
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
         let w = calibrate_intervals(&hist, &judged, &mut held.judged);
         widenings.insert(key.into(), serde_json::to_value(&w).unwrap_or_default());
@@ -770,7 +768,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             "alone": {"capacity_rmse_ah": alone.capacity_rmse_ah, "eod_error_pct": alone.eod_error_pct},
             "what": format!("the prior alone (`prior`) serves the readings of a judged discharge near a share of it \
                 (10 / 50 / 90 %, by the predicted end) when it beat this calibrator's EOD error there as delivered \
-                (recentred where that serves: what it replaces) on at least \
+                (recentred where that serves, blended with the prior: what it replaces) on at least \
                 {:.0} % of the last {} discharges that ended before it (validation cycles first) and in their mean \
                 (`prior_cycles`, per share); the capacity there by its own record, the capacity error against \
                 the data's charge (`prior_capacity_cycles`); `alone`: the calibrator's figures without it",

@@ -250,6 +250,43 @@ pub fn gate_capacity(
     gates
 }
 
+/// What a streaming method delivers and why, from its own runs ([`deliver`]).
+#[derive(Clone, Debug)]
+pub struct Delivered {
+    /// Its runs as delivered, before their intervals are widened.
+    pub runs: Runs,
+    /// Per share, the judged discharges where its median twin and its voltage twin served
+    /// ([`crate::recentre::serve`]) ...
+    pub recentred: Served,
+    pub on_voltage: Served,
+    /// ... its weights in the blend with the prior alone, on the end and on the capacity ([`blend_runs`]) ...
+    pub eod_weights: Weights,
+    pub capacity_weights: Weights,
+    /// ... and where the prior alone served the end and the capacity in place of the blend.
+    pub prior_gate: Served,
+    pub capacity_gate: Served,
+}
+
+/// A streaming method's runs `own` as `bcal calibrate` delivers them: recentred where either twin earned it,
+/// blended with the prior alone as delivered (`prior_delivered`, recentred where that earned it), and held
+/// to the prior alone (`prior`): it serves the end of discharge, and apart from it the capacity, where it beat
+/// the blend (what it would replace) on 8 of the last 10 and in their mean (issue 18, item 5). Shares are read
+/// off `own`'s predictions throughout, as a live stream reads them.
+pub fn deliver(
+    own: &Runs,
+    prior: &Runs,
+    prior_delivered: &Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+) -> Delivered {
+    let (recentred_runs, recentred, on_voltage) = crate::recentre::serve(own, validation, judged);
+    let (blended, eod_weights, capacity_weights) =
+        blend_runs(prior_delivered, &recentred_runs, own, validation, judged);
+    let (mut runs, prior_gate) = gate_runs_onto(prior, &blended, &blended, own, validation, judged);
+    let capacity_gate = gate_capacity(prior, &blended, &mut runs, validation, judged);
+    Delivered { runs, recentred, on_voltage, eod_weights, capacity_weights, prior_gate, capacity_gate }
+}
+
 /// Per share of the discharge ([`EOD_FRACTIONS_PCT`], by index), the calibrator's weight in its blend with
 /// the prior alone at each judged discharge (None: too few discharges had ended to learn one).
 pub type Weights = [Vec<Option<f64>>; EOD_FRACTIONS_PCT.len()];
@@ -714,6 +751,43 @@ mod tests {
         for (k, run) in runs.validation.iter().enumerate() {
             let blended = run.steps.iter().all(|s| (s.eod.value.unwrap() - 100.0).abs() < 1e-9);
             assert_eq!(blended, k >= bcal_calib::blend::MIN_BLEND_PAIRS, "validation {k}");
+        }
+    }
+
+    /// The prior alone is judged against what it would replace, the method as delivered, blended with it:
+    /// with a method 3 s off each way in turn and a prior 2 s off the other way, the prior beats the method on
+    /// every discharge and would serve every one against it, but their blend is 0.46 s off. The prior serves
+    /// the first judged discharge alone, whose record (the validation cycles) holds the method unblended on
+    /// its first 8, and the blend every one after.
+    #[test]
+    fn the_prior_alone_is_judged_against_the_blend_it_would_replace() {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 5.0), hi: Some(v + 5.0) };
+        let build = |cycles: std::ops::Range<u32>, off_s: f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles
+                .map(|c| {
+                    let e = if c % 2 == 0 { off_s } else { -off_s };
+                    crate::record::test_discharge(c, 1.0, |_| at(100.0 + e), at(1.0))
+                })
+                .unzip()
+        };
+        let (validation, ov) = build(1..11, 3.0);
+        let (judged, oj) = build(11..23, 3.0);
+        let (_, pv) = build(1..11, -2.0);
+        let (_, pj) = build(11..23, -2.0);
+        let (own, prior) = (Runs { validation: ov, judged: oj }, Runs { validation: pv, judged: pj });
+        // Against the method's own predictions the prior would serve every share of every judged discharge.
+        let (_, against_own) = gate_runs(&prior, &own, &validation, &judged);
+        assert!(against_own.iter().all(|g| g.iter().all(|s| *s)), "{against_own:?}");
+        let d = deliver(&own, &prior, &prior, &validation, &judged);
+        let first_only = [vec![true], vec![false; 11]].concat();
+        assert!(d.prior_gate.iter().all(|g| g == &first_only), "{:?}", d.prior_gate);
+        assert!(d.recentred.iter().chain(&d.on_voltage).all(|g| g.iter().all(|s| !s)), "no bias, no voltage change");
+        let w = 4.0 / 13.0;
+        for (k, run) in d.runs.judged.iter().enumerate() {
+            let sign = if (k as u32 + 11).is_multiple_of(2) { 1.0 } else { -1.0 };
+            let want = 100.0 + sign * if k == 0 { -2.0 } else { w * 3.0 - (1.0 - w) * 2.0 };
+            assert!(run.steps.iter().all(|s| (s.eod.value.unwrap() - want).abs() < 1e-9), "judged {k}: {want}");
         }
     }
 }
