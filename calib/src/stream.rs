@@ -28,6 +28,11 @@
 //! one filter ran on across the gap and read the charged cell's voltage as its own misfit: on B0005's
 //! discharges 41-46 joined end to end, the joint UKF's qMobile ran to the top of its range from the second
 //! discharge on.
+//!
+//! Beside the calibrator a stream runs its prior alone (the same setting, never moved by the readings), and
+//! delivers the end of discharge as `bcal calibrate` delivers it: each of the two recentred by its own
+//! twins ([`crate::recentre`]) where they earned it, the two blended by their records ([`crate::blend`]),
+//! the prior alone predicting alone where it beat the blend; the interval is learned on what was served.
 
 use crate::adaptive::{AdaptiveRule, AdaptiveUkf};
 use crate::correction::CorrectionCalibrator;

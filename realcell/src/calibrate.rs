@@ -431,7 +431,6 @@ fn choose_announced(
     tune::choose(cands, validation, before, cutoff_v).expect("candidates and validation checked")
 }
 
-/// The judged cycles each share's gate served ([`tune::gate_runs`]), keyed by the share, %.
 /// Per share, the judged discharges' weights of a blend ([`tune::blend_runs`]): their median and how many
 /// were blended.
 fn weights_json(weights: &tune::Weights) -> serde_json::Value {
@@ -447,6 +446,7 @@ fn weights_json(weights: &tune::Weights) -> serde_json::Value {
     per.into()
 }
 
+/// The judged cycles each share's gate served ([`tune::gate_runs`]), keyed by the share, %.
 fn served_cycles(judged: &[CellRecord], gates: &tune::Served) -> serde_json::Value {
     let per: serde_json::Map<String, serde_json::Value> = EOD_FRACTIONS_PCT
         .iter()
@@ -733,11 +733,11 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // The prior alone recentred where that serves (as the reference it is delivered as, below): what each
     // streaming calibrator is blended with.
     let prior_twins = crate::recentre::serve(&prior_runs, &validation, &judged);
-    // Every streaming calibrator is held to the prior it starts from (issue 18, item 5): the prior alone
-    // serves a share of a discharge where it beat the calibrator there, as delivered (recentred where that
-    // serves: what it would replace), on most of the last that ended (`tune::gate_runs_onto`).
-    // Then its intervals are widened from its runs along the validation cycles and each judged discharge
-    // that has ended.
+    // Every streaming calibrator is recentred, blended with the prior it starts from and held to it (issue
+    // 18, item 5): the prior alone serves a share of a discharge where it beat the calibrator there, as
+    // delivered (recentred where that serves, blended: what it would replace), on most of the last that
+    // ended (`tune::deliver`). Then its intervals are widened from its runs along the validation cycles and
+    // each judged discharge that has ended.
     let deliver = |key: &'static str,
                    r: tune::Runs,
                    entry: &mut serde_json::Value,
