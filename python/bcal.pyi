@@ -148,7 +148,8 @@ class Calibrator:
 
     `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy; `policy` is
     its .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior).
-    `model`: the doctor's extended model (diagnosis.json, or its folder). `config`: a bcal config TOML
+    `model`: the doctor's extended model (diagnosis.json, or its folder); its per-cycle values start at
+    the last training fits and are refitted on every discharge followed to the cut-off. `config`: a bcal config TOML
     (`bcal cell-config` writes one per cell); its lifetime model (else the diagnosis's) moves what one
     discharge hands the next by the fade and the capacity a rest gives back. `ambient_c`: temperature of readings that give none.
     `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0).

@@ -420,6 +420,11 @@ pub struct Stream<'a> {
     /// The current discharge's end fit: qMobile putting the model's end at the measured one, at the
     /// calibrator's Ro then ([`crate::end_fit`]).
     end_fit: Option<Degradation>,
+    /// Refits the model's per-cycle values on a discharge that reached its cut-off ([`Refit`]; None: the
+    /// model stays as set up) ...
+    refit: Option<Refit<'a>>,
+    /// ... and the model the next discharge runs from it (None: the one set up).
+    model_next: Option<ModelExtension>,
 }
 
 /// What one finished discharge told, for the prior width ([`RestWidth`]), z units.
@@ -642,6 +647,14 @@ impl EodSource {
     }
 }
 
+/// Refits the model's per-cycle values (a diagnosis's electrode balance, charge-transfer scale) on one
+/// discharge followed to its cut-off, as `bcal calibrate` refits every discharge that ends: its readings from
+/// the first (the rest before the load included) to the first loaded one at or below the cut-off. Returns the
+/// fitted qMobile and Ro and the model the next discharge runs (None: keep the model it ran). A stream cannot
+/// fit by itself (the fit is the doctor's); `bcal calibrate --follow --model` and the Python package hand it
+/// one (`bcal_doctor::model_file::DiagnosedModel::refit`).
+pub type Refit<'a> = Box<dyn FnMut(&[Sample]) -> Option<(Degradation, ModelExtension)> + Send + 'a>;
+
 /// Where a discharge's prior width came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WidthSource {
@@ -697,7 +710,16 @@ impl<'a> Stream<'a> {
             voltage_changes: Vec::new(),
             samples: Vec::new(),
             end_fit: None,
+            refit: None,
+            model_next: None,
         }
+    }
+
+    /// The stream refitting its model's per-cycle values on each discharge it follows to the cut-off
+    /// ([`Refit`]); each next discharge runs the refitted model and starts from the end fit under it.
+    pub fn with_refit(mut self, refit: Refit<'a>) -> Self {
+        self.refit = Some(refit);
+        self
     }
 
     /// The calibrator of `setup` on a stream that starts a new discharge after a charge or a long gap,
@@ -988,6 +1010,10 @@ impl<'a> Stream<'a> {
             self.carried_sd_z.map(|sd| (carry.widen_z(sd, end.q_mobile_c, span_c), WidthSource::Posterior))
         };
         let mut next = setup.clone();
+        if let Some(m) = &self.model_next {
+            next.spec.tracker.model = m.clone();
+            self.spec.model = m.clone();
+        }
         next.spec.tracker.prior = mean;
         if let Some((sd, _)) = self.prior_width {
             next.spec.ukf = Some(crate::JointUkfSettings { prior_std_z: sd, ..next.ukf() });
@@ -1100,9 +1126,18 @@ impl<'a> Stream<'a> {
         // The charge the cell held, measured by its end: what the next discharge starts from.
         if self.rebuild.is_some() {
             self.capacity_ah = Some(crate::eod::charge_to_ah(&self.samples, end_s));
-            let r_o_ohm = self.cal.estimate().r_o_ohm;
+            // The model's per-cycle values refitted on this discharge, and the end fit under them at the
+            // refit's Ro, as `bcal calibrate` hands on each record's end fit under its own refit model.
+            let refitted = self.refit.as_mut().and_then(|f| f(&self.samples));
+            let (spec, r_o_ohm) = match &refitted {
+                Some((d, m)) => (TrackerSpec { model: m.clone(), ..self.spec.clone() }, d.r_o_ohm),
+                None => (self.spec.clone(), self.cal.estimate().r_o_ohm),
+            };
+            if let Some((_, m)) = refitted {
+                self.model_next = Some(m);
+            }
             let before = &self.samples[..self.samples.len().saturating_sub(1)];
-            self.end_fit = crate::end_fit::q_mobile_to_end(&self.spec, before, end_s, r_o_ohm)
+            self.end_fit = crate::end_fit::q_mobile_to_end(&spec, before, end_s, r_o_ohm)
                 .map(|q_mobile_c| Degradation { q_mobile_c, r_o_ohm });
         }
     }
@@ -1751,6 +1786,42 @@ mod tests {
                 assert!(blend_off < own_off, "discharge {d} at half: blend {blend_off} s off, own {own_off} s");
             }
         }
+    }
+
+    /// A stream handed a refit ([`Stream::with_refit`]) calls it once per discharge that reaches its cut-off
+    /// and runs each next discharge on the model it returns: on a cell with B0005's diagnosed error (the
+    /// electrodes' balance shifted, slower charge transfer) followed on the base model, a refit that returns
+    /// the cell's own model (an oracle: the doctor's fit is tested in `bcal_doctor`) takes the joint UKF's
+    /// end of discharge at half of discharges 2-8 nearer the measured end than without it.
+    #[test]
+    fn a_stream_runs_each_discharge_on_the_model_refitted_on_the_one_before() {
+        let err = CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() };
+        let cell = std::cell::Cell::new(Degradation::default());
+        let (readings, starts) = cycler_life(8, |_, spec| {
+            cell.set(spec.truth);
+            EpisodeSpec { soc0: 1.0, cell_error: err, ..spec }
+        });
+        let cell = cell.get();
+        let truth = err.apply(&ModelExtension {
+            causes: vec!["electrode_balance".into(), "charge_transfer".into()],
+            ..Default::default()
+        });
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let calls = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let counted = calls.clone();
+        let model = truth.clone();
+        let mut refitted = Stream::of(&setup, None, None).unwrap().with_refit(Box::new(move |samples| {
+            counted.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            assert!(samples.len() > 10, "the discharge's readings");
+            Some((cell, model.clone()))
+        }));
+        let mut plain = Stream::of(&setup, None, None).unwrap();
+        let (with, _) = at_half_of_each(&mut refitted, &readings, &starts, |_| false);
+        let (without, _) = at_half_of_each(&mut plain, &readings, &starts, |_| false);
+        assert_eq!(calls.load(std::sync::atomic::Ordering::SeqCst), 8, "one refit per discharge that ended");
+        assert_eq!(refitted.spec().model, truth);
+        let off = |h: &[Half]| h[1..].iter().map(|h| (h.served_s - h.end_s).abs()).sum::<f64>();
+        assert!(off(&with) < off(&without), "refitted {} s off in all, without {} s", off(&with), off(&without));
     }
 
     /// Twenty constant-current discharges of a cell that loses 1.5 % of its mobile charge per discharge,

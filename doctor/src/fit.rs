@@ -633,11 +633,12 @@ fn solve(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::record::Discharge;
 
-    fn synthetic(q_mobile_c: f64, r_o_ohm: f64, ext: &ExtParams) -> Discharge {
+    /// A 4000 s record of the doctor's own model: a rest, 2 A, then 1 A, one reading every 10 s.
+    pub(crate) fn synthetic(q_mobile_c: f64, r_o_ohm: f64, ext: &ExtParams) -> Discharge {
         let time_s: Vec<f64> = (0..400).map(|k| 10.0 * k as f64).collect();
         // Rest, 2 A, then 1 A: the step tells a sensor offset from Ro * i.
         let current_a: Vec<f64> = time_s

@@ -1,8 +1,9 @@
 //! Reading back the model a diagnosis chose (`diagnosis.json`'s `extended` part): its causes and the
 //! shared parameters fitted on the training cycles. `bcal calibrate --model` and `bcal cell-config
 //! --model` run the calibrators on it; the per-cycle parameters are calibrated again on every cycle. A live
-//! stream (`--follow`, the Python package) has no offline fit of the cycle before: it runs the per-cycle
-//! parameters at the median of the last training cycles' fits ([`DiagnosedModel::latest`]).
+//! stream (`--follow`, the Python package) starts with the per-cycle parameters at the median of the last
+//! training cycles' fits ([`DiagnosedModel::latest`]) and refits them on every discharge it follows to the
+//! cut-off ([`DiagnosedModel::refit`]), as `bcal calibrate` refits every discharge that ends.
 //! [`load_lifetime`] reads the capacity lifetime model (recovery after rest) a calibrator's prior can use.
 //!
 //! A calibrator's model carries only some of the doctor's causes
@@ -13,10 +14,14 @@
 //! cell-config`, `--follow`, the Python package) calibrates on what it can carry and says what it left out,
 //! instead of refusing the cell.
 
+use crate::fit::{refit_cycles, FitConfig, FitRecord};
 use crate::lifetime::LifetimeModel;
+use crate::record::Discharge;
 use crate::sim::{Cause, ExtParams};
 use crate::DoctorError;
+use bcal_common::battery::Degradation;
 use bcal_common::measured::extension::{ModelExtension, SUPPORTED_CAUSES};
+use bcal_common::measured::scenario::Sample;
 use bcal_common::text::shown;
 use serde::Deserialize;
 use std::collections::BTreeMap;
@@ -56,6 +61,42 @@ impl DiagnosedModel {
     /// (B0005's electrode balance and charge transfer) the base model under another name.
     pub fn extension(&self, reference_k: Option<f64>) -> ModelExtension {
         extension_of(&self.causes, &self.latest, reference_k)
+    }
+
+    /// The model's per-cycle values refitted on one discharge a live stream has followed to its cut-off, as
+    /// `bcal calibrate` refits every discharge that ends ([`crate::fit::refit_cycles`], the shared values
+    /// frozen): its readings from the first (the rest before the load included) to the first loaded one at
+    /// or below `cutoff_v`, the model's Arrhenius reference `reference_k`. Returns the fitted qMobile and Ro
+    /// and the model the next discharge runs; None when the model has no per-cycle value, the readings hold
+    /// no load window, or the fit fails (the stream keeps the model it ran).
+    pub fn refit(
+        &self,
+        samples: &[Sample],
+        cutoff_v: f64,
+        reference_k: Option<f64>,
+    ) -> Option<(Degradation, ModelExtension)> {
+        if !self.causes.iter().any(|c| !c.cycle_params().is_empty()) {
+            return None;
+        }
+        let t0 = samples.first()?.t_s;
+        let temps: Vec<f64> = samples.iter().map(|x| x.temperature_k).collect();
+        let d = Discharge {
+            cell: self.cell.clone(),
+            cycle: 0,
+            source: PathBuf::from("(stream)"),
+            ambient_k: temps[0],
+            time_s: samples.iter().map(|x| x.t_s - t0).collect(),
+            voltage_v: samples.iter().map(|x| x.voltage_v).collect(),
+            current_a: samples.iter().map(|x| x.current_a).collect(),
+            temperature_k: Some(temps),
+            stated_capacity_ah: None,
+        };
+        let cfg = FitConfig::default();
+        let w = d.windows_with_cutoff(cfg.load_threshold_a, cfg.v_floor_v, Some(cutoff_v))?;
+        let rec = FitRecord::new(&d, w, &cfg);
+        let f = refit_cycles(&cfg, &[rec], &self.causes, &self.shared, None).ok()?;
+        let (q, ext) = (f.per_cycle.first()?, f.cycle_ext.first()?);
+        (q.q_mobile_c.is_finite() && q.r_o_ohm.is_finite()).then(|| (*q, extension_of(&self.causes, ext, reference_k)))
     }
 
     /// What the calibrators run instead of the diagnosis's model, when they cannot carry all of it: one
@@ -311,5 +352,40 @@ mod tests {
         std::fs::write(&p, "not json").unwrap();
         assert!(load_model(&p).unwrap_err().to_string().contains("bcal diagnose"));
         assert!(load_model(&dir.path().join("missing.json")).is_err());
+    }
+
+    /// A stream's refit recovers a discharge's per-cycle value (the charge-transfer scale, 0.3 where the
+    /// diagnosis's latest value is neutral) with its qMobile and Ro, on the readings as a stream holds them;
+    /// a model without per-cycle values has nothing to refit. (The record comes from the doctor's own model:
+    /// this checks that the stream's readings reach the fit, not the fit itself, which `fit`'s tests check.)
+    #[test]
+    fn a_stream_refits_the_per_cycle_values_on_a_discharge_it_followed() {
+        use bcal_common::measured::scenario::{Request, Sample};
+        let d = crate::fit::tests::synthetic(6000.0, 0.12, &ExtParams { kinetics_scale: 0.3, ..Default::default() });
+        let samples: Vec<Sample> = (0..d.len())
+            .map(|k| Sample {
+                t_s: 1.0e6 + d.time_s[k],
+                voltage_v: d.voltage_v[k],
+                current_a: d.current_a[k],
+                temperature_k: 297.15,
+                request: Request::Unknown,
+            })
+            .collect();
+        let m = DiagnosedModel {
+            cell: "S".into(),
+            path: "diagnosis.json".into(),
+            causes: vec![Cause::ChargeTransfer],
+            dropped: vec![],
+            shared: ExtParams::default(),
+            latest: ExtParams::default(),
+            latest_cycles: vec![],
+            cycles: vec![],
+        };
+        let (q, ext) = m.refit(&samples, 2.5, Some(297.15)).expect("a load window to fit");
+        assert!((ext.kinetics_scale / 0.3 - 1.0).abs() < 0.2, "kinetics {}", ext.kinetics_scale);
+        assert!((q.q_mobile_c / 6000.0 - 1.0).abs() < 0.02 && (q.r_o_ohm / 0.12 - 1.0).abs() < 0.1, "{q:?}");
+        assert_eq!(ext.causes, vec!["charge_transfer".to_string()]);
+        let base = DiagnosedModel { causes: vec![], ..m };
+        assert!(base.refit(&samples, 2.5, Some(297.15)).is_none());
     }
 }

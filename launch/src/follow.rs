@@ -279,9 +279,9 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     }
     if let Some(m) = diagnosed.as_ref().filter(|m| !m.latest_cycles.is_empty()) {
         let (first, last) = (m.latest_cycles[0], m.latest_cycles[m.latest_cycles.len() - 1]);
-        eprintln!("--model: its per-cycle parameters at the median of training cycles {first}-{last}'s fits");
+        eprintln!("--model: its per-cycle parameters start at the median of training cycles {first}-{last}'s fits");
     }
-    let model = diagnosed.map(|m| m.extension(reference_k));
+    let model = diagnosed.as_ref().map(|m| m.extension(reference_k));
     let policy_name = policy_path.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
     let mut setup =
         resolve(kind, config.as_ref(), policy.as_ref().map(|p| (&p.task, policy_name.as_str())), model.as_ref())?;
@@ -309,6 +309,13 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     }
     let spec = setup.spec.tracker.clone();
     let mut stream = Stream::of(&setup, net.as_ref(), a.ambient_c)?;
+    // The diagnosis's per-cycle values are refitted on every discharge the stream follows to its cut-off,
+    // as `bcal calibrate --model` refits every discharge that ends.
+    if let Some(m) = diagnosed.filter(|m| m.causes.iter().any(|c| !c.cycle_params().is_empty())) {
+        let (cutoff_v, reference_k) = (setup.spec.tracker.cutoff_v, setup.spec.tracker.model.reference_k);
+        eprintln!("--model: its per-cycle parameters refitted on every discharge that reaches the cut-off");
+        stream = stream.with_refit(Box::new(move |samples| m.refit(samples, cutoff_v, reference_k)));
+    }
     // The current's sign: positive discharges unless told otherwise (a stream cannot be read ahead to
     // decide, so `auto` takes the documented convention).
     let sign = if a.current_sign == CurrentSign::DischargeNegative { -1.0 } else { 1.0 };

@@ -35,7 +35,8 @@ self_cell::self_cell!(
 /// `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy: `policy` is its
 /// .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior, never moved).
 /// `model`: the doctor's extended model (diagnosis.json of `bcal diagnose`, or its folder; its per-cycle
-/// parameters at the median of the last five training cycles' fits). `config`: a
+/// parameters start at the median of the last five training cycles' fits and are refitted on every
+/// discharge followed to the cut-off). `config`: a
 /// bcal config TOML (`bcal cell-config` writes one per cell) whose `measured.tracker` sets ranges, prior
 /// and cut-off. `ambient_c`: the temperature of readings that give none, deg C (default the model's
 /// 18.95 C). `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0). The
@@ -140,12 +141,8 @@ impl Calibrator {
         let policy_file = policy.as_deref().map(load_policy).transpose()?;
         let config_spec = config.as_deref().map(load_config).transpose()?;
         let reference_k = ambient_c.map(|c| c + bcal_common::measured::scenario::KELVIN_0C);
-        let ext = model
-            .as_deref()
-            .map(bcal_doctor::model_file::load_model)
-            .transpose()
-            .map_err(doctor_error)?
-            .map(|m| m.extension(reference_k));
+        let diagnosed = model.as_deref().map(bcal_doctor::model_file::load_model).transpose().map_err(doctor_error)?;
+        let ext = diagnosed.as_ref().map(|m| m.extension(reference_k));
         let policy_name = policy.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
         let mut setup = resolve(
             kind,
@@ -163,7 +160,18 @@ impl Calibrator {
             setup.spec.lifetime = bcal_doctor::model_file::load_lifetime(p).map_err(doctor_error)?;
         }
         let net = policy_file.as_ref().map(|p| p.net()).transpose().map_err(value_error)?;
-        let owned = Owned::try_new(net, |net| Stream::of(&setup, net.as_ref(), ambient_c)).map_err(value_error)?;
+        // The diagnosis's per-cycle values refitted on every discharge followed to its cut-off, as `bcal
+        // calibrate --follow --model` does.
+        let refit = diagnosed.filter(|m| m.causes.iter().any(|c| !c.cycle_params().is_empty()));
+        let (cut, reference) = (setup.spec.tracker.cutoff_v, setup.spec.tracker.model.reference_k);
+        let owned = Owned::try_new(net, |net| {
+            let stream = Stream::of(&setup, net.as_ref(), ambient_c)?;
+            Ok::<_, StreamError>(match refit {
+                Some(m) => stream.with_refit(Box::new(move |samples| m.refit(samples, cut, reference))),
+                None => stream,
+            })
+        })
+        .map_err(value_error)?;
         Ok(Self { kind, stream: Mutex::new(owned) })
     }
 
