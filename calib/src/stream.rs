@@ -1707,6 +1707,16 @@ mod tests {
         assert!(w.iter().all(|w| w.is_some_and(|(a, n)| a > 0.0 && n == WINDOW)), "{w:?}");
     }
 
+    /// [`cycler_life`] of `n` discharges of a cell with what the doctor finds in B0005 (the electrodes'
+    /// balance shifted, slower charge transfer), each from a charge of 85-94 %.
+    fn b0005_like_life(n: u64) -> (Vec<Reading>, Vec<usize>) {
+        cycler_life(n, |k, spec| EpisodeSpec {
+            soc0: 0.85 + 0.01 * (k % 10) as f64,
+            cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
+            ..spec
+        })
+    }
+
     /// Fourteen constant-current discharges of a cell that carries what the doctor finds in B0005 (shifted
     /// electrode balance, slower charge transfer), through the joint UKF on the base model: the readings
     /// pull the filter off the charge each end measured, and the prior alone (the carried end fit, never
@@ -1715,12 +1725,7 @@ mod tests {
     /// both) it predicts where it beat the filter on at least 8 of the last 10; never before.
     #[test]
     fn the_prior_alone_predicts_where_it_has_beaten_the_calibrator() {
-        let (readings, starts) = cycler_life(14, |k, spec| EpisodeSpec {
-            soc0: 0.85 + 0.01 * (k % 10) as f64,
-            // What the doctor finds in B0005: the electrodes' balance shifted, slower charge transfer.
-            cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
-            ..spec
-        });
+        let (readings, starts) = b0005_like_life(14);
         let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         let mut stream = Stream::of(&setup, None, None).unwrap();
         let mut served_from = None;
@@ -1747,11 +1752,7 @@ mod tests {
     /// own alone.
     #[test]
     fn the_calibrator_is_blended_with_its_prior_once_their_records_tell_the_weight() {
-        let (readings, starts) = cycler_life(10, |k, spec| EpisodeSpec {
-            soc0: 0.85 + 0.01 * (k % 10) as f64,
-            cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
-            ..spec
-        });
+        let (readings, starts) = b0005_like_life(10);
         let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         let mut stream = Stream::of(&setup, None, None).unwrap();
         let cutoff_v = stream.spec().cutoff_v;

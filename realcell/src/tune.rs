@@ -176,14 +176,30 @@ fn share_gates(
     let rested = |records: &[CellRecord]| -> Vec<bool> { records.iter().map(CellRecord::after_long_rest).collect() };
     let (val_rested, judged_rested) = (rested(validation), rested(judged));
     for b in 0..EOD_FRACTIONS_PCT.len() {
-        let pairs = |records: &[CellRecord], a: &[CycleRun], o: &[CycleRun]| -> Vec<(f64, f64)> {
-            err(records, a, b).into_iter().zip(err(records, o, b)).collect()
-        };
-        let history = pairs(validation, &alt.validation, &base.validation);
+        let (history, later) = error_pairs(alt, base, validation, judged, &err, b);
         val_gates[b] = online_gate(&[], &history, &val_rested);
-        gates[b] = online_gate(&history, &pairs(judged, &alt.judged, &base.judged), &judged_rested);
+        gates[b] = online_gate(&history, &later, &judged_rested);
     }
     (val_gates, gates)
+}
+
+/// Two methods' errors on one discharge.
+type ErrorPair = (f64, f64);
+
+/// Per discharge of the validation cycles and of the judged ones, the pair of `a`'s and `b`'s errors at
+/// share index `share` (`err(records, runs, share)`, one per discharge).
+fn error_pairs(
+    a: &Runs,
+    b: &Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+    err: &impl Fn(&[CellRecord], &[CycleRun], usize) -> Vec<f64>,
+    share: usize,
+) -> (Vec<ErrorPair>, Vec<ErrorPair>) {
+    let pairs = |records: &[CellRecord], x: &[CycleRun], y: &[CycleRun]| -> Vec<ErrorPair> {
+        err(records, x, share).into_iter().zip(err(records, y, share)).collect()
+    };
+    (pairs(validation, &a.validation, &b.validation), pairs(judged, &a.judged, &b.judged))
 }
 
 /// Per discharge, the capacity error of `runs` at `fraction_pct` of it against the charge the data shows
@@ -352,12 +368,9 @@ fn share_weights(
 ) -> (Weights, Weights) {
     let (mut val, mut jud): (Weights, Weights) = Default::default();
     for b in 0..EOD_FRACTIONS_PCT.len() {
-        let pairs = |records: &[CellRecord], o: &[CycleRun], p: &[CycleRun]| -> Vec<(f64, f64)> {
-            err(records, o, b).into_iter().zip(err(records, p, b)).collect()
-        };
-        let mut past = pairs(validation, &own.validation, &prior.validation);
+        let (mut past, later) = error_pairs(own, prior, validation, judged, &err, b);
         val[b] = (0..past.len()).map(|k| bcal_calib::blend::blend_weight(&past[..k])).collect();
-        jud[b] = pairs(judged, &own.judged, &prior.judged)
+        jud[b] = later
             .into_iter()
             .map(|pair| {
                 let w = bcal_calib::blend::blend_weight(&past);
