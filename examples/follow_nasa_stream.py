@@ -36,6 +36,8 @@ RECENTRED_SERVED: list = []
 VOLTAGE_SERVED: list = []
 # The prior alone's weight in each scored prediction at half a discharge blended with it (0 < weight < 1).
 BLEND_WEIGHTS: list = []
+# The previous discharge's fit's weight in each scored prediction at half a discharge blended with it.
+PREVIOUS_WEIGHTS: list = []
 
 
 def find_bcal() -> str:
@@ -118,6 +120,8 @@ def eod_error_pct(rows: list, est: list, cutoff_v: float, fraction: float = 0.5)
         VOLTAGE_SERVED.append(True)
     if 0.0 < (est[k].get("eod_prior_weight") or 0.0) < 1.0 and fraction == 0.5:
         BLEND_WEIGHTS.append(est[k]["eod_prior_weight"])
+    if 0.0 < (est[k].get("eod_previous_weight") or 0.0) < 1.0 and fraction == 0.5:
+        PREVIOUS_WEIGHTS.append(est[k]["eod_previous_weight"])
     # Whether the interval held the end, and its width (hi - lo) in % of the time to the end.
     held = None if lo is None or hi is None else (lo <= eod <= hi, 100.0 * (hi - lo) / (eod - t_on))
     return (None if p is None else 100.0 * (p - eod) / (eod - t_on)), held
@@ -195,7 +199,9 @@ def main() -> None:
           f"recentred on its bias at half of {len(RECENTRED_SERVED)}, moved on the voltage change against the "
           f"discharge before at half of {len(VOLTAGE_SERVED)}; blended with the prior alone at half of "
           f"{len(BLEND_WEIGHTS)}, the prior's median weight "
-          f"{statistics.median(BLEND_WEIGHTS) if BLEND_WEIGHTS else 0.0:.2f})")
+          f"{statistics.median(BLEND_WEIGHTS) if BLEND_WEIGHTS else 0.0:.2f}; with the previous discharge's fit at "
+          f"half of {len(PREVIOUS_WEIGHTS)}, its median weight "
+          f"{statistics.median(PREVIOUS_WEIGHTS) if PREVIOUS_WEIGHTS else 0.0:.2f})")
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone, alone_at)
 
 

@@ -82,6 +82,11 @@ class Estimate(TypedDict):
     squared error at this share over the last 15 discharges followed to the cut-off, from the ninth on),
     else 0. Where it is below 1, eod_recentred and eod_on_voltage_change tell which of the calibrator's
     predictions is blended."""
+    eod_previous_weight: float
+    """The previous discharge's fit's weight in eod_s: the blend above is blended in turn with the prediction
+    of the fit the last discharge measured, carried over as it is (recentred where that serves), by the same
+    rule on the discharges that followed rests of up to a day; 0 after a longer rest (the fit carries no
+    recovery), where the prior alone predicts, or before 8 such discharges have been followed."""
     discharge: int
     """The discharge the reading belongs to, from 0: a new one after a charge or a gap of more than
     half an hour, started from what the last one told (the charge its end measured where it reached

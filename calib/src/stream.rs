@@ -32,7 +32,9 @@
 //! Beside the calibrator a stream runs its prior alone (the same setting, never moved by the readings), and
 //! delivers the end of discharge as `bcal calibrate` delivers it: each of the two recentred by its own
 //! twins ([`crate::recentre`]) where they earned it, the two blended by their records ([`crate::blend`]),
-//! the prior alone predicting alone where it beat the blend; the interval is learned on what was served.
+//! that blend blended in turn with the last discharge's fit carried over ([`Refit`]: the previous-cycle
+//! reference; never after a rest of more than a day), the prior alone predicting alone where it beat the
+//! blend; the interval is learned on what was served.
 
 use crate::adaptive::{AdaptiveRule, AdaptiveUkf};
 use crate::correction::CorrectionCalibrator;
@@ -171,6 +173,11 @@ pub struct Estimate {
     /// have been followed to the cut-off), else 0. Where it is below 1, `eod_recentred` and
     /// `eod_on_voltage_change` tell which of the calibrator's predictions is blended.
     pub eod_prior_weight: f64,
+    /// The previous discharge's voltage fit's weight in the prediction: that blend is blended in turn with
+    /// the prediction of the fit the last discharge measured, carried over as it is ([`Refit`]; recentred
+    /// where that serves), by their records on the discharges after rests of up to a day; 0 where the prior
+    /// alone predicts, after a longer rest, without a fit, or before 8 such discharges have been followed.
+    pub eod_previous_weight: f64,
     /// The discharge the reading belongs to, from 0 (a new one after a charge or a long gap; the readings of
     /// a charge take the number of the discharge after it).
     pub discharge: u32,
@@ -390,12 +397,14 @@ pub struct Stream<'a> {
     eod_track: EodTrack,
     /// The predictions of the calibrator ([`METHOD`]), of its prior alone ([`PRIOR`]), each one's twins
     /// ([`Twins`]: the calibrator's from [`METHOD_TWINS`], as delivered at [`DELIVERED`], the prior's from
-    /// [`PRIOR_TWINS`]), the two as delivered blended ([`BLENDED`]) and what is served
-    /// ([`SERVED`], whose interval every prediction takes), with their scores.
-    sources: [EodSource; 12],
-    /// The twins of the calibrator's own predictions and of the prior alone's ([`METHOD_TWINS`],
-    /// [`PRIOR_TWINS`]), as `bcal calibrate` recentres every method, the prior alone too.
-    twins: [Twins; 2],
+    /// [`PRIOR_TWINS`]), the two as delivered blended ([`BLENDED`]), what is served ([`SERVED`], whose
+    /// interval every prediction takes), the previous discharge's fit ([`PREVIOUS`], its twins from
+    /// [`PREVIOUS_TWINS`]) and the blend blended with it ([`WITH_PREVIOUS`]), with their scores.
+    sources: [EodSource; N_SOURCES],
+    /// The twins of the calibrator's own predictions, of the prior alone's and of the previous discharge's
+    /// fit's ([`METHOD_TWINS`], [`PRIOR_TWINS`], [`PREVIOUS_TWINS`]), as `bcal calibrate` recentres every
+    /// method and reference.
+    twins: [Twins; 3],
     /// The last discharge's loaded readings, to the cut-off (None: no discharge before, or a piece).
     previous_loaded: Option<Previous>,
     /// The current discharge's voltage against the last one's (None before its load came on).
@@ -415,13 +424,24 @@ pub struct Stream<'a> {
     /// ... and per share the calibrator's weight in the blend learned from them
     /// ([`crate::blend::blend_weight`]; None: too few yet).
     blend_weights: [Option<f64>; 3],
+    /// Likewise the errors of that blend and of the previous discharge's fit as delivered, on the discharges
+    /// scored after rests of up to a day (the fit carries no recovery) ...
+    previous_record: VecDeque<[Option<(f64, f64)>; 3]>,
+    /// ... and per share the blend's weight against the fit.
+    previous_weights: [Option<f64>; 3],
+    /// The previous discharge's fit, pinned for the whole discharge (its state from the readings), where the
+    /// last discharge was fitted ([`Refit`]) ...
+    previous_cal: Option<Box<dyn Calibrator + Send + 'a>>,
+    /// ... that fit ...
+    previous_fit: Option<Degradation>,
+    /// ... and the fit of the discharge under way, once it has reached its cut-off.
+    voltage_fit: Option<Degradation>,
     /// The current discharge's readings (streams made by [`Stream::of`]: for its end fit).
     samples: Vec<Sample>,
     /// The current discharge's end fit: qMobile putting the model's end at the measured one, at the
     /// calibrator's Ro then ([`crate::end_fit`]).
     end_fit: Option<Degradation>,
-    /// Refits the model's per-cycle values on a discharge that reached its cut-off ([`Refit`]; None: the
-    /// model stays as set up) ...
+    /// Fits a discharge that reached its cut-off ([`Refit`]; None: no fit, the model stays as set up) ...
     refit: Option<Refit<'a>>,
     /// ... and the model the next discharge runs from it (None: the one set up).
     model_next: Option<ModelExtension>,
@@ -468,6 +488,16 @@ const BLENDED: usize = 10;
 /// learns the intervals on what was delivered (a source's own interval, learned on the discharges after
 /// which it was chosen for its small errors, covered 81 % of B0055's ends).
 const SERVED: usize = 11;
+/// Index of the previous discharge's fit carried over as it is ([`Refit`]): `bcal calibrate`'s
+/// `previous_cycle` reference.
+const PREVIOUS: usize = 12;
+/// Index of the first of its twins' four sources.
+const PREVIOUS_TWINS: usize = 13;
+/// Index of [`BLENDED`] blended with the previous discharge's fit as delivered where a weight is learned and
+/// the rest was no longer than a day, else [`BLENDED`]: what the prior alone would replace.
+const WITH_PREVIOUS: usize = 17;
+/// How many sources a stream keeps.
+const N_SOURCES: usize = 18;
 /// Offsets of a [`Twins`]' sources from its first: its base recentred on its bias ...
 const TWIN_RECENTRED: usize = 0;
 /// ... what the recentring serves (the recentred where it has earned it, else the base) ...
@@ -647,12 +677,13 @@ impl EodSource {
     }
 }
 
-/// Refits the model's per-cycle values (a diagnosis's electrode balance, charge-transfer scale) on one
-/// discharge followed to its cut-off, as `bcal calibrate` refits every discharge that ends: its readings from
-/// the first (the rest before the load included) to the first loaded one at or below the cut-off. Returns the
-/// fitted qMobile and Ro and the model the next discharge runs (None: keep the model it ran). A stream cannot
-/// fit by itself (the fit is the doctor's); `bcal calibrate --follow --model` and the Python package hand it
-/// one (`bcal_doctor::model_file::DiagnosedModel::refit`).
+/// Fits one discharge followed to its cut-off, as `bcal calibrate` fits every discharge that ends: qMobile,
+/// Ro and the model's per-cycle values (a diagnosis's electrode balance, charge-transfer scale; none on the
+/// base model) on its readings from the first (the rest before the load included) to the first loaded one
+/// at or below the cut-off. Returns the fit and the model the next discharge runs (None: no fit, the model
+/// kept). The next discharge starts from the end fit at the fit's Ro and blends with the fit carried over. A
+/// stream cannot fit by itself (the fit is the doctor's); `bcal calibrate --follow` and the Python package
+/// hand it one (`bcal_doctor::model_file::stream_refit`).
 pub type Refit<'a> = Box<dyn FnMut(&[Sample]) -> Option<(Degradation, ModelExtension)> + Send + 'a>;
 
 /// Where a discharge's prior width came from.
@@ -704,7 +735,16 @@ impl<'a> Stream<'a> {
             prior_serves: [false; 3],
             blend_record: VecDeque::new(),
             blend_weights: [None; 3],
-            twins: [Twins::new(METHOD, METHOD_TWINS), Twins::new(PRIOR, PRIOR_TWINS)],
+            previous_record: VecDeque::new(),
+            previous_weights: [None; 3],
+            previous_cal: None,
+            previous_fit: None,
+            voltage_fit: None,
+            twins: [
+                Twins::new(METHOD, METHOD_TWINS),
+                Twins::new(PRIOR, PRIOR_TWINS),
+                Twins::new(PREVIOUS, PREVIOUS_TWINS),
+            ],
             previous_loaded: None,
             voltage_change: None,
             voltage_changes: Vec::new(),
@@ -715,8 +755,8 @@ impl<'a> Stream<'a> {
         }
     }
 
-    /// The stream refitting its model's per-cycle values on each discharge it follows to the cut-off
-    /// ([`Refit`]); each next discharge runs the refitted model and starts from the end fit under it.
+    /// The stream fitting each discharge it follows to the cut-off ([`Refit`]); each next discharge runs the
+    /// refitted model, starts from the end fit under it and blends with the fit carried over.
     pub fn with_refit(mut self, refit: Refit<'a>) -> Self {
         self.refit = Some(refit);
         self
@@ -825,7 +865,7 @@ impl<'a> Stream<'a> {
                     self.new_discharge(idle.t_s);
                     self.discharge = number;
                     self.cal.step(&idle);
-                    if let Some(p) = self.prior_cal.as_mut() {
+                    for p in self.prior_cal.iter_mut().chain(self.previous_cal.iter_mut()) {
                         p.step(&idle);
                     }
                     self.samples.push(idle);
@@ -836,7 +876,7 @@ impl<'a> Stream<'a> {
         self.loaded_run = loaded_run;
         self.last_sample = Some(s);
         self.cal.step(&s);
-        if let Some(p) = self.prior_cal.as_mut() {
+        for p in self.prior_cal.iter_mut().chain(self.previous_cal.iter_mut()) {
             p.step(&s);
         }
         self.last_t_s = Some(r.time_s);
@@ -849,6 +889,8 @@ impl<'a> Stream<'a> {
         let eod_current_a = self.load.current_a();
         let eod_method_s = eod_current_a.and_then(|i| self.predict_eod_s(i));
         let eod_prior_s = eod_current_a.and_then(|i| self.prior_cal.as_deref().and_then(|p| self.predict_from(p, i)));
+        let eod_previous_s =
+            eod_current_a.and_then(|i| self.previous_cal.as_deref().and_then(|p| self.predict_from(p, i)));
         // The load-on: the first loaded reading of the discharge (this one, when it is).
         let load_on_s =
             self.eod_track.load_on_s.or((r.current_a > LOAD_THRESHOLD_A).then_some(r.time_s)).unwrap_or(r.time_s);
@@ -868,6 +910,7 @@ impl<'a> Stream<'a> {
         let long_rest = self.rest_before_s.is_some_and(|x| x > LONG_REST_S);
         let (own, delivered_from) = self.twins[0].predict(eod_method_s, dv, load_on_s, r.time_s, long_rest);
         let (prior, _) = self.twins[1].predict(eod_prior_s, dv, load_on_s, r.time_s, long_rest);
+        let (previous, _) = self.twins[2].predict(eod_previous_s, dv, load_on_s, r.time_s, long_rest);
         let (delivered_s, prior_delivered_s) = (own[TWIN_DELIVERED], prior[TWIN_DELIVERED]);
         // The two blended by their records at this share (after a long rest too: a weighted mean of two
         // estimates is no switch to one whose record does not speak for the rest).
@@ -880,6 +923,17 @@ impl<'a> Stream<'a> {
             (Some(d), Some(p)) if prior_share > 0.0 => Some(crate::blend::blended(1.0 - prior_share, d, p)),
             _ => delivered_s,
         };
+        // That blend blended in turn with the previous discharge's fit, never after a long rest: the fit
+        // carries no recovery (`bcal calibrate`'s rule).
+        let previous_share = match (own_bin.and_then(|b| self.previous_weights[b]), blended_s, previous[TWIN_DELIVERED])
+        {
+            (Some(w), Some(_), Some(_)) if !long_rest => 1.0 - w,
+            _ => 0.0,
+        };
+        let with_previous_s = match (blended_s, previous[TWIN_DELIVERED]) {
+            (Some(b), Some(p)) if previous_share > 0.0 => Some(crate::blend::blended(1.0 - previous_share, b, p)),
+            _ => blended_s,
+        };
         if self.rebuild.is_some() {
             self.samples.push(s);
         }
@@ -887,14 +941,17 @@ impl<'a> Stream<'a> {
         // rest of more than a day (the record of ordinary rests does not speak for it; `bcal calibrate`'s rule).
         let bin = eod_method_s.or(eod_prior_s).map(|e| share_bin(load_on_s, r.time_s, e));
         let from_prior = matches!(bin, Some(b) if self.prior_serves[b] && eod_prior_s.is_some() && !long_rest);
-        let eod_s = if from_prior { eod_prior_s } else { blended_s };
-        let mut eods = [None; 12];
+        let eod_s = if from_prior { eod_prior_s } else { with_previous_s };
+        let mut eods = [None; N_SOURCES];
         eods[METHOD] = eod_method_s;
         eods[PRIOR] = eod_prior_s;
         eods[METHOD_TWINS..METHOD_TWINS + 4].copy_from_slice(&own);
         eods[PRIOR_TWINS..PRIOR_TWINS + 4].copy_from_slice(&prior);
         eods[BLENDED] = blended_s;
         eods[SERVED] = eod_s;
+        eods[PREVIOUS] = eod_previous_s;
+        eods[PREVIOUS_TWINS..PREVIOUS_TWINS + 4].copy_from_slice(&previous);
+        eods[WITH_PREVIOUS] = with_previous_s;
         self.track_eod(r, eods, dv);
         let on = self.eod_track.load_on_s;
         let (eod_lo_s, eod_hi_s) = match (eod_s, on, bin.and_then(|b| self.sources[SERVED].interval(b))) {
@@ -921,7 +978,8 @@ impl<'a> Stream<'a> {
             eod_from_prior: from_prior,
             eod_recentred: !from_prior && delivered_s.is_some() && delivered_from == Twin::Recentred,
             eod_on_voltage_change: !from_prior && delivered_s.is_some() && delivered_from == Twin::OnVoltage,
-            eod_prior_weight: if from_prior { 1.0 } else { prior_share },
+            eod_prior_weight: if from_prior { 1.0 } else { prior_share * (1.0 - previous_share) },
+            eod_previous_weight: if from_prior { 0.0 } else { previous_share },
             discharge: self.discharge,
         })
     }
@@ -967,9 +1025,10 @@ impl<'a> Stream<'a> {
             });
         }
         // The discharge's loaded readings, to the cut-off, for the voltage change of the next (a piece's
-        // start is unseen: its times since the load came on are not the discharge's).
+        // start is unseen: its times since the load came on are not the discharge's), and its fit.
         if self.loaded_n > 0 {
             self.previous_loaded = if piece { None } else { self.loaded_readings() };
+            self.previous_fit = self.voltage_fit.take();
         }
         // A piece joined under load is the rest of a discharge the life has counted already.
         if self.loaded_n > 0 && !piece {
@@ -1022,6 +1081,10 @@ impl<'a> Stream<'a> {
         // The same kind, setting and network built once already: it builds again.
         self.cal = build(&next, *net).expect("the stream's calibrator was built from this setting");
         self.prior_cal = prior_alone(&next);
+        self.previous_cal = self.previous_fit.and_then(|d| {
+            (setup.kind != CalibratorKind::Uncalibrated)
+                .then(|| Box::new(Uncalibrated::pinned(&next.spec.tracker, &d)) as Box<dyn Calibrator + Send + 'a>)
+        });
         self.rest_before_s = rest_s;
         self.prior_mean = Some(mean);
         self.reset_discharge();
@@ -1052,6 +1115,7 @@ impl<'a> Stream<'a> {
         self.eod_track = EodTrack::default();
         self.samples.clear();
         self.end_fit = None;
+        self.voltage_fit = None;
         self.load = LoadMean::default();
         // A stretch that never drew a load (a charge seen after lost readings, a stream that began on a
         // charge) was no discharge: the next one keeps its number.
@@ -1065,7 +1129,7 @@ impl<'a> Stream<'a> {
     /// discharge's own interval is never set by its own outcome: a prediction is made before its end is
     /// known), learns the calibrator's bias and its line in the voltage change per share again, and decides
     /// again at which shares the prior alone and the two twins predict.
-    fn track_eod(&mut self, r: &Reading, eod_s: [Option<f64>; 12], dv: Option<f64>) {
+    fn track_eod(&mut self, r: &Reading, eod_s: [Option<f64>; N_SOURCES], dv: Option<f64>) {
         let t = &mut self.eod_track;
         let cutoff_v = self.spec.cutoff_v;
         if t.ended_s.is_some() {
@@ -1104,7 +1168,7 @@ impl<'a> Stream<'a> {
             src.score(on, end_s);
         }
         self.prior_serves =
-            std::array::from_fn(|b| self.prior_cal.is_some() && earns(&self.sources, PRIOR, BLENDED, b));
+            std::array::from_fn(|b| self.prior_cal.is_some() && earns(&self.sources, PRIOR, WITH_PREVIOUS, b));
         // The blend's record: this discharge's errors of the two as delivered, per share.
         let last = |src: usize, f: u32| self.sources[src].errors_at(f).last().copied().flatten();
         let pairs = std::array::from_fn(|b| {
@@ -1119,6 +1183,21 @@ impl<'a> Stream<'a> {
             let pairs: Vec<(f64, f64)> = self.blend_record.iter().filter_map(|d| d[b]).collect();
             crate::blend::blend_weight(&pairs)
         });
+        // The previous fit's record: discharges after a long rest do not count (it never serves there).
+        if !self.rest_before_s.is_some_and(|x| x > LONG_REST_S) {
+            let pairs = std::array::from_fn(|b| {
+                let f = EOD_FRACTIONS_PCT[b];
+                last(BLENDED, f).zip(last(PREVIOUS_TWINS + TWIN_DELIVERED, f))
+            });
+            if self.previous_record.len() == crate::blend::BLEND_WINDOW {
+                self.previous_record.pop_front();
+            }
+            self.previous_record.push_back(pairs);
+            self.previous_weights = std::array::from_fn(|b| {
+                let pairs: Vec<(f64, f64)> = self.previous_record.iter().filter_map(|d| d[b]).collect();
+                crate::blend::blend_weight(&pairs)
+            });
+        }
         let changes = std::mem::take(&mut self.voltage_changes);
         for twins in &mut self.twins {
             twins.learn(&self.sources, on, end_s, &changes);
@@ -1133,8 +1212,9 @@ impl<'a> Stream<'a> {
                 Some((d, m)) => (TrackerSpec { model: m.clone(), ..self.spec.clone() }, d.r_o_ohm),
                 None => (self.spec.clone(), self.cal.estimate().r_o_ohm),
             };
-            if let Some((_, m)) = refitted {
+            if let Some((d, m)) = refitted {
                 self.model_next = Some(m);
+                self.voltage_fit = Some(d);
             }
             let before = &self.samples[..self.samples.len().saturating_sub(1)];
             self.end_fit = crate::end_fit::q_mobile_to_end(&spec, before, end_s, r_o_ohm)
@@ -1161,6 +1241,13 @@ impl<'a> Stream<'a> {
     /// have been followed to the cut-off with both predicting there).
     pub fn prior_blend_weights(&self) -> [Option<f64>; 3] {
         self.blend_weights.map(|w| w.map(|w| 1.0 - w))
+    }
+
+    /// Per share of the discharge: the previous discharge's fit's weight in the blend given there now
+    /// ([`Estimate::eod_previous_weight`] after a rest of up to a day; None before 8 such discharges have
+    /// been followed to the cut-off with both predicting there).
+    pub fn previous_blend_weights(&self) -> [Option<f64>; 3] {
+        self.previous_weights.map(|w| w.map(|w| 1.0 - w))
     }
 
     /// Per share of the discharge: whether the calibrator's own prediction recentred on its bias is given
@@ -1789,6 +1876,68 @@ mod tests {
         }
     }
 
+    /// The blend with the prior is blended in turn with the previous discharge's fit carried over, once the
+    /// records of both tell the weight: on the cell of the tests before, followed by the joint UKF with a fit
+    /// of each discharge that ended (an oracle: the parameters it was simulated with; the doctor's fit is
+    /// tested in `bcal_doctor`), the fit carried over predicts from the second discharge, and on the tenth
+    /// (eight scored with it) every prediction is the weighted mean of the blend and the fit's as
+    /// delivered, the fit's weight (`eod_previous_weight`) between 0 and 1 (where the prior alone does not
+    /// predict alone: then 0); before, 0.
+    #[test]
+    fn the_blend_is_blended_with_the_previous_discharges_fit_once_their_records_tell_the_weight() {
+        let truths = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let seen = truths.clone();
+        let (readings, starts) = cycler_life(10, |k, spec| {
+            let spec = EpisodeSpec {
+                soc0: 0.85 + 0.01 * (k % 10) as f64,
+                cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
+                ..spec
+            };
+            seen.lock().unwrap().push(spec.truth);
+            spec
+        });
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let model = setup.spec.tracker.model.clone();
+        let fitted = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let (n, all) = (fitted.clone(), truths.clone());
+        let mut stream = Stream::of(&setup, None, None).unwrap().with_refit(Box::new(move |_| {
+            let k = n.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            Some((all.lock().unwrap()[k], model.clone()))
+        }));
+        let cutoff_v = stream.spec().cutoff_v;
+        let mut blended_readings = 0;
+        for d in 0..10 {
+            for r in &readings[starts[d]..starts[d + 1]] {
+                let e = stream.step(r).unwrap();
+                let Some(eod_s) = e.eod_s.filter(|_| r.current_a > LOAD_THRESHOLD_A && r.voltage_v >= cutoff_v) else {
+                    continue;
+                };
+                let previous = stream.sources[PREVIOUS].predictions.last().map(|p| p.0);
+                assert_eq!(previous == Some(r.time_s), d >= 1, "discharge {d}: the fit carried over predicts");
+                let w = e.eod_previous_weight;
+                if d < 9 {
+                    assert_eq!(w, 0.0, "discharge {d}");
+                    continue;
+                }
+                if e.eod_from_prior {
+                    // The prior alone predicts alone here (it beat the blend on 8 of the last 10).
+                    assert_eq!(w, 0.0);
+                    continue;
+                }
+                blended_readings += 1;
+                assert!(w > 0.0 && w < 1.0, "discharge {d}: the fit's weight {w}");
+                let last = |src: usize| stream.sources[src].predictions.last().unwrap();
+                let (blended, fit) = (last(BLENDED), last(PREVIOUS_TWINS + TWIN_DELIVERED));
+                assert_eq!((blended.0, fit.0), (r.time_s, r.time_s), "both predicted at this reading");
+                let want = (1.0 - w) * blended.1 + w * fit.1;
+                assert!((eod_s - want).abs() < 1e-9 * want, "discharge {d}: {eod_s} against {want}");
+            }
+        }
+        assert!(blended_readings > 100, "readings of the tenth discharge blended with the fit: {blended_readings}");
+        assert_eq!(fitted.load(std::sync::atomic::Ordering::SeqCst), 10, "one fit per discharge that ended");
+        assert!(stream.previous_blend_weights().iter().all(Option::is_some), "{:?}", stream.previous_blend_weights());
+    }
+
     /// A stream handed a refit ([`Stream::with_refit`]) calls it once per discharge that reaches its cut-off
     /// and runs each next discharge on the model it returns: on a cell with B0005's diagnosed error (the
     /// electrodes' balance shifted, slower charge transfer) followed on the base model, a refit that returns
@@ -1972,7 +2121,9 @@ mod tests {
         let (readings, starts, setup) = two_discharges();
         let half = starts[0] + (starts[1] - starts[0]) / 2;
         let mut stream = fed(&setup, &readings[..half]);
-        assert!(stream.sources.iter().all(|s| !s.predictions.is_empty()));
+        // Every source predicted but the previous discharge's fit (this is the first).
+        let fit = PREVIOUS..PREVIOUS_TWINS + 4;
+        assert!(stream.sources.iter().enumerate().all(|(k, s)| s.predictions.is_empty() == fit.contains(&k)));
         // Its next reading at rest, hours later: a new discharge, nothing of the last one's predictions kept.
         stream.step(&Reading { time_s: readings[half].time_s + 7200.0, ..readings[starts[1]] }).unwrap();
         assert_eq!(stream.discharges(), 2);

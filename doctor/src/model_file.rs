@@ -63,40 +63,15 @@ impl DiagnosedModel {
         extension_of(&self.causes, &self.latest, reference_k)
     }
 
-    /// The model's per-cycle values refitted on one discharge a live stream has followed to its cut-off, as
-    /// `bcal calibrate` refits every discharge that ends ([`crate::fit::refit_cycles`], the shared values
-    /// frozen): its readings from the first (the rest before the load included) to the first loaded one at
-    /// or below `cutoff_v`, the model's Arrhenius reference `reference_k`. Returns the fitted qMobile and Ro
-    /// and the model the next discharge runs; None when the model has no per-cycle value, the readings hold
-    /// no load window, or the fit fails (the stream keeps the model it ran).
+    /// The model refitted on one discharge a live stream has followed to its cut-off, as `bcal calibrate`
+    /// fits every discharge that ends ([`fit_discharge`] under the diagnosis's causes and shared values).
     pub fn refit(
         &self,
         samples: &[Sample],
         cutoff_v: f64,
         reference_k: Option<f64>,
     ) -> Option<(Degradation, ModelExtension)> {
-        if !self.causes.iter().any(|c| !c.cycle_params().is_empty()) {
-            return None;
-        }
-        let t0 = samples.first()?.t_s;
-        let temps: Vec<f64> = samples.iter().map(|x| x.temperature_k).collect();
-        let d = Discharge {
-            cell: self.cell.clone(),
-            cycle: 0,
-            source: PathBuf::from("(stream)"),
-            ambient_k: temps[0],
-            time_s: samples.iter().map(|x| x.t_s - t0).collect(),
-            voltage_v: samples.iter().map(|x| x.voltage_v).collect(),
-            current_a: samples.iter().map(|x| x.current_a).collect(),
-            temperature_k: Some(temps),
-            stated_capacity_ah: None,
-        };
-        let cfg = FitConfig::default();
-        let w = d.windows_with_cutoff(cfg.load_threshold_a, cfg.v_floor_v, Some(cutoff_v))?;
-        let rec = FitRecord::new(&d, w, &cfg);
-        let f = refit_cycles(&cfg, &[rec], &self.causes, &self.shared, None).ok()?;
-        let (q, ext) = (f.per_cycle.first()?, f.cycle_ext.first()?);
-        (q.q_mobile_c.is_finite() && q.r_o_ohm.is_finite()).then(|| (*q, extension_of(&self.causes, ext, reference_k)))
+        fit_discharge(&self.cell, &self.causes, &self.shared, samples, cutoff_v, reference_k)
     }
 
     /// What the calibrators run instead of the diagnosis's model, when they cannot carry all of it: one
@@ -164,6 +139,58 @@ struct TrainCycle {
     cycle: u32,
     #[serde(default)]
     extra: BTreeMap<String, f64>,
+}
+
+/// The fit of one discharge a live stream has followed to its cut-off, as `bcal calibrate` fits every
+/// discharge that ends ([`crate::fit::refit_cycles`], the shared values frozen): qMobile, Ro and the model's
+/// per-cycle values (none for the base model, `causes` empty) on its readings from the first (the rest
+/// before the load included) to the first loaded one at or below `cutoff_v`, the model's Arrhenius
+/// reference `reference_k`. Returns the fit and the model it was made under; None when the readings hold no
+/// load window or the fit fails.
+pub fn fit_discharge(
+    cell: &str,
+    causes: &[Cause],
+    shared: &ExtParams,
+    samples: &[Sample],
+    cutoff_v: f64,
+    reference_k: Option<f64>,
+) -> Option<(Degradation, ModelExtension)> {
+    let t0 = samples.first()?.t_s;
+    let temps: Vec<f64> = samples.iter().map(|x| x.temperature_k).collect();
+    let d = Discharge {
+        cell: cell.to_string(),
+        cycle: 0,
+        source: PathBuf::from("(stream)"),
+        ambient_k: temps[0],
+        time_s: samples.iter().map(|x| x.t_s - t0).collect(),
+        voltage_v: samples.iter().map(|x| x.voltage_v).collect(),
+        current_a: samples.iter().map(|x| x.current_a).collect(),
+        temperature_k: Some(temps),
+        stated_capacity_ah: None,
+    };
+    let cfg = FitConfig::default();
+    let w = d.windows_with_cutoff(cfg.load_threshold_a, cfg.v_floor_v, Some(cutoff_v))?;
+    let rec = FitRecord::new(&d, w, &cfg);
+    let f = refit_cycles(&cfg, &[rec], causes, shared, None).ok()?;
+    let (q, ext) = (f.per_cycle.first()?, f.cycle_ext.first()?);
+    (q.q_mobile_c.is_finite() && q.r_o_ohm.is_finite()).then(|| (*q, extension_of(causes, ext, reference_k)))
+}
+
+/// What a live stream fits on each discharge it follows to its cut-off (`bcal_calib::stream::Refit`): on
+/// the diagnosis's model, its per-cycle values refitted with qMobile and Ro, the next discharge running the
+/// refitted model; on the base model (`model` None), qMobile and Ro, the model staying `base`. The fit is
+/// the previous discharge's fit the stream blends with, and its Ro the end fit's.
+pub fn stream_refit(
+    model: Option<DiagnosedModel>,
+    base: ModelExtension,
+    cutoff_v: f64,
+    reference_k: Option<f64>,
+) -> impl FnMut(&[Sample]) -> Option<(Degradation, ModelExtension)> + Send {
+    move |samples| match &model {
+        Some(m) => m.refit(samples, cutoff_v, reference_k),
+        None => fit_discharge("(stream)", &[], &ExtParams::default(), samples, cutoff_v, reference_k)
+            .map(|(d, _)| (d, base.clone())),
+    }
 }
 
 /// Reads `path` (a `diagnosis.json` written by `bcal diagnose`, or the folder holding one).
@@ -356,7 +383,7 @@ mod tests {
 
     /// A stream's refit recovers a discharge's per-cycle value (the charge-transfer scale, 0.3 where the
     /// diagnosis's latest value is neutral) with its qMobile and Ro, on the readings as a stream holds them;
-    /// a model without per-cycle values has nothing to refit. (The record comes from the doctor's own model:
+    /// the base model fits qMobile and Ro alone. (The record comes from the doctor's own model:
     /// this checks that the stream's readings reach the fit, not the fit itself, which `fit`'s tests check.)
     #[test]
     fn a_stream_refits_the_per_cycle_values_on_a_discharge_it_followed() {
@@ -385,7 +412,9 @@ mod tests {
         assert!((ext.kinetics_scale / 0.3 - 1.0).abs() < 0.2, "kinetics {}", ext.kinetics_scale);
         assert!((q.q_mobile_c / 6000.0 - 1.0).abs() < 0.02 && (q.r_o_ohm / 0.12 - 1.0).abs() < 0.1, "{q:?}");
         assert_eq!(ext.causes, vec!["charge_transfer".to_string()]);
-        let base = DiagnosedModel { causes: vec![], ..m };
-        assert!(base.refit(&samples, 2.5, Some(297.15)).is_none());
+        let mut base = stream_refit(None, ModelExtension::default(), 2.5, Some(297.15));
+        let (q, ext) = base(&samples).expect("a load window to fit");
+        assert_eq!(ext, ModelExtension::default(), "the base model stays as it is");
+        assert!(q.q_mobile_c.is_finite() && q.r_o_ohm > 0.0, "{q:?}");
     }
 }

@@ -309,13 +309,15 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     }
     let spec = setup.spec.tracker.clone();
     let mut stream = Stream::of(&setup, net.as_ref(), a.ambient_c)?;
-    // The diagnosis's per-cycle values are refitted on every discharge the stream follows to its cut-off,
-    // as `bcal calibrate --model` refits every discharge that ends.
-    if let Some(m) = diagnosed.filter(|m| m.causes.iter().any(|c| !c.cycle_params().is_empty())) {
-        let (cutoff_v, reference_k) = (setup.spec.tracker.cutoff_v, setup.spec.tracker.model.reference_k);
+    // Every discharge the stream follows to its cut-off is fitted, as `bcal calibrate` fits every discharge
+    // that ends: the diagnosis's per-cycle values refitted with qMobile and Ro, on the base model qMobile and
+    // Ro; the next discharge blends with that fit carried over and starts from the end fit at its Ro.
+    let (cutoff_v, reference_k) = (setup.spec.tracker.cutoff_v, setup.spec.tracker.model.reference_k);
+    if diagnosed.as_ref().is_some_and(|m| m.causes.iter().any(|c| !c.cycle_params().is_empty())) {
         eprintln!("--model: its per-cycle parameters refitted on every discharge that reaches the cut-off");
-        stream = stream.with_refit(Box::new(move |samples| m.refit(samples, cutoff_v, reference_k)));
     }
+    let base = setup.spec.tracker.model.clone();
+    stream = stream.with_refit(Box::new(bcal_doctor::model_file::stream_refit(diagnosed, base, cutoff_v, reference_k)));
     // The current's sign: positive discharges unless told otherwise (a stream cannot be read ahead to
     // decide, so `auto` takes the documented convention).
     let sign = if a.current_sign == CurrentSign::DischargeNegative { -1.0 } else { 1.0 };
@@ -511,17 +513,27 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
             moved.join(", ")
         ));
     }
-    let weights = stream.prior_blend_weights();
-    if weights.iter().any(Option::is_some) {
-        let shown: Vec<String> = bcal_calib::widening::EOD_FRACTIONS_PCT
-            .iter()
-            .zip(weights)
-            .map(|(f, w)| format!("{f} %: {}", w.map_or("-".to_string(), |w| format!("{w:.2}"))))
-            .collect();
+    // Per share, a blend's weights as "10 %: 0.40, ..." (None when no share has one yet).
+    let per_share = |weights: [Option<f64>; 3]| -> Option<String> {
+        weights.iter().any(Option::is_some).then(|| {
+            let shown: Vec<String> = bcal_calib::widening::EOD_FRACTIONS_PCT
+                .iter()
+                .zip(weights)
+                .map(|(f, w)| format!("{f} %: {}", w.map_or("-".to_string(), |w| format!("{w:.2}"))))
+                .collect();
+            shown.join(", ")
+        })
+    };
+    if let Some(shown) = per_share(stream.prior_blend_weights()) {
         s.push_str(&format!(
             "; where the prior alone does not predict alone, the end is blended with it, the prior's weight by the \
-             two records over the last 15 discharges ({})",
-            shown.join(", ")
+             two records over the last 15 discharges ({shown})"
+        ));
+    }
+    if let Some(shown) = per_share(stream.previous_blend_weights()) {
+        s.push_str(&format!(
+            "; after rests of up to a day that blend is blended with the previous discharge's fit carried over, \
+             its weight ({shown})"
         ));
     }
     if let Some(e) = last {

@@ -87,12 +87,13 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
     d.set_item("eod_recentred", e.eod_recentred)?;
     d.set_item("eod_on_voltage_change", e.eod_on_voltage_change)?;
     d.set_item("eod_prior_weight", e.eod_prior_weight)?;
+    d.set_item("eod_previous_weight", e.eod_previous_weight)?;
     d.set_item("discharge", e.discharge)?;
     Ok(d)
 }
 
 /// The columns `run` returns, in order.
-const RUN_COLUMNS: [&str; 17] = [
+const RUN_COLUMNS: [&str; 18] = [
     "time_s",
     "q_mobile",
     "q_mobile_lo",
@@ -108,6 +109,7 @@ const RUN_COLUMNS: [&str; 17] = [
     "eod_recentred",
     "eod_on_voltage_change",
     "eod_prior_weight",
+    "eod_previous_weight",
     "discharge",
     "row",
 ];
@@ -160,16 +162,14 @@ impl Calibrator {
             setup.spec.lifetime = bcal_doctor::model_file::load_lifetime(p).map_err(doctor_error)?;
         }
         let net = policy_file.as_ref().map(|p| p.net()).transpose().map_err(value_error)?;
-        // The diagnosis's per-cycle values refitted on every discharge followed to its cut-off, as `bcal
-        // calibrate --follow --model` does.
-        let refit = diagnosed.filter(|m| m.causes.iter().any(|c| !c.cycle_params().is_empty()));
+        // Every discharge followed to its cut-off fitted (the diagnosis's per-cycle values with qMobile and
+        // Ro, or on the base model those two), as `bcal calibrate --follow` does.
         let (cut, reference) = (setup.spec.tracker.cutoff_v, setup.spec.tracker.model.reference_k);
+        let base = setup.spec.tracker.model.clone();
         let owned = Owned::try_new(net, |net| {
             let stream = Stream::of(&setup, net.as_ref(), ambient_c)?;
-            Ok::<_, StreamError>(match refit {
-                Some(m) => stream.with_refit(Box::new(move |samples| m.refit(samples, cut, reference))),
-                None => stream,
-            })
+            let refit = bcal_doctor::model_file::stream_refit(diagnosed, base, cut, reference);
+            Ok::<_, StreamError>(stream.with_refit(Box::new(refit)))
         })
         .map_err(value_error)?;
         Ok(Self { kind, stream: Mutex::new(owned) })
@@ -205,7 +205,10 @@ impl Calibrator {
     /// 15 discharges expect at the voltage this one reads against the one before at the same time since the
     /// load came on, where that beat the recentring on 8 of the last 10), `eod_prior_weight` (the prior
     /// alone's weight in eod_s: 1 where it predicts alone, its weight in the blend of the two, learned by
-    /// inverse mean squared error over the last 15 discharges, from the ninth on, else 0) and `discharge` (from 0: a new one
+    /// inverse mean squared error over the last 15 discharges, from the ninth on, else 0),
+    /// `eod_previous_weight` (the previous discharge's fit's weight in eod_s: that blend blended in turn
+    /// with the fit carried over, by the same rule on the discharges after rests of up to a day; 0 after a
+    /// longer rest or where the prior alone predicts) and `discharge` (from 0: a new one
     /// after a charge or a gap of more than half an hour, started from what the last one told: the charge its
     /// end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
@@ -301,6 +304,7 @@ impl Calibrator {
                     f64::from(u8::from(e.eod_recentred)),
                     f64::from(u8::from(e.eod_on_voltage_change)),
                     e.eod_prior_weight,
+                    e.eod_previous_weight,
                     f64::from(e.discharge),
                     k as f64,
                 ];

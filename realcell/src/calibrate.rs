@@ -733,6 +733,19 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // The prior alone recentred where that serves (as the reference it is delivered as, below): what each
     // streaming calibrator is blended with.
     let prior_twins = crate::recentre::serve(&prior_runs, &validation, &judged);
+    // The previous cycle's voltage fit carried over, recentred where that serves (as the reference it is
+    // delivered as): what the blend with the prior is blended with in turn.
+    let previous_pin = |b: &Before, _: &CellRecord, _: usize| (b.previous, b.model.clone());
+    let previous_twins = crate::recentre::serve(
+        &tune::Runs {
+            validation: pinned(&previous_pin, &validation, &validation_ref_before),
+            judged: pinned(&previous_pin, &judged, &judged_ref_before),
+        },
+        &validation,
+        &judged,
+    );
+    let companions =
+        tune::Companions { prior: &prior_runs, prior_delivered: &prior_twins.0, previous_delivered: &previous_twins.0 };
     // Every streaming calibrator is recentred, blended with the prior it starts from and held to it (issue
     // 18, item 5): the prior alone serves a share of a discharge where it beat the calibrator there, as
     // delivered (recentred where that serves, blended: what it would replace), on most of the last that
@@ -744,7 +757,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                    widenings: &mut serde_json::Map<String, serde_json::Value>,
                    runs: &mut Vec<(&'static str, Vec<CycleRun>)>| {
         let own_score = score(&judged, &r.judged);
-        let d = tune::deliver(&r, &prior_runs, &prior_twins.0, &validation, &judged);
+        let d = tune::deliver(&r, &companions, &validation, &judged);
         entry["recentred"] = serde_json::json!({"cycles": served_cycles(&judged, &d.recentred),
             "voltage_change_cycles": served_cycles(&judged, &d.on_voltage),
             "own_signed_pct": own_score.eod_signed_pct});
@@ -756,8 +769,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 its weight per share of the discharge (10 / 50 / 90 %) is the prior's mean squared error over the sum \
                 of both over the last {} discharges that ended (validation cycles first; none before {}), on the end \
                 and on the capacity each by its own record (`eod_weight`, `capacity_weight`: the calibrator's \
-                median weight over the judged discharges blended, and how many)",
-                bcal_calib::blend::BLEND_WINDOW, bcal_calib::blend::MIN_BLEND_PAIRS)});
+                median weight over the judged discharges blended, and how many); that blend is blended in turn with \
+                the previous cycle's fit (`previous_cycle`), recentred where that serves, by the same rule \
+                (`previous_cycle.eod_weight`, `previous_cycle.capacity_weight`: the first blend's median weight)",
+                bcal_calib::blend::BLEND_WINDOW, bcal_calib::blend::MIN_BLEND_PAIRS),
+            "previous_cycle": {"eod_weight": weights_json(&d.previous_eod_weights),
+                "capacity_weight": weights_json(&d.previous_capacity_weights)}});
         let (mut held, gate, capacity_gate) = (d.runs, d.prior_gate, d.capacity_gate);
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
         let w = calibrate_intervals(&hist, &judged, &mut held.judged);
@@ -768,7 +785,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             "alone": {"capacity_rmse_ah": alone.capacity_rmse_ah, "eod_error_pct": alone.eod_error_pct},
             "what": format!("the prior alone (`prior`) serves the readings of a judged discharge near a share of it \
                 (10 / 50 / 90 %, by the predicted end) when it beat this calibrator's EOD error there as delivered \
-                (recentred where that serves, blended with the prior: what it replaces) on at least \
+                (recentred where that serves, blended with the prior and the previous cycle: what it replaces) on at least \
                 {:.0} % of the last {} discharges that ended before it (validation cycles first) and in their mean \
                 (`prior_cycles`, per share); the capacity there by its own record, the capacity error against \
                 the data's charge (`prior_capacity_cycles`); `alone`: the calibrator's figures without it",
@@ -1048,11 +1065,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             // A new cell's model knows nothing of this cell: it learns nothing from its record either.
             "uncalibrated" => pinned_runs(),
             key => {
-                // The prior's runs and twins were made for the streaming calibrators: not made twice.
-                let (own, recentred, on_voltage) = if key == "prior" {
-                    prior_twins.clone()
-                } else {
-                    crate::recentre::serve(&pinned_runs(), &validation, &judged)
+                // The prior's and the previous cycle's runs and twins were made for the streaming calibrators:
+                // not made twice.
+                let (own, recentred, on_voltage) = match key {
+                    "prior" => prior_twins.clone(),
+                    "previous_cycle" => previous_twins.clone(),
+                    _ => crate::recentre::serve(&pinned_runs(), &validation, &judged),
                 };
                 recentrings.insert(
                     key.to_string(),

@@ -89,8 +89,9 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
         "Held-out cycles {} ({} records, {} reaching the {} V cut-off: {}); trained or fitted on cycles {}. Every \
          streaming calibrator read each discharge one reading at a time, with no look-ahead, and is scored as \
          delivered: each prediction recentred on the method's own record where that earned it, blended with the \
-         prior alone's by their errors over the last discharges that ended, the prior alone serving where it beat \
-         that (`settings.<method>.recentred`, `blended`, `held_to_prior`). Model: {}.\n",
+         prior alone's by their errors over the last discharges that ended, its end of discharge blended in turn \
+         with the previous cycle's fit's (not after rests of more than a day), the prior alone serving where it \
+         beat that (`settings.<method>.recentred`, `blended`, `held_to_prior`). Model: {}.\n",
         span(&r.cycles_judged),
         r.records.records,
         r.records.reaching_cutoff,

@@ -278,29 +278,49 @@ pub struct Delivered {
     /// ... its weights in the blend with the prior alone, on the end and on the capacity ([`blend_runs`]) ...
     pub eod_weights: Weights,
     pub capacity_weights: Weights,
+    /// ... that blend's weights in the blend with the previous cycle's fit ...
+    pub previous_eod_weights: Weights,
+    pub previous_capacity_weights: Weights,
     /// ... and where the prior alone served the end and the capacity in place of the blend.
     pub prior_gate: Served,
     pub capacity_gate: Served,
 }
 
+/// The other predictions a streaming method is combined with, each as delivered (recentred where that
+/// earned it): the prior alone and the previous cycle's fit carried over.
+pub struct Companions<'r> {
+    /// The prior alone as it runs (what the gate serves) and as delivered (what the method is blended with).
+    pub prior: &'r Runs,
+    pub prior_delivered: &'r Runs,
+    pub previous_delivered: &'r Runs,
+}
+
 /// A streaming method's runs `own` as `bcal calibrate` delivers them: recentred where either twin earned it,
-/// blended with the prior alone as delivered (`prior_delivered`, recentred where that earned it), and held
-/// to the prior alone (`prior`): it serves the end of discharge, and apart from it the capacity, where it beat
-/// the blend (what it would replace) on 8 of the last 10 and in their mean (issue 18, item 5). Shares are read
-/// off `own`'s predictions throughout, as a live stream reads them.
-pub fn deliver(
-    own: &Runs,
-    prior: &Runs,
-    prior_delivered: &Runs,
-    validation: &[CellRecord],
-    judged: &[CellRecord],
-) -> Delivered {
+/// blended with the prior alone as delivered, that blend blended with the previous cycle's fit as delivered
+/// (the prior moves the end fit by the lifetime model, the previous cycle carries the voltage fit: on cells
+/// whose voltage the model gets wrong, B0025's square wave and B0055 at 4 C, the voltage fit predicts the
+/// next end better than both), and held to the prior alone: it serves the end of discharge, and apart from
+/// it the capacity, where it beat the blend (what it would replace) on 8 of the last 10 and in their mean
+/// (issue 18, item 5). Shares are read off `own`'s predictions throughout, as a live stream reads them.
+pub fn deliver(own: &Runs, with: &Companions, validation: &[CellRecord], judged: &[CellRecord]) -> Delivered {
     let (recentred_runs, recentred, on_voltage) = crate::recentre::serve(own, validation, judged);
     let (blended, eod_weights, capacity_weights) =
-        blend_runs(prior_delivered, &recentred_runs, own, validation, judged);
-    let (mut runs, prior_gate) = gate_runs_onto(prior, &blended, &blended, own, validation, judged);
-    let capacity_gate = gate_capacity(prior, &blended, &mut runs, validation, judged);
-    Delivered { runs, recentred, on_voltage, eod_weights, capacity_weights, prior_gate, capacity_gate }
+        blend_runs(with.prior_delivered, &recentred_runs, own, validation, judged);
+    let (blended, previous_eod_weights, previous_capacity_weights) =
+        blend_runs_where(with.previous_delivered, &blended, own, validation, judged, Blend::EndNotAfterLongRest);
+    let (mut runs, prior_gate) = gate_runs_onto(with.prior, &blended, &blended, own, validation, judged);
+    let capacity_gate = gate_capacity(with.prior, &blended, &mut runs, validation, judged);
+    Delivered {
+        runs,
+        recentred,
+        on_voltage,
+        eod_weights,
+        capacity_weights,
+        previous_eod_weights,
+        previous_capacity_weights,
+        prior_gate,
+        capacity_gate,
+    }
 }
 
 /// Per share of the discharge ([`EOD_FRACTIONS_PCT`], by index), the calibrator's weight in its blend with
@@ -321,10 +341,53 @@ pub fn blend_runs(
     validation: &[CellRecord],
     judged: &[CellRecord],
 ) -> (Runs, Weights, Weights) {
+    blend_runs_where(prior, own, shares, validation, judged, Blend::Both)
+}
+
+/// What [`blend_runs_where`] blends.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Blend {
+    /// The end of discharge and the capacity, after any rest.
+    Both,
+    /// The end of discharge alone, and not after a rest of more than a day: what a fit carried over as it is
+    /// (the previous cycle's) can add, which holds no fade and no recovery.
+    EndNotAfterLongRest,
+}
+
+/// [`blend_runs`] of what `what` names; the rest is `own`'s (its capacity weights are then all None).
+pub fn blend_runs_where(
+    prior: &Runs,
+    own: &Runs,
+    shares: &Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+    what: Blend,
+) -> (Runs, Weights, Weights) {
     let weights =
         |err: fn(&[CellRecord], &[CycleRun], usize) -> Vec<f64>| share_weights(prior, own, validation, judged, err);
-    let (val_eod, jud_eod) = weights(|r, runs, b| per_cycle_at(r, runs, &[EOD_FRACTIONS_PCT[b]]));
-    let (val_cap, jud_cap) = weights(|r, runs, b| capacity_error_at(r, runs, capacity_scored_at(b)));
+    let none = |records: &[CellRecord]| -> Weights { std::array::from_fn(|_| vec![None; records.len()]) };
+    let ((val_eod, mut jud_eod), (val_cap, jud_cap)) = match what {
+        Blend::Both => (
+            weights(|r, runs, b| per_cycle_at(r, runs, &[EOD_FRACTIONS_PCT[b]])),
+            weights(|r, runs, b| capacity_error_at(r, runs, capacity_scored_at(b))),
+        ),
+        // The discharges after a long rest neither blend nor count in the record.
+        Blend::EndNotAfterLongRest => (
+            weights(|r, runs, b| {
+                let e = per_cycle_at(r, runs, &[EOD_FRACTIONS_PCT[b]]);
+                e.into_iter().zip(r).map(|(e, r)| if r.after_long_rest() { f64::NAN } else { e }).collect()
+            }),
+            (none(validation), none(judged)),
+        ),
+    };
+    let rest_ok = |r: &CellRecord| what == Blend::Both || !r.after_long_rest();
+    for w in &mut jud_eod {
+        for (w, r) in w.iter_mut().zip(judged) {
+            if !rest_ok(r) {
+                *w = None;
+            }
+        }
+    }
     let mix = |w: Option<f64>, o: Predicted, p: Predicted| -> Predicted {
         let (Some(w), Some(_), Some(_)) = (w, o.value, p.value) else { return o };
         let at = |a: Option<f64>, b: Option<f64>| match (a, b) {
@@ -339,7 +402,7 @@ pub fn blend_runs(
             p,
             o,
             s,
-            |_| true,
+            |k| rest_ok(&records[k]),
             |k, bin, sp, so| {
                 let mut step = so.clone();
                 step.eod = mix(we[bin][k], so.eod, sp.eod);
@@ -784,6 +847,11 @@ mod tests {
                 })
                 .unzip()
         };
+        let build_none = |cycles: std::ops::Range<u32>| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles
+                .map(|c| crate::record::test_discharge(c, 1.0, |_| Predicted::default(), Predicted::default()))
+                .unzip()
+        };
         let (validation, ov) = build(1..11, 3.0);
         let (judged, oj) = build(11..23, 3.0);
         let (_, pv) = build(1..11, -2.0);
@@ -792,7 +860,12 @@ mod tests {
         // Against the method's own predictions the prior would serve every share of every judged discharge.
         let (_, against_own) = gate_runs(&prior, &own, &validation, &judged);
         assert!(against_own.iter().all(|g| g.iter().all(|s| *s)), "{against_own:?}");
-        let d = deliver(&own, &prior, &prior, &validation, &judged);
+        // A previous cycle with no prediction takes no part.
+        let (_, nv) = build_none(1..11);
+        let (_, nj) = build_none(11..23);
+        let previous = Runs { validation: nv, judged: nj };
+        let with = Companions { prior: &prior, prior_delivered: &prior, previous_delivered: &previous };
+        let d = deliver(&own, &with, &validation, &judged);
         let first_only = [vec![true], vec![false; 11]].concat();
         assert!(d.prior_gate.iter().all(|g| g == &first_only), "{:?}", d.prior_gate);
         assert!(d.recentred.iter().chain(&d.on_voltage).all(|g| g.iter().all(|s| !s)), "no bias, no voltage change");
@@ -801,6 +874,41 @@ mod tests {
             let sign = if (k as u32 + 11).is_multiple_of(2) { 1.0 } else { -1.0 };
             let want = 100.0 + sign * if k == 0 { -2.0 } else { w * 3.0 - (1.0 - w) * 2.0 };
             assert!(run.steps.iter().all(|s| (s.eod.value.unwrap() - want).abs() < 1e-9), "judged {k}: {want}");
+        }
+    }
+
+    /// The blend with the prior is blended in turn with the previous cycle's fit: a method and a prior that
+    /// err alike, 3 s late and early in turn, and a previous cycle that errs the other way. From the ninth
+    /// discharge that ended (validation cycles first) they take half each and their mean lands on the end;
+    /// the prior alone, 3 s off, never serves against it.
+    #[test]
+    fn the_previous_cycle_takes_its_weight_by_its_record() {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 5.0), hi: Some(v + 5.0) };
+        let build = |cycles: std::ops::Range<u32>, off_s: f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles
+                .map(|c| {
+                    let e = if c % 2 == 0 { off_s } else { -off_s };
+                    crate::record::test_discharge(c, 1.0, |_| at(100.0 + e), at(1.0))
+                })
+                .unzip()
+        };
+        let (validation, ov) = build(1..11, 3.0);
+        let (judged, oj) = build(11..23, 3.0);
+        let (_, qv) = build(1..11, -3.0);
+        let (_, qj) = build(11..23, -3.0);
+        let own = Runs { validation: ov, judged: oj };
+        let previous = Runs { validation: qv, judged: qj };
+        let with = Companions { prior: &own, prior_delivered: &own, previous_delivered: &previous };
+        let d = deliver(&own, &with, &validation, &judged);
+        assert!(d.prior_gate.iter().flatten().all(|s| !s), "{:?}", d.prior_gate);
+        assert!(d.previous_eod_weights.iter().flatten().all(|w| w.is_some_and(|w| (w - 0.5).abs() < 1e-12)));
+        for (k, run) in d.runs.judged.iter().enumerate() {
+            assert!(run.steps.iter().all(|s| (s.eod.value.unwrap() - 100.0).abs() < 1e-9), "judged {k}");
+        }
+        for (k, run) in d.runs.validation.iter().enumerate() {
+            let on_end = run.steps.iter().all(|s| (s.eod.value.unwrap() - 100.0).abs() < 1e-9);
+            assert_eq!(on_end, k >= bcal_calib::blend::MIN_BLEND_PAIRS, "validation {k}");
         }
     }
 }
