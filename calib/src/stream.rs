@@ -417,18 +417,12 @@ pub struct Stream<'a> {
     /// Per share ([`EOD_FRACTIONS_PCT`]): whether the prior alone predicts the end there ([`crate::tune::earns`]
     /// on the last [`WINDOW`] discharges scored).
     prior_serves: [bool; 3],
-    /// Per discharge scored (the last [`crate::blend::BLEND_WINDOW`]) and share, the relative errors of the
-    /// calibrator and of the prior alone, each as delivered (recentred where that serves), where both
-    /// predicted there ...
-    blend_record: VecDeque<[Option<(f64, f64)>; 3]>,
-    /// ... and per share the calibrator's weight in the blend learned from them
-    /// ([`crate::blend::blend_weight`]; None: too few yet).
-    blend_weights: [Option<f64>; 3],
-    /// Likewise the errors of that blend and of the previous discharge's fit as delivered, on the discharges
-    /// scored after rests of up to a day (the fit carries no recovery) ...
-    previous_record: VecDeque<[Option<(f64, f64)>; 3]>,
-    /// ... and per share the blend's weight against the fit.
-    previous_weights: [Option<f64>; 3],
+    /// The record of the calibrator and the prior alone, each as delivered (recentred where that serves),
+    /// and the calibrator's weight in their blend ...
+    prior_blend: BlendRecord,
+    /// ... and of that blend and the previous discharge's fit as delivered, on the discharges scored after
+    /// rests of up to a day (the fit carries no recovery), and the blend's weight against the fit.
+    previous_blend: BlendRecord,
     /// The previous discharge's fit, pinned for the whole discharge (its state from the readings), where the
     /// last discharge was fitted ([`Refit`]) ...
     previous_cal: Option<Box<dyn Calibrator + Send + 'a>>,
@@ -613,6 +607,29 @@ impl Twins {
     }
 }
 
+/// Two sources' record for their blend ([`crate::blend`]): per discharge scored (the last
+/// [`crate::blend::BLEND_WINDOW`]) and share, the two relative errors where both predicted there, and per
+/// share the first's weight learned from them ([`crate::blend::blend_weight`]; None: too few yet).
+#[derive(Clone, Debug, Default)]
+struct BlendRecord {
+    record: VecDeque<[Option<(f64, f64)>; 3]>,
+    weights: [Option<f64>; 3],
+}
+
+impl BlendRecord {
+    /// Adds a discharge's pairs of errors and learns the weights again.
+    fn push(&mut self, pairs: [Option<(f64, f64)>; 3]) {
+        if self.record.len() == crate::blend::BLEND_WINDOW {
+            self.record.pop_front();
+        }
+        self.record.push_back(pairs);
+        self.weights = std::array::from_fn(|b| {
+            let pairs: Vec<(f64, f64)> = self.record.iter().filter_map(|d| d[b]).collect();
+            crate::blend::blend_weight(&pairs)
+        });
+    }
+}
+
 /// One source of end-of-discharge predictions: its predictions in the current discharge, the scores of
 /// the last discharges followed to their cut-off, and the interval learned from them.
 #[derive(Clone, Debug, Default)]
@@ -733,10 +750,8 @@ impl<'a> Stream<'a> {
             sources: Default::default(),
             prior_cal: None,
             prior_serves: [false; 3],
-            blend_record: VecDeque::new(),
-            blend_weights: [None; 3],
-            previous_record: VecDeque::new(),
-            previous_weights: [None; 3],
+            prior_blend: BlendRecord::default(),
+            previous_blend: BlendRecord::default(),
             previous_cal: None,
             previous_fit: None,
             voltage_fit: None,
@@ -915,7 +930,7 @@ impl<'a> Stream<'a> {
         // The two blended by their records at this share (after a long rest too: a weighted mean of two
         // estimates is no switch to one whose record does not speak for the rest).
         let own_bin = eod_method_s.map(|e| share_bin(load_on_s, r.time_s, e));
-        let prior_share = match (own_bin.and_then(|b| self.blend_weights[b]), delivered_s, prior_delivered_s) {
+        let prior_share = match (own_bin.and_then(|b| self.prior_blend.weights[b]), delivered_s, prior_delivered_s) {
             (Some(w), Some(_), Some(_)) => 1.0 - w,
             _ => 0.0,
         };
@@ -925,11 +940,11 @@ impl<'a> Stream<'a> {
         };
         // That blend blended in turn with the previous discharge's fit, never after a long rest: the fit
         // carries no recovery (`bcal calibrate`'s rule).
-        let previous_share = match (own_bin.and_then(|b| self.previous_weights[b]), blended_s, previous[TWIN_DELIVERED])
-        {
-            (Some(w), Some(_), Some(_)) if !long_rest => 1.0 - w,
-            _ => 0.0,
-        };
+        let previous_share =
+            match (own_bin.and_then(|b| self.previous_blend.weights[b]), blended_s, previous[TWIN_DELIVERED]) {
+                (Some(w), Some(_), Some(_)) if !long_rest => 1.0 - w,
+                _ => 0.0,
+            };
         let with_previous_s = match (blended_s, previous[TWIN_DELIVERED]) {
             (Some(b), Some(p)) if previous_share > 0.0 => Some(crate::blend::blended(1.0 - previous_share, b, p)),
             _ => blended_s,
@@ -1169,34 +1184,15 @@ impl<'a> Stream<'a> {
         }
         self.prior_serves =
             std::array::from_fn(|b| self.prior_cal.is_some() && earns(&self.sources, PRIOR, WITH_PREVIOUS, b));
-        // The blend's record: this discharge's errors of the two as delivered, per share.
+        // The blends' records: this discharge's errors of the two each blends, as delivered, per share; the
+        // previous fit's not after a long rest (it never serves there).
         let last = |src: usize, f: u32| self.sources[src].errors_at(f).last().copied().flatten();
-        let pairs = std::array::from_fn(|b| {
-            let f = EOD_FRACTIONS_PCT[b];
-            last(DELIVERED, f).zip(last(PRIOR_TWINS + TWIN_DELIVERED, f))
-        });
-        if self.blend_record.len() == crate::blend::BLEND_WINDOW {
-            self.blend_record.pop_front();
-        }
-        self.blend_record.push_back(pairs);
-        self.blend_weights = std::array::from_fn(|b| {
-            let pairs: Vec<(f64, f64)> = self.blend_record.iter().filter_map(|d| d[b]).collect();
-            crate::blend::blend_weight(&pairs)
-        });
-        // The previous fit's record: discharges after a long rest do not count (it never serves there).
+        let pairs = |a: usize, b: usize| {
+            std::array::from_fn(|k| last(a, EOD_FRACTIONS_PCT[k]).zip(last(b, EOD_FRACTIONS_PCT[k])))
+        };
+        self.prior_blend.push(pairs(DELIVERED, PRIOR_TWINS + TWIN_DELIVERED));
         if !self.rest_before_s.is_some_and(|x| x > LONG_REST_S) {
-            let pairs = std::array::from_fn(|b| {
-                let f = EOD_FRACTIONS_PCT[b];
-                last(BLENDED, f).zip(last(PREVIOUS_TWINS + TWIN_DELIVERED, f))
-            });
-            if self.previous_record.len() == crate::blend::BLEND_WINDOW {
-                self.previous_record.pop_front();
-            }
-            self.previous_record.push_back(pairs);
-            self.previous_weights = std::array::from_fn(|b| {
-                let pairs: Vec<(f64, f64)> = self.previous_record.iter().filter_map(|d| d[b]).collect();
-                crate::blend::blend_weight(&pairs)
-            });
+            self.previous_blend.push(pairs(BLENDED, PREVIOUS_TWINS + TWIN_DELIVERED));
         }
         let changes = std::mem::take(&mut self.voltage_changes);
         for twins in &mut self.twins {
@@ -1240,14 +1236,14 @@ impl<'a> Stream<'a> {
     /// now ([`Estimate::eod_prior_weight`] where the prior alone does not predict; None before 8 discharges
     /// have been followed to the cut-off with both predicting there).
     pub fn prior_blend_weights(&self) -> [Option<f64>; 3] {
-        self.blend_weights.map(|w| w.map(|w| 1.0 - w))
+        self.prior_blend.weights.map(|w| w.map(|w| 1.0 - w))
     }
 
     /// Per share of the discharge: the previous discharge's fit's weight in the blend given there now
     /// ([`Estimate::eod_previous_weight`] after a rest of up to a day; None before 8 such discharges have
     /// been followed to the cut-off with both predicting there).
     pub fn previous_blend_weights(&self) -> [Option<f64>; 3] {
-        self.previous_weights.map(|w| w.map(|w| 1.0 - w))
+        self.previous_blend.weights.map(|w| w.map(|w| 1.0 - w))
     }
 
     /// Per share of the discharge: whether the calibrator's own prediction recentred on its bias is given
@@ -1832,6 +1828,16 @@ mod tests {
         assert!(readings.iter().all(|r| !un.step(r).unwrap().eod_from_prior));
     }
 
+    /// That `eod_s`, given at `t_s`, is the mean of the last predictions of `sources` (both made at `t_s`),
+    /// the second weighing `w`.
+    fn assert_blended(stream: &Stream, sources: (usize, usize), w: f64, t_s: f64, eod_s: f64) {
+        let last = |src: usize| stream.sources[src].predictions.last().unwrap();
+        let (a, b) = (last(sources.0), last(sources.1));
+        assert_eq!((a.0, b.0), (t_s, t_s), "both predicted at this reading");
+        let want = (1.0 - w) * a.1 + w * b.1;
+        assert!((eod_s - want).abs() < 1e-9 * want, "at {t_s} s: {eod_s} against {want}");
+    }
+
     /// The cell of the test before, followed by the joint UKF for ten discharges: once eight have been
     /// followed to the cut-off, every prediction is the weighted mean of the calibrator's (as delivered) and
     /// the prior alone's, the prior's weight (`eod_prior_weight`) between 0 and 1, and at half of the ninth
@@ -1860,11 +1866,7 @@ mod tests {
                 }
                 let w = e.eod_prior_weight;
                 assert!(w > 0.0 && w < 1.0, "discharge {d}: prior weight {w}");
-                let last = |src: usize| stream.sources[src].predictions.last().unwrap();
-                let (delivered, prior) = (last(DELIVERED), last(PRIOR_TWINS + TWIN_DELIVERED));
-                assert_eq!((delivered.0, prior.0), (r.time_s, r.time_s), "both predicted at this reading");
-                let want = (1.0 - w) * delivered.1 + w * prior.1;
-                assert!((eod_s - want).abs() < 1e-9 * want, "discharge {d}: {eod_s} against {want}");
+                assert_blended(&stream, (DELIVERED, PRIOR_TWINS + TWIN_DELIVERED), w, r.time_s, eod_s);
                 if at_half.is_none() && r.time_s >= on + 0.5 * (end - on) {
                     let own = stream.predict_eod_s(e.eod_current_a.unwrap()).unwrap();
                     at_half = Some(((eod_s - end).abs(), (own - end).abs()));
@@ -1926,11 +1928,7 @@ mod tests {
                 }
                 blended_readings += 1;
                 assert!(w > 0.0 && w < 1.0, "discharge {d}: the fit's weight {w}");
-                let last = |src: usize| stream.sources[src].predictions.last().unwrap();
-                let (blended, fit) = (last(BLENDED), last(PREVIOUS_TWINS + TWIN_DELIVERED));
-                assert_eq!((blended.0, fit.0), (r.time_s, r.time_s), "both predicted at this reading");
-                let want = (1.0 - w) * blended.1 + w * fit.1;
-                assert!((eod_s - want).abs() < 1e-9 * want, "discharge {d}: {eod_s} against {want}");
+                assert_blended(&stream, (BLENDED, PREVIOUS_TWINS + TWIN_DELIVERED), w, r.time_s, eod_s);
             }
         }
         assert!(blended_readings > 100, "readings of the tenth discharge blended with the fit: {blended_readings}");

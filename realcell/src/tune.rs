@@ -569,6 +569,19 @@ pub fn chosen_at(
 mod tests {
     use super::*;
 
+    /// Discharges `cycles` whose every reading predicts the end (measured at 100 s) `off_s` late on even
+    /// cycles and as early on odd ones (interval 5 s each way), and the capacity (1 Ah) exactly.
+    fn alternating(cycles: std::ops::Range<u32>, off_s: f64) -> (Vec<CellRecord>, Vec<CycleRun>) {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 5.0), hi: Some(v + 5.0) };
+        cycles
+            .map(|c| {
+                let e = if c % 2 == 0 { off_s } else { -off_s };
+                crate::record::test_discharge(c, 1.0, |_| at(100.0 + e), at(1.0))
+            })
+            .unzip()
+    }
+
     fn candidate(index: usize, per_cycle_pct: Vec<f64>) -> Candidate {
         let eod_error_pct = per_cycle_pct.iter().sum::<f64>() / per_cycle_pct.len() as f64;
         Candidate { label: format!("c{index}"), eod_error_pct, index, per_cycle_pct }
@@ -838,15 +851,7 @@ mod tests {
     #[test]
     fn the_prior_alone_is_judged_against_the_blend_it_would_replace() {
         use crate::predict::Predicted;
-        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 5.0), hi: Some(v + 5.0) };
-        let build = |cycles: std::ops::Range<u32>, off_s: f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
-            cycles
-                .map(|c| {
-                    let e = if c % 2 == 0 { off_s } else { -off_s };
-                    crate::record::test_discharge(c, 1.0, |_| at(100.0 + e), at(1.0))
-                })
-                .unzip()
-        };
+        let build = alternating;
         let build_none = |cycles: std::ops::Range<u32>| -> (Vec<CellRecord>, Vec<CycleRun>) {
             cycles
                 .map(|c| crate::record::test_discharge(c, 1.0, |_| Predicted::default(), Predicted::default()))
@@ -883,16 +888,7 @@ mod tests {
     /// the prior alone, 3 s off, never serves against it.
     #[test]
     fn the_previous_cycle_takes_its_weight_by_its_record() {
-        use crate::predict::Predicted;
-        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 5.0), hi: Some(v + 5.0) };
-        let build = |cycles: std::ops::Range<u32>, off_s: f64| -> (Vec<CellRecord>, Vec<CycleRun>) {
-            cycles
-                .map(|c| {
-                    let e = if c % 2 == 0 { off_s } else { -off_s };
-                    crate::record::test_discharge(c, 1.0, |_| at(100.0 + e), at(1.0))
-                })
-                .unzip()
-        };
+        let build = alternating;
         let (validation, ov) = build(1..11, 3.0);
         let (judged, oj) = build(11..23, 3.0);
         let (_, qv) = build(1..11, -3.0);
