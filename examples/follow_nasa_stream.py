@@ -21,6 +21,7 @@ import csv
 import json
 import os
 import pathlib
+import re
 import shutil
 import statistics
 import subprocess
@@ -38,6 +39,8 @@ VOLTAGE_SERVED: list = []
 BLEND_WEIGHTS: list = []
 # The previous discharge's fit's weight in each scored prediction at half a discharge blended with it.
 PREVIOUS_WEIGHTS: list = []
+# The CLI's closing summary of the last stream followed (its stderr).
+LAST_SUMMARY: list = [""]
 
 
 def find_bcal() -> str:
@@ -86,6 +89,7 @@ def follow(bcal: str, kind: str, rows: list, cutoff_v: float, extra: list) -> li
                         "--cutoff-v", str(cutoff_v)] + extra, input=text, capture_output=True, text=True, check=False)
     if p.returncode != 0:
         raise SystemExit(f"bcal calibrate --follow failed: {p.stderr.strip()}")
+    LAST_SUMMARY[0] = p.stderr
     return [json.loads(line) for line in p.stdout.splitlines()]
 
 
@@ -177,6 +181,7 @@ def main() -> None:
     records = discharges(pathlib.Path(a.data), a.cell, first, last)
 
     stream = follow(bcal, a.kind, [r for rows in records for r in rows], a.cutoff_v, extra)
+    timing = re.search(r"parse \+ step \+ predict per reading: [^;\n]*", LAST_SUMMARY[0])
     joined, alone, k = [], [], 0
     shares = (0.1, 0.9)
     joined_at, alone_at = {f: [] for f in shares}, {f: [] for f in shares}
@@ -202,6 +207,8 @@ def main() -> None:
           f"{statistics.median(BLEND_WEIGHTS) if BLEND_WEIGHTS else 0.0:.2f}; with the previous discharge's fit at "
           f"half of {len(PREVIOUS_WEIGHTS)}, its median weight "
           f"{statistics.median(PREVIOUS_WEIGHTS) if PREVIOUS_WEIGHTS else 0.0:.2f})")
+    if timing:
+        print(f"  ({timing.group(0)}, as the CLI timed the one stream)")
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone, alone_at)
 
 
