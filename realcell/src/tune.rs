@@ -884,13 +884,15 @@ mod tests {
 
     /// The blend with the prior is blended in turn with the previous cycle's fit: a method and a prior that
     /// err alike, 3 s late and early in turn, and a previous cycle that errs the other way. From the ninth
-    /// discharge that ended (validation cycles first) they take half each and their mean lands on the end;
-    /// the prior alone, 3 s off, never serves against it.
+    /// discharge that ended (validation cycles first) they take half each and their mean lands on the end,
+    /// but after a rest of more than a day (the fit carries no recovery), where the method's own is given
+    /// and no weight; the prior alone, 3 s off, never serves against it.
     #[test]
     fn the_previous_cycle_takes_its_weight_by_its_record() {
         let build = alternating;
         let (validation, ov) = build(1..11, 3.0);
-        let (judged, oj) = build(11..23, 3.0);
+        let (mut judged, oj) = build(11..23, 3.0);
+        judged[5].rest_before_s = Some(3.0 * 86_400.0);
         let (_, qv) = build(1..11, -3.0);
         let (_, qj) = build(11..23, -3.0);
         let own = Runs { validation: ov, judged: oj };
@@ -898,9 +900,15 @@ mod tests {
         let with = Companions { prior: &own, prior_delivered: &own, previous_delivered: &previous };
         let d = deliver(&own, &with, &validation, &judged);
         assert!(d.prior_gate.iter().flatten().all(|s| !s), "{:?}", d.prior_gate);
-        assert!(d.previous_eod_weights.iter().flatten().all(|w| w.is_some_and(|w| (w - 0.5).abs() < 1e-12)));
+        for w in &d.previous_eod_weights {
+            for (k, w) in w.iter().enumerate() {
+                assert_eq!(w.map(|w| (w - 0.5).abs() < 1e-12), (k != 5).then_some(true), "judged {k}: {w:?}");
+            }
+        }
         for (k, run) in d.runs.judged.iter().enumerate() {
-            assert!(run.steps.iter().all(|s| (s.eod.value.unwrap() - 100.0).abs() < 1e-9), "judged {k}");
+            // Cycle 16, after the long rest: 3 s late, as the method alone.
+            let want = if k == 5 { 103.0 } else { 100.0 };
+            assert!(run.steps.iter().all(|s| (s.eod.value.unwrap() - want).abs() < 1e-9), "judged {k}");
         }
         for (k, run) in d.runs.validation.iter().enumerate() {
             let on_end = run.steps.iter().all(|s| (s.eod.value.unwrap() - 100.0).abs() < 1e-9);
