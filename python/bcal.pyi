@@ -79,8 +79,8 @@ class Estimate(TypedDict):
     eod_prior_weight: float
     """The prior alone's weight in eod_s: 1 where it predicts alone (eod_from_prior), its weight in the blend
     of the calibrator's prediction (as delivered) with the prior's where one is learned (by inverse mean
-    squared error at this share over the last 15 discharges followed to the cut-off, from the ninth on),
-    else 0. Where it is below 1, eod_recentred and eod_on_voltage_change tell which of the calibrator's
+    squared error at this share over the last 15 discharges followed to the cut-off, from the ninth on)
+    times that blend's share against the previous discharge's fit (1 - eod_previous_weight), else 0. Where it is below 1, eod_recentred and eod_on_voltage_change tell which of the calibrator's
     predictions is blended."""
     eod_previous_weight: float
     """The previous discharge's fit's weight in eod_s: the blend above is blended in turn with the prediction

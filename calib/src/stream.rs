@@ -170,7 +170,8 @@ pub struct Estimate {
     pub eod_on_voltage_change: bool,
     /// The prior alone's weight in the prediction: 1 where it predicts alone (`eod_from_prior`), its weight
     /// in the blend of the two ([`crate::blend`]) where one is learned (from the ninth discharge, once eight
-    /// have been followed to the cut-off), else 0. Where it is below 1, `eod_recentred` and
+    /// have been followed to the cut-off) times that blend's share against the previous discharge's fit (one
+    /// minus `eod_previous_weight`), else 0. Where it is below 1, `eod_recentred` and
     /// `eod_on_voltage_change` tell which of the calibrator's predictions is blended.
     pub eod_prior_weight: f64,
     /// The previous discharge's voltage fit's weight in the prediction: that blend is blended in turn with

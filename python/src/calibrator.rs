@@ -205,7 +205,8 @@ impl Calibrator {
     /// 15 discharges expect at the voltage this one reads against the one before at the same time since the
     /// load came on, where that beat the recentring on 8 of the last 10), `eod_prior_weight` (the prior
     /// alone's weight in eod_s: 1 where it predicts alone, its weight in the blend of the two, learned by
-    /// inverse mean squared error over the last 15 discharges, from the ninth on, else 0),
+    /// inverse mean squared error over the last 15 discharges, from the ninth on, times that blend's share
+    /// against the previous discharge's fit, else 0),
     /// `eod_previous_weight` (the previous discharge's fit's weight in eod_s: that blend blended in turn
     /// with the fit carried over, by the same rule on the discharges after rests of up to a day; 0 after a
     /// longer rest or where the prior alone predicts) and `discharge` (from 0: a new one
