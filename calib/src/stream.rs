@@ -923,7 +923,7 @@ impl<'a> Stream<'a> {
             None
         };
         // Each twin of the calibrator's and of the prior's, and each as delivered (none after a long rest).
-        let long_rest = self.rest_before_s.is_some_and(|x| x > LONG_REST_S);
+        let long_rest = self.after_long_rest();
         let (own, delivered_from) = self.twins[0].predict(eod_method_s, dv, load_on_s, r.time_s, long_rest);
         let (prior, _) = self.twins[1].predict(eod_prior_s, dv, load_on_s, r.time_s, long_rest);
         let (previous, _) = self.twins[2].predict(eod_previous_s, dv, load_on_s, r.time_s, long_rest);
@@ -1192,7 +1192,7 @@ impl<'a> Stream<'a> {
             std::array::from_fn(|k| last(a, EOD_FRACTIONS_PCT[k]).zip(last(b, EOD_FRACTIONS_PCT[k])))
         };
         self.prior_blend.push(pairs(DELIVERED, PRIOR_TWINS + TWIN_DELIVERED));
-        if !self.rest_before_s.is_some_and(|x| x > LONG_REST_S) {
+        if !self.after_long_rest() {
             self.previous_blend.push(pairs(BLENDED, PREVIOUS_TWINS + TWIN_DELIVERED));
         }
         let changes = std::mem::take(&mut self.voltage_changes);
@@ -1238,6 +1238,12 @@ impl<'a> Stream<'a> {
     /// have been followed to the cut-off with both predicting there).
     pub fn prior_blend_weights(&self) -> [Option<f64>; 3] {
         self.prior_blend.weights.map(|w| w.map(|w| 1.0 - w))
+    }
+
+    /// Whether the current discharge followed a rest of more than a day (no twin, gate or previous fit serves
+    /// after one).
+    fn after_long_rest(&self) -> bool {
+        self.rest_before_s.is_some_and(|x| x > LONG_REST_S)
     }
 
     /// Per share of the discharge: the previous discharge's fit's weight in the blend given there now
@@ -1792,13 +1798,19 @@ mod tests {
     }
 
     /// [`cycler_life`] of `n` discharges of a cell with what the doctor finds in B0005 (the electrodes'
-    /// balance shifted, slower charge transfer), each from a charge of 85-94 %.
-    fn b0005_like_life(n: u64) -> (Vec<Reading>, Vec<usize>) {
-        cycler_life(n, |k, spec| EpisodeSpec {
-            soc0: 0.85 + 0.01 * (k % 10) as f64,
-            cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
-            ..spec
-        })
+    /// balance shifted, slower charge transfer), each from a charge of 85-94 %, with each discharge's
+    /// parameters.
+    fn b0005_like_life(n: u64) -> (Vec<Reading>, Vec<usize>, Vec<Degradation>) {
+        let truths = std::cell::RefCell::new(Vec::new());
+        let (readings, starts) = cycler_life(n, |k, spec| {
+            truths.borrow_mut().push(spec.truth);
+            EpisodeSpec {
+                soc0: 0.85 + 0.01 * (k % 10) as f64,
+                cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
+                ..spec
+            }
+        });
+        (readings, starts, truths.into_inner())
     }
 
     /// Fourteen constant-current discharges of a cell that carries what the doctor finds in B0005 (shifted
@@ -1809,7 +1821,7 @@ mod tests {
     /// both) it predicts where it beat the filter on at least 8 of the last 10; never before.
     #[test]
     fn the_prior_alone_predicts_where_it_has_beaten_the_calibrator() {
-        let (readings, starts) = b0005_like_life(14);
+        let (readings, starts, _) = b0005_like_life(14);
         let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         let mut stream = Stream::of(&setup, None, None).unwrap();
         let mut served_from = None;
@@ -1846,7 +1858,7 @@ mod tests {
     /// own alone.
     #[test]
     fn the_calibrator_is_blended_with_its_prior_once_their_records_tell_the_weight() {
-        let (readings, starts) = b0005_like_life(10);
+        let (readings, starts, _) = b0005_like_life(10);
         let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         let mut stream = Stream::of(&setup, None, None).unwrap();
         let cutoff_v = stream.spec().cutoff_v;
@@ -1888,24 +1900,14 @@ mod tests {
     /// predict alone: then 0); before, 0.
     #[test]
     fn the_blend_is_blended_with_the_previous_discharges_fit_once_their_records_tell_the_weight() {
-        let truths = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
-        let seen = truths.clone();
-        let (readings, starts) = cycler_life(10, |k, spec| {
-            let spec = EpisodeSpec {
-                soc0: 0.85 + 0.01 * (k % 10) as f64,
-                cell_error: CellError { xp_shift: 0.03, xn_shift: -0.06, kinetics_scale: 0.3, ..Default::default() },
-                ..spec
-            };
-            seen.lock().unwrap().push(spec.truth);
-            spec
-        });
+        let (readings, starts, truths) = b0005_like_life(10);
         let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         let model = setup.spec.tracker.model.clone();
         let fitted = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
-        let (n, all) = (fitted.clone(), truths.clone());
+        let n = fitted.clone();
         let mut stream = Stream::of(&setup, None, None).unwrap().with_refit(Box::new(move |_| {
             let k = n.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-            Some((all.lock().unwrap()[k], model.clone()))
+            Some((truths[k], model.clone()))
         }));
         let cutoff_v = stream.spec().cutoff_v;
         let mut blended_readings = 0;
