@@ -498,6 +498,17 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         r.partial_start = short.contains(&r.cycle);
     }
     summary.partial_start = judged.iter().filter(|r| r.partial_start).map(|r| r.cycle).collect();
+    // What the stated capacity measures, read before any discharge is judged (it names a definition, it
+    // moves no prediction).
+    summary.stated_capacity = crate::record::stated_capacity(&train, cut);
+    if let Some(sc) = summary.stated_capacity.as_ref().filter(|sc| sc.differs_from_cutoff(cut)) {
+        progress(&format!(
+            "the stated capacities are the charge to about {:.1} V (median gap {:+.3} Ah over {} training records), not \
+             to the {cut} V cut-off ({:+.3} Ah): capacity errors against them carry that difference, against the \
+             data's charge they do not",
+            sc.voltage_v, sc.median_gap_ah, sc.records, sc.cutoff_median_gap_ah
+        ));
+    }
     if judged.is_empty() {
         let why = if input.judged.is_empty() {
             "no record was given to judge".to_string()

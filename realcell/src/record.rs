@@ -54,11 +54,38 @@ impl CellRecord {
         self.rest_before_s.is_some_and(|s| s > crate::prior::LONG_REST_S)
     }
 
+    /// The charge drawn from the load-on until the voltage first fell to `level_v` under load, Ah, as
+    /// [`CellRecord::data_capacity_ah`] is drawn to the cut-off (None where it never fell that far).
+    pub fn charge_to_v_ah(&self, level_v: f64) -> Option<f64> {
+        let on = self.samples.iter().position(|s| s.t_s >= self.load_on_s)?;
+        let at = |k: usize| {
+            let s = &self.samples[k];
+            (s.t_s, s.voltage_v, s.current_a)
+        };
+        let (k, t_s) = crossing(self.samples.len(), on, level_v, at)?;
+        Some(charge_to_ah(&self.samples[on.saturating_sub(1)..=k], t_s))
+    }
+
     /// Index of the first reading at or after `fraction` of the discharge (by time from the load-on).
     pub fn reading_at_fraction(&self, fraction: f64) -> Option<usize> {
         let t = self.load_on_s + fraction * self.discharge_s()?;
         self.samples.iter().position(|s| s.t_s >= t - 1e-9)
     }
+}
+
+/// The first reading from `on` (of `n`, each `at(k)` = time s, voltage V, current A) under load at or below
+/// `level_v`, and when the voltage reached it: linear between that reading and the one before.
+fn crossing(n: usize, on: usize, level_v: f64, at: impl Fn(usize) -> (f64, f64, f64)) -> Option<(usize, f64)> {
+    let k = (on..n).find(|&k| {
+        let (_, v, i) = at(k);
+        i > LOAD_THRESHOLD_A && v <= level_v
+    })?;
+    let (t1, v1, _) = at(k);
+    if k == on || k == 0 {
+        return Some((k, t1));
+    }
+    let (t0, v0, _) = at(k - 1);
+    Some((k, if v0 > v1 { t0 + (t1 - t0) * ((v0 - level_v) / (v0 - v1)).clamp(0.0, 1.0) } else { t1 }))
 }
 
 /// Why a discharge cannot be calibrated; each names the record and what to do.
@@ -83,17 +110,10 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
     }
     // The cut-off: the first reading under load at or below it. A record that stops under load above it
     // is cut short: calibrated, but no end of discharge to score.
-    let cut = (on..d.len()).find(|&k| d.current_a[k] > LOAD_THRESHOLD_A && d.voltage_v[k] <= cutoff_v);
+    let crossed = crossing(d.len(), on, cutoff_v, |k| (d.time_s[k], d.voltage_v[k], d.current_a[k]));
+    let cut = crossed.map(|(k, _)| k);
     let last = cut.unwrap_or_else(|| (on..d.len()).rev().find(|&k| d.current_a[k] > LOAD_THRESHOLD_A).unwrap_or(on));
-    let eod_s = cut.map(|k| {
-        // Linear between the reading before and the one at the cut-off.
-        let (v0, v1, t0, t1) = (d.voltage_v[k - 1], d.voltage_v[k], d.time_s[k - 1], d.time_s[k]);
-        if k > on && v0 > v1 {
-            t0 + (t1 - t0) * ((v0 - cutoff_v) / (v0 - v1)).clamp(0.0, 1.0)
-        } else {
-            t1
-        }
-    });
+    let eod_s = crossed.map(|(_, t)| t);
     let samples: Vec<Sample> = (0..=last)
         .map(|k| Sample {
             t_s: d.time_s[k],
@@ -140,6 +160,74 @@ pub struct RecordSummary {
     /// Judged discharges that started from a partial charge ([`CellRecord::partial_start`]): their end of
     /// discharge is scored, their capacity is not.
     pub partial_start: Vec<u32>,
+    /// What the source's stated capacity measures, read off the training records ([`stated_capacity`]).
+    pub stated_capacity: Option<StatedCapacity>,
+}
+
+/// The voltage the source's stated capacity is drawn to, as the data shows it: NASA's metadata states the
+/// charge to about 2.7 V on every cell, whatever its cut-off (B0055 at 4 C, cut off at 2.5 V: 0.05 Ah less than
+/// its charge to the cut-off), so a capacity predicted to the cut-off and scored against the stated one carries
+/// that difference as an error no calibrator can remove.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct StatedCapacity {
+    /// The voltage whose charge matches the stated capacity best (by the median absolute gap), V.
+    pub voltage_v: f64,
+    /// Median of the stated capacity less the data's charge to `voltage_v`, Ah ...
+    pub median_gap_ah: f64,
+    /// ... and less the data's charge to the cut-off, Ah.
+    pub cutoff_median_gap_ah: f64,
+    /// Records it was read on.
+    pub records: usize,
+}
+
+impl StatedCapacity {
+    /// Whether the stated capacity is drawn to another voltage than the cut-off.
+    pub fn differs_from_cutoff(&self, cutoff_v: f64) -> bool {
+        (self.voltage_v - cutoff_v).abs() > 1e-9
+    }
+}
+
+/// Voltages a stated capacity is looked for at: the cut-off and every tenth of a volt above it to 3.2 V.
+const STATED_LEVELS_STEP_V: f64 = 0.1;
+const STATED_LEVELS_TOP_V: f64 = 3.2;
+/// Records needed to say what the stated capacity measures.
+const STATED_MIN_RECORDS: usize = 3;
+
+/// Reads what `records`' stated capacities measure ([`StatedCapacity`]) on the ones that reach the cut-off,
+/// state a capacity and started from a full charge; None with fewer than three.
+pub fn stated_capacity(records: &[CellRecord], cutoff_v: f64) -> Option<StatedCapacity> {
+    let usable: Vec<(&CellRecord, f64)> = records
+        .iter()
+        .filter(|r| r.data_capacity_ah.is_some() && !r.partial_start)
+        .filter_map(|r| r.stated_capacity_ah.filter(|c| *c > 0.0).map(|c| (r, c)))
+        .collect();
+    if usable.len() < STATED_MIN_RECORDS {
+        return None;
+    }
+    let median_gap = |level_v: f64| -> Option<f64> {
+        let mut gaps: Vec<f64> = usable.iter().filter_map(|(r, c)| r.charge_to_v_ah(level_v).map(|q| c - q)).collect();
+        if gaps.len() < usable.len() {
+            return None;
+        }
+        bcal_common::stats::median(&mut gaps)
+    };
+    let at_cutoff = median_gap(cutoff_v)?;
+    let first = (cutoff_v / STATED_LEVELS_STEP_V).floor() as i64 + 1;
+    let above = (first..).map(|k| k as f64 * STATED_LEVELS_STEP_V).take_while(|v| *v <= STATED_LEVELS_TOP_V + 1e-9);
+    let mut best = (cutoff_v, at_cutoff);
+    for level_v in above {
+        if let Some(g) = median_gap(level_v) {
+            if g.abs() < best.1.abs() {
+                best = (level_v, g);
+            }
+        }
+    }
+    Some(StatedCapacity {
+        voltage_v: best.0,
+        median_gap_ah: best.1,
+        cutoff_median_gap_ah: at_cutoff,
+        records: usable.len(),
+    })
 }
 
 /// Test records: a discharge of 100 readings, 1 s apart, at 2 A from t = 0 to the cut-off at 100 s, and one
@@ -241,5 +329,61 @@ mod tests {
         let d = discharge(vec![4.2, 3.6, 3.5], vec![0.0, 2.0, 2.0]);
         let e = prepare(&d, 3.8).unwrap_err().to_string();
         assert!(e.contains("--cutoff-v") && e.contains("3.600"), "{e}");
+    }
+
+    /// A discharge at 2 A read every 10 s whose voltage falls 0.1 V per reading from 3.95 V, scaled in time by
+    /// `stretch` (a cell that holds more charge falls more slowly), to 2.45 V (a 2.5 V cut-off), with the
+    /// capacity it states.
+    fn linear(stretch: f64, stated_ah: f64) -> CellRecord {
+        let n = 17;
+        let mut d = discharge(
+            (0..n).map(|k| if k == 0 { 4.2 } else { 4.05 - 0.1 * k as f64 }).collect(),
+            (0..n).map(|k| if k == 0 { 0.0 } else { 2.0 }).collect(),
+        );
+        d.time_s = (0..n).map(|k| 10.0 * stretch * k as f64).collect();
+        d.stated_capacity_ah = Some(stated_ah);
+        prepare(&d, 2.5).unwrap()
+    }
+
+    #[test]
+    fn the_charge_to_a_voltage_is_drawn_as_the_capacity_is_drawn_to_the_cutoff() {
+        let r = linear(1.0, 1.0);
+        assert_eq!(r.charge_to_v_ah(2.5), r.data_capacity_ah);
+        // 2.7 V: 2.75 V at 130 s, 2.65 V at 140 s, crossed at 135 s: 2 A from the rest reading at 0 s (the
+        // trapezoid from it to the load-on's reading holds 10 s at 1 A) to 135 s.
+        let to_2_7 = r.charge_to_v_ah(2.7).unwrap();
+        assert!((to_2_7 - (10.0 + 2.0 * 125.0) / 3600.0).abs() < 1e-12, "{to_2_7}");
+        assert!(to_2_7 < r.data_capacity_ah.unwrap());
+        // Above the first loaded reading's 3.95 V: that reading, which crossed it, ends the charge.
+        assert!((r.charge_to_v_ah(4.0).unwrap() - 10.0 / 3600.0).abs() < 1e-12);
+        assert_eq!(r.charge_to_v_ah(2.0), None, "never fell that far");
+    }
+
+    #[test]
+    fn the_stated_capacity_is_read_as_the_charge_to_the_voltage_it_matches() {
+        // Stated as the charge to 2.7 V (NASA's), 2 mAh off either way, on cells of several capacities.
+        let at_2_7 = |stretch: f64, off_ah: f64| {
+            let q = linear(stretch, 0.0).charge_to_v_ah(2.7).unwrap();
+            linear(stretch, q + off_ah)
+        };
+        let records = vec![at_2_7(1.0, 0.002), at_2_7(1.3, -0.002), at_2_7(0.8, 0.001), at_2_7(1.1, 0.0)];
+        let sc = stated_capacity(&records, 2.5).expect("four records state a capacity");
+        assert!((sc.voltage_v - 2.7).abs() < 1e-9 && sc.differs_from_cutoff(2.5), "{sc:?}");
+        assert!(sc.median_gap_ah.abs() <= 0.001 + 1e-12, "{sc:?}");
+        // To the cut-off the data holds two more tenths of a volt: 20 s at 2 A, stretched.
+        assert!(sc.cutoff_median_gap_ah < -0.009, "{sc:?}");
+        assert_eq!(sc.records, 4);
+        // Stated to the cut-off itself: the cut-off is named and nothing differs.
+        let own: Vec<CellRecord> =
+            [1.0, 1.2, 0.9].iter().map(|&x| linear(x, linear(x, 0.0).data_capacity_ah.unwrap())).collect();
+        let sc = stated_capacity(&own, 2.5).unwrap();
+        assert!(!sc.differs_from_cutoff(2.5) && sc.median_gap_ah.abs() < 1e-12, "{sc:?}");
+        // Too few to say, or none stated, or only partial starts: nothing is read.
+        assert_eq!(stated_capacity(&records[..2], 2.5), None);
+        let mut partial = records.clone();
+        for r in &mut partial {
+            r.partial_start = true;
+        }
+        assert_eq!(stated_capacity(&partial, 2.5), None);
     }
 }

@@ -110,6 +110,15 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
             r.records.partial_start
         );
     }
+    if let Some(sc) = r.records.stated_capacity.as_ref().filter(|sc| sc.differs_from_cutoff(r.cutoff_v)) {
+        let _ = writeln!(
+            s,
+            "- the stated capacity is the data's charge to about {:.1} V (median gap {:+.3} Ah over {} training \
+             records), not to the {} V cut-off the capacities are predicted to ({:+.3} Ah): errors against it carry \
+             that difference, errors against the data's charge (in brackets) do not",
+            sc.voltage_v, sc.median_gap_ah, sc.records, r.cutoff_v, sc.cutoff_median_gap_ah
+        );
+    }
     let _ = writeln!(s, "## Capacity (RMSE against the stated capacity, Ah; against the data's charge in brackets)\n");
     let mut head = String::from("| Method |");
     let mut rule = String::from("| --- |");
@@ -176,12 +185,23 @@ fn span(cycles: &[u32]) -> String {
 pub fn reading(r: &CalibrationReport) -> Vec<String> {
     let mut out = Vec::new();
     let cap50 = |k: &str| r.methods.get(k).and_then(|m| m.capacity_rmse_ah.get("50").copied());
+    let cap50_data = |k: &str| r.methods.get(k).and_then(|m| m.capacity_rmse_ah_vs_data.get("50").copied());
+    // Where the stated capacity is drawn to another voltage than the cut-off, the data's charge is the figure
+    // a calibrator answers for.
+    let stated_elsewhere = r.records.stated_capacity.as_ref().filter(|sc| sc.differs_from_cutoff(r.cutoff_v));
     let eod50 = |k: &str| r.methods.get(k).and_then(|m| m.eod_error_pct.get("50").copied());
     for (key, name) in METHODS {
         if let Some(c) = cap50(key) {
             let trend = cap50("trend").unwrap_or(f64::NAN);
+            let data = match (stated_elsewhere, cap50_data(key)) {
+                (Some(sc), Some(d)) => format!(
+                    "; against the data's charge to the cut-off {d:.3} Ah (the stated capacity is the charge to {:.1} V)",
+                    sc.voltage_v
+                ),
+                _ => String::new(),
+            };
             out.push(format!(
-                "{name}: capacity RMSE {c:.3} Ah from the first half of each discharge (target {TARGET_CAPACITY_RMSE_AH} Ah: {}; trend fit {}).",
+                "{name}: capacity RMSE {c:.3} Ah from the first half of each discharge (target {TARGET_CAPACITY_RMSE_AH} Ah: {}; trend fit {}){data}.",
                 if c <= TARGET_CAPACITY_RMSE_AH { "met" } else { "missed" },
                 if c < trend { "beaten" } else { "not beaten" }
             ));
