@@ -1,6 +1,8 @@
 //! What the analysis examples behind docs/calibrator.md share (`#[path = "shared/mod.rs"] mod shared;`).
 #![allow(dead_code)] // each example uses part of it
 
+pub mod posterior;
+
 use bcal_common::measured::scenario::Episode;
 use bcal_common::measured::tracker::JointUkfSettings;
 
