@@ -96,8 +96,7 @@ fn main() {
     let arg = |k: usize| std::env::args().nth(k);
     let n_train: usize = arg(1).map_or(192, |a| a.parse().expect("TRAIN, a count of training cells"));
     let n_val: usize = arg(2).map_or(96, |a| a.parse().expect("VAL, a count of validation cells"));
-    let mut spec = MeasuredSpec::default();
-    spec.ukf = Some(shared::tuned_ukf());
+    let spec = MeasuredSpec { ukf: Some(shared::tuned_ukf()), ..Default::default() };
     let mut rng = rand::rngs::SmallRng::seed_from_u64(18);
     let train: Vec<Episode> = (0..n_train)
         .filter_map(|_| simulate(&spec.scenario, &draw_spec(&spec.scenario, Split::Train, &mut rng)).ok())
