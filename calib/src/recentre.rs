@@ -64,6 +64,32 @@ const SAME_LOAD: f64 = 0.05;
 /// several ambients (NASA's B0038-B0040 alternate 24 and 44 C) reads tens of mV apart from one to the next
 /// for the temperature alone; NASA's chambers run 19 K or more apart, a chamber's own swing is 2-3 K.
 pub const SAME_AMBIENT_K: f64 = 5.0;
+/// Two discharges compare when they start from rest voltages within this of each other, V: one that
+/// started from a partial charge (the doctor's rule: a rest more than 50 mV below its neighbours') reads
+/// lower all along for the charge it lacks, which its filter already knows from that rest; its voltage
+/// change, and the next discharge's against it, would enter the regression far outside the ordinary
+/// discharge's range (B0055 cycle 48, 69 mV below).
+pub const SAME_REST_V: f64 = 0.05;
+
+/// How a discharge started: the temperature (its ambient, K) and the rest voltage just before its load came
+/// on (V; None when it joined under load or its rest is unknown).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Start {
+    pub temperature_k: f64,
+    pub rest_v: Option<f64>,
+}
+
+impl Start {
+    /// Whether a discharge that started so compares with one that started as `other`: ambients within
+    /// [`SAME_AMBIENT_K`], rest voltages (where both are known) within [`SAME_REST_V`].
+    fn compares(&self, other: &Start) -> bool {
+        let rest_alike = match (self.rest_v, other.rest_v) {
+            (Some(a), Some(b)) => (a - b).abs() <= SAME_REST_V,
+            _ => true,
+        };
+        (self.temperature_k - other.temperature_k).abs() <= SAME_AMBIENT_K && rest_alike
+    }
+}
 
 /// The loaded readings of the discharge before: its voltage and current against the time since its load
 /// came on. What the end of the next discharge follows beyond what its filter reads: a discharge whose
@@ -74,15 +100,15 @@ pub struct Previous {
     elapsed_s: Vec<f64>,
     voltage_v: Vec<f64>,
     current_a: Vec<f64>,
-    /// The temperature it started at, K (its ambient).
-    start_k: f64,
+    /// How it started.
+    start: Start,
 }
 
 impl Previous {
     /// From a discharge's readings `(time since its load came on s, voltage V, current A)`, from the
-    /// load-on to the cut-off, in time order, and the temperature it started at (K); None with fewer than two.
-    pub fn new(readings: impl IntoIterator<Item = (f64, f64, f64)>, start_k: f64) -> Option<Self> {
-        let mut p = Previous { elapsed_s: Vec::new(), voltage_v: Vec::new(), current_a: Vec::new(), start_k };
+    /// load-on to the cut-off, in time order, and how it started; None with fewer than two.
+    pub fn new(readings: impl IntoIterator<Item = (f64, f64, f64)>, start: Start) -> Option<Self> {
+        let mut p = Previous { elapsed_s: Vec::new(), voltage_v: Vec::new(), current_a: Vec::new(), start };
         for (t, v, i) in readings {
             let later = p.elapsed_s.last().is_none_or(|&last| t > last);
             if t >= 0.0 && later && t.is_finite() && v.is_finite() && i.is_finite() {
@@ -121,10 +147,10 @@ pub struct VoltageChange {
 }
 
 impl VoltageChange {
-    /// For a discharge that starts at `start_k` (K) and follows `previous` (None: the first one, or one
-    /// whose predecessor is unknown); one that started more than [`SAME_AMBIENT_K`] away does not compare.
-    pub fn new(previous: Option<Previous>, start_k: f64) -> Self {
-        let previous = previous.filter(|p| (p.start_k - start_k).abs() <= SAME_AMBIENT_K);
+    /// For a discharge that started as `start` and follows `previous` (None: the first one, or one whose
+    /// predecessor is unknown); one that started otherwise ([`Start::compares`]) does not compare.
+    pub fn new(previous: Option<Previous>, start: Start) -> Self {
+        let previous = previous.filter(|p| p.start.compares(&start));
         VoltageChange { previous, recent: Default::default() }
     }
 
@@ -210,10 +236,13 @@ mod tests {
     #[test]
     fn the_voltage_change_compares_like_with_like_over_the_last_minute() {
         // The discharge before: 2 A for 100 s, its voltage falling from 4.0 V by 1 mV a second.
-        let prev = Previous::new((0..=100).map(|t| (f64::from(t), 4.0 - 0.001 * f64::from(t), 2.0)), 297.0).unwrap();
+        let at = |temperature_k: f64, rest_v: Option<f64>| Start { temperature_k, rest_v };
+        let prev =
+            Previous::new((0..=100).map(|t| (f64::from(t), 4.0 - 0.001 * f64::from(t), 2.0)), at(297.0, Some(4.19)))
+                .unwrap();
         assert_eq!(prev.at(50.5).map(|(v, _)| (v * 1e4).round() / 1e4), Some(3.9495));
         assert!(prev.at(100.5).is_none() && prev.at(-1.0).is_none());
-        let mut dv = VoltageChange::new(Some(prev.clone()), 298.0);
+        let mut dv = VoltageChange::new(Some(prev.clone()), at(298.0, Some(4.18)));
         // 5 mV above it until 30 s, then 15 mV above: at 60 s the minute holds 31 readings of the first and
         // 30 of the second, by 90 s only the second.
         for t in 0..=100 {
@@ -227,15 +256,22 @@ mod tests {
             }
         }
         // A reading at another load does not count: one at 1 A, 100 mV higher, leaves the mean as it was.
-        let mut dv = VoltageChange::new(Some(prev.clone()), 297.0);
+        let mut dv = VoltageChange::new(Some(prev.clone()), at(297.0, None));
         assert!((dv.push(10.0, 4.0 - 0.010 + 0.002, 2.0).unwrap() - 0.002).abs() < 1e-12);
         assert!((dv.push(11.0, 4.0 - 0.011 + 0.100, 1.0).unwrap() - 0.002).abs() < 1e-12);
         // Past the end of the discharge before there is nothing to compare with.
         assert_eq!(dv.push(101.0, 3.0, 2.0), None);
-        // Nor without one, at another load from the start, or after one at another ambient (44 C after 24 C).
-        assert_eq!(VoltageChange::new(None, 297.0).push(10.0, 4.0, 2.0), None);
-        assert_eq!(VoltageChange::new(Some(prev.clone()), 297.0).push(10.0, 4.0, 4.0), None);
-        assert_eq!(VoltageChange::new(Some(prev), 317.0).push(10.0, 4.0, 2.0), None);
+        // Nor without one, at another load from the start, after one at another ambient (44 C after 24 C), or
+        // from a rest 60 mV below the one before's (a partial charge) or above it (the one before was).
+        assert_eq!(VoltageChange::new(None, at(297.0, None)).push(10.0, 4.0, 2.0), None);
+        assert_eq!(VoltageChange::new(Some(prev.clone()), at(297.0, None)).push(10.0, 4.0, 4.0), None);
+        assert_eq!(VoltageChange::new(Some(prev.clone()), at(317.0, None)).push(10.0, 4.0, 2.0), None);
+        assert_eq!(VoltageChange::new(Some(prev.clone()), at(297.0, Some(4.13))).push(10.0, 3.95, 2.0), None);
+        let partial =
+            Previous::new((0..=100).map(|t| (f64::from(t), 3.9 - 0.001 * f64::from(t), 2.0)), at(297.0, Some(4.13)));
+        assert_eq!(VoltageChange::new(partial, at(297.0, Some(4.19))).push(10.0, 3.99, 2.0), None);
+        // Within 50 mV it compares.
+        assert!(VoltageChange::new(Some(prev), at(297.0, Some(4.15))).push(10.0, 3.99, 2.0).is_some());
     }
 
     /// Errors that are a line in the voltage change are read back as that line from the last 15

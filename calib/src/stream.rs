@@ -40,7 +40,7 @@ use crate::adaptive::{AdaptiveRule, AdaptiveUkf};
 use crate::correction::CorrectionCalibrator;
 use crate::joint_ukf::JointUkf;
 use crate::prior_width::{RestWidth, LONG_REST_S};
-use crate::recentre::{Previous, VoltageChange};
+use crate::recentre::{Previous, Start, VoltageChange};
 use crate::tracker_based::{RlCalibrator, Uncalibrated, WindowFitCalibrator};
 use crate::widening::{share_bin, Adapt, Outcome, Widening, EOD_FRACTIONS_PCT, MIN_OUTCOMES, WINDOW};
 use crate::{predict_eod_s, Calibrator, EodQuery};
@@ -916,8 +916,8 @@ impl<'a> Stream<'a> {
             && !self.joined_under_load;
         let dv = if loaded_since {
             let previous = &self.previous_loaded;
-            let start_k = s.temperature_k;
-            let change = self.voltage_change.get_or_insert_with(|| VoltageChange::new(previous.clone(), start_k));
+            let start = Start { temperature_k: s.temperature_k, rest_v: self.rest_v_before(load_on_s) };
+            let change = self.voltage_change.get_or_insert_with(|| VoltageChange::new(previous.clone(), start));
             change.push(r.time_s - load_on_s, r.voltage_v, r.current_a)
         } else {
             None
@@ -1111,7 +1111,10 @@ impl<'a> Stream<'a> {
     fn loaded_readings(&self) -> Option<Previous> {
         let on = self.eod_track.load_on_s?;
         let end = self.eod_track.ended_s;
-        let start_k = self.samples.iter().find(|x| x.t_s >= on)?.temperature_k;
+        let start = Start {
+            temperature_k: self.samples.iter().find(|x| x.t_s >= on)?.temperature_k,
+            rest_v: self.rest_v_before(on),
+        };
         let mut past_end = false;
         let readings = self.samples.iter().filter(|x| x.t_s >= on).map_while(|x| {
             if past_end {
@@ -1120,7 +1123,13 @@ impl<'a> Stream<'a> {
             past_end = end.is_some_and(|e| x.t_s >= e);
             Some((x.t_s - on, x.voltage_v, x.current_a))
         });
-        Previous::new(readings, start_k)
+        Previous::new(readings, start)
+    }
+
+    /// The current discharge's last reading before its load came on at `on_s` (its rest), V; None when it
+    /// joined under load.
+    fn rest_v_before(&self, on_s: f64) -> Option<f64> {
+        self.samples.iter().take_while(|x| x.t_s < on_s).last().map(|x| x.voltage_v)
     }
 
     /// What the current discharge has measured, cleared for the next one.

@@ -8,7 +8,9 @@ use crate::interval::outcomes;
 use crate::record::CellRecord;
 use crate::run::CycleRun;
 use crate::tune::{self, Runs, Served};
-use bcal_calib::recentre::{biases, regressed_shift_s, shift_s, voltage_regressions, Outcome, Previous, VoltageChange};
+use bcal_calib::recentre::{
+    biases, regressed_shift_s, shift_s, voltage_regressions, Outcome, Previous, Start, VoltageChange,
+};
 
 /// `runs` along `records` (in order) with every predicted end of discharge, and its interval, moved by the
 /// bias of the discharges before it in the sequence.
@@ -34,6 +36,12 @@ fn recentred_along(records: &[&CellRecord], runs: &[&CycleRun]) -> Vec<CycleRun>
         .collect()
 }
 
+/// How a record started: its ambient and its last reading before the load came on.
+fn start(r: &CellRecord) -> Start {
+    let rest_v = r.samples.iter().take_while(|s| s.t_s < r.load_on_s).last().map(|s| s.voltage_v);
+    Start { temperature_k: r.ambient_k, rest_v }
+}
+
 /// The voltage change at each reading of each record against the record before it in the sequence
 /// ([`VoltageChange`]; None before the load came on and on the first record).
 fn voltage_changes(records: &[&CellRecord]) -> Vec<Vec<Option<f64>>> {
@@ -44,8 +52,8 @@ fn voltage_changes(records: &[&CellRecord]) -> Vec<Vec<Option<f64>>> {
         .iter()
         .enumerate()
         .map(|(k, r)| {
-            let previous = k.checked_sub(1).and_then(|j| Previous::new(loaded(records[j]), records[j].ambient_k));
-            let mut change = VoltageChange::new(previous, r.ambient_k);
+            let previous = k.checked_sub(1).and_then(|j| Previous::new(loaded(records[j]), start(records[j])));
+            let mut change = VoltageChange::new(previous, start(r));
             r.samples
                 .iter()
                 .map(|s| {
@@ -208,5 +216,29 @@ mod tests {
         for (a, b) in served.judged.iter().zip(&runs.judged) {
             assert_eq!(eod_at_half(a), eod_at_half(b));
         }
+    }
+
+    /// A discharge that started from a partial charge (its rest 70 mV below the one before's) has no voltage
+    /// change, and neither has the one after it (against it); the next, from a rest like the one before
+    /// it, compares again.
+    #[test]
+    fn a_discharge_from_a_partial_charge_has_no_voltage_change_nor_the_one_after_it() {
+        let records: Vec<CellRecord> = [4.19, 4.12, 4.19, 4.18]
+            .iter()
+            .enumerate()
+            .map(|(k, &rest_v)| {
+                let (mut r, _) = test_discharge(k as u32 + 1, 1.0, |_| Predicted::default(), Predicted::default());
+                r.samples[0].current_a = 0.0;
+                r.samples[0].voltage_v = rest_v;
+                r.load_on_s = 1.0;
+                r
+            })
+            .collect();
+        let refs: Vec<&CellRecord> = records.iter().collect();
+        let dv = voltage_changes(&refs);
+        let any = |k: usize| dv[k].iter().any(Option::is_some);
+        assert!(!any(0), "the first has none before it");
+        assert!(!any(1) && !any(2), "the partial start and the one after it");
+        assert!(any(3), "from a rest 10 mV apart it compares");
     }
 }
