@@ -93,7 +93,7 @@ fn crossing(n: usize, on: usize, level_v: f64, at: impl Fn(usize) -> (f64, f64, 
 pub enum RecordError {
     #[error("{file}: cycle {cycle} holds no reading under load (above {LOAD_THRESHOLD_A} A): not a discharge; select discharge records or check the current's sign (--current-sign)")]
     NoDischarge { file: String, cycle: u32 },
-    #[error("{file}: cycle {cycle}: the cut-off {cutoff_v} V lies above the first voltage under load ({first_v:.3} V); pass the cell's real cut-off with --cutoff-v")]
+    #[error("{file}: cycle {cycle}: the voltage is at or below the {cutoff_v} V cut-off from its first reading under load ({first_v:.3} V): a load the cell could not carry (a cold cell's very-low-capacity run), or a cut-off above this cell's (pass its real one with --cutoff-v)")]
     CutoffAboveStart { file: String, cycle: u32, cutoff_v: f64, first_v: f64 },
 }
 

@@ -40,7 +40,13 @@ fn discharge(n: u32, rng: &mut StdRng) -> (Discharge, f64) {
 /// One discharge at `load_a` from a cell at `ambient_k`, and its true capacity down to the cut-off, Ah.
 fn discharge_at(n: u32, load_a: f64, ambient_k: f64, rng: &mut StdRng) -> (Discharge, f64) {
     let (q, r) = truth(n);
-    let c = cell::Cell::new(cell::CellParams::base(q, r, ambient_k));
+    discharge_of(n, cell::CellParams::base(q, r, ambient_k), load_a, rng)
+}
+
+/// Cycle n's discharge of the cell `p` at `load_a`, and its true capacity down to the cut-off, Ah.
+fn discharge_of(n: u32, p: cell::CellParams, load_a: f64, rng: &mut StdRng) -> (Discharge, f64) {
+    let ambient_k = p.ambient_k;
+    let c = cell::Cell::new(p);
     let mut s = c.full();
     let noise = Normal::new(0.0, 0.003).unwrap();
     let h = 0.5;
@@ -77,14 +83,19 @@ fn discharge_at(n: u32, load_a: f64, ambient_k: f64, rng: &mut StdRng) -> (Disch
         temperature_k: None,
         stated_capacity_ah: None,
     };
-    (d, true_charge_ah(n, load_a, ambient_k, CUTOFF_V))
+    (d, charge_of_ah(p, load_a, CUTOFF_V))
 }
 
 /// The charge cycle n's cell truly delivers from full at `load_a` until its voltage first falls to `level_v`,
 /// on the generator's fine grid, Ah.
 fn true_charge_ah(n: u32, load_a: f64, ambient_k: f64, level_v: f64) -> f64 {
     let (q, r) = truth(n);
-    let c = cell::Cell::new(cell::CellParams::base(q, r, ambient_k));
+    charge_of_ah(cell::CellParams::base(q, r, ambient_k), load_a, level_v)
+}
+
+/// The charge the cell `p` delivers from full at `load_a` until its voltage first falls to `level_v`, Ah.
+fn charge_of_ah(p: cell::CellParams, load_a: f64, level_v: f64) -> f64 {
+    let c = cell::Cell::new(p);
     let mut s = c.full();
     let mut q_c = 0.0;
     while c.voltage_v(&s) > level_v || q_c == 0.0 {
@@ -375,4 +386,85 @@ fn a_square_wave_read_once_per_half_period_is_calibrated_at_its_mean_current() {
     assert!(cap("ukf") < 0.03 && cap("fit") < 0.03, "ukf {} fit {}", cap("ukf"), cap("fit"));
     assert!(cap("ukf") < 0.1 * cap("uncalibrated"), "ukf {} uncalibrated {}", cap("ukf"), cap("uncalibrated"));
     assert!(eod50("ukf") < 1.0 && eod50("fit") < 1.0, "ukf {} fit {}", eod50("ukf"), eod50("fit"));
+}
+
+/// A life whose judged cycles 17-20 come from the cold: 4 C, the resistance multiplied by `ro_factor` and
+/// the charge transfer slowed by `exchange_scale`, at `load_a` (cycles 1-16 and 21-32 at 2 A, 24 C).
+fn life_with_a_cold_block(ro_factor: f64, exchange_scale: f64, load_a: f64) -> Vec<(Discharge, f64)> {
+    let mut rng = StdRng::seed_from_u64(20261129);
+    (1..=32)
+        .map(|n| {
+            if (17..=20).contains(&n) {
+                let (q, r) = truth(n);
+                let mut p = cell::CellParams::base(q, ro_factor * r, 277.15);
+                p.exchange_scale = exchange_scale;
+                discharge_of(n, p, load_a, &mut rng)
+            } else {
+                discharge(n, &mut rng)
+            }
+        })
+        .collect()
+}
+
+/// The mean capacity error from half of each judged discharge of `cycles` (against the data's charge, Ah)
+/// and the mean EOD error there (% of the discharge), of method `m` as delivered.
+fn errors_over(
+    cal: &bcal_realcell::calibrate::Calibration,
+    m: &str,
+    cycles: std::ops::RangeInclusive<u32>,
+) -> (f64, f64) {
+    let runs = &cal.runs.iter().find(|(k, _)| *k == m).expect("the method ran").1;
+    let rows: Vec<(f64, f64)> = cal
+        .judged
+        .iter()
+        .zip(runs)
+        .filter(|(rec, _)| cycles.contains(&rec.cycle))
+        .filter_map(|(rec, run)| {
+            let k = rec.reading_at_fraction(0.5)?;
+            let step = &run.steps[k.min(run.steps.len() - 1)];
+            let cap = (step.capacity.value? - rec.data_capacity_ah?).abs();
+            let eod = (step.eod.value? - rec.eod_s?).abs() / rec.discharge_s()? * 100.0;
+            Some((cap, eod))
+        })
+        .collect();
+    assert!(!rows.is_empty(), "{m}: nothing scored over {cycles:?}");
+    let n = rows.len() as f64;
+    (rows.iter().map(|x| x.0).sum::<f64>() / n, rows.iter().map(|x| x.1).sum::<f64>() / n)
+}
+
+/// NASA's cold cells (B0041-B0056, 4 C) hold runs "where the capacity was very low" (B0043: 46 in a row at a
+/// twentieth of the cell's capacity): a load the cold cell cannot carry for long. A life with a block of such
+/// runs among its judged discharges calibrates through, whether they last minutes (calibrated and scored: a
+/// quarter of the capacity, 11-12 min at 3 A) or under a minute (refused by name: nothing settled to fit,
+/// or the cut-off passed at the first loaded reading), and the discharges after the block are carried as well
+/// as those before it: the joint UKF within 15 mAh and 1 % of the end from half of each.
+#[test]
+fn a_block_of_runs_that_end_early_does_not_derail_the_discharges_after_it() {
+    // Minutes: every run judged and scored.
+    let all = life_with_a_cold_block(2.0, 0.2, 3.0);
+    let short: Vec<f64> = all[16..20].iter().map(|x| x.1).collect();
+    assert!(short.iter().all(|q| (0.3..0.8).contains(q)), "a quarter of the capacity: {short:?} Ah");
+    let cal = calibrate_life(&all);
+    let r = &cal.report;
+    assert!(r.records.refused.is_empty(), "{:?}", r.records.refused);
+    assert!((17..=20).all(|c| cal.judged.iter().any(|rec| rec.cycle == c && rec.eod_s.is_some())));
+    let (before, after) = (errors_over(&cal, "ukf", 13..=16), errors_over(&cal, "ukf", 25..=32));
+    eprintln!("minutes: joint UKF before the block {before:?}, after it {after:?}");
+    assert!(after.0 < 0.015 && after.1 < 1.0, "after the block {after:?} (before {before:?})");
+
+    // Under a minute: refused, each named, the rest calibrated.
+    let all = life_with_a_cold_block(3.0, 0.05, 4.0);
+    let cal = calibrate_life(&all);
+    let r = &cal.report;
+    for c in 17..=20 {
+        assert!(
+            r.records.refused.iter().any(|why| why.contains(&format!("cycle {c}:"))),
+            "cycle {c}: {:?}",
+            r.records.refused
+        );
+    }
+    assert_eq!(r.cycles_judged, [13, 14, 15, 16].into_iter().chain(21..=32).collect::<Vec<u32>>());
+    let after = errors_over(&cal, "ukf", 25..=32);
+    eprintln!("under a minute: joint UKF after the block {after:?}");
+    assert!(after.0 < 0.015 && after.1 < 1.0, "after the block {after:?}");
 }
