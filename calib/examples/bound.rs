@@ -22,7 +22,36 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 use shared::posterior::Posterior;
 
-type Row = (&'static str, [f64; 2], [f64; 2], [f64; 2], f64, [f64; 2]);
+type Row = (&'static str, [f64; 2], [f64; 2], [f64; 2], f64, [f64; 2], [f64; 2]);
+
+/// The standard normal's cumulative distribution (Abramowitz and Stegun 7.1.26, error under 2e-7).
+fn normal_cdf(x: f64) -> f64 {
+    let z = x.abs() / std::f64::consts::SQRT_2;
+    let t = 1.0 / (1.0 + 0.3275911 * z);
+    let poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))));
+    let erf = 1.0 - poly * (-z * z).exp();
+    0.5 * (1.0 + erf.copysign(x))
+}
+
+/// One parameter's filter marginal (mean `m`, variance `v`, z units) with the filter's Gaussian prior (`m0`,
+/// `v0`) divided out and a uniform prior on [`lo`, `hi`] put in its place: the mean of what the readings said,
+/// a normal, truncated to the range. No learning and no reading beyond the filter's own two numbers.
+fn prior_swapped(m: f64, v: f64, m0: f64, v0: f64, [lo, hi]: [f64; 2]) -> f64 {
+    let precision = 1.0 / v - 1.0 / v0;
+    if precision <= 1e-9 {
+        // The readings said nothing the prior did not: the uniform's own mean.
+        return 0.5 * (lo + hi);
+    }
+    let vl = 1.0 / precision;
+    let (ml, sl) = (vl * (m / v - m0 / v0), vl.sqrt());
+    let (a, b) = ((lo - ml) / sl, (hi - ml) / sl);
+    let mass = normal_cdf(b) - normal_cdf(a);
+    if mass < 1e-12 {
+        return ml.clamp(lo, hi);
+    }
+    let pdf = |x: f64| (-0.5 * x * x).exp() / (2.0 * std::f64::consts::PI).sqrt();
+    (ml + sl * (pdf(a) - pdf(b)) / mass).clamp(lo, hi)
+}
 
 fn main() {
     let arg = |k: usize| std::env::args().nth(k);
@@ -79,7 +108,19 @@ fn main() {
                 }
                 // The filter's estimate held inside the cells' ranges: what knowing their support alone gives.
                 let held = err(z[0].clamp(cells[0][0], cells[0][1]), z[1].clamp(cells[1][0], cells[1][1]));
-                out.push((shared::regime(e), err(z[0], z[1]), err(mode[1], mode[2]), err(mean[1], mean[2]), ess, held));
+                let cov = f.param_cov_z();
+                let prior_z = tracker.to_z(&tracker.prior);
+                let swap = |j: usize, v: f64| prior_swapped(z[j], v, prior_z[j], ukf.prior_std_z[j].powi(2), cells[j]);
+                let swapped = err(swap(0, cov[0]), swap(1, cov[2]));
+                out.push((
+                    shared::regime(e),
+                    err(z[0], z[1]),
+                    err(mode[1], mode[2]),
+                    err(mean[1], mean[2]),
+                    ess,
+                    held,
+                    swapped,
+                ));
             }
             out
         })
@@ -91,10 +132,10 @@ fn main() {
         if uniform.is_some() { "uniform over the cells' ranges" } else { "the filter's" }
     );
     println!(
-        "| sampling | points | joint UKF | UKF held in the cells' ranges | posterior mode | posterior mean | mean / UKF | \
-         median grid points |"
+        "| sampling | points | joint UKF | UKF held in the cells' ranges | UKF, the cells' prior swapped in | posterior \
+         mode | posterior mean | mean / UKF | median grid points |"
     );
-    println!("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+    println!("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
     for r in ["1s", "10-20s"] {
         let sel: Vec<&Row> = rows.iter().filter(|x| x.0 == r).collect();
         if sel.is_empty() {
@@ -102,16 +143,19 @@ fn main() {
         }
         let rms = |g: &dyn Fn(&Row) -> f64| (sel.iter().map(|x| g(x).powi(2)).sum::<f64>() / sel.len() as f64).sqrt();
         let pair = |g: &dyn Fn(&Row) -> [f64; 2]| [rms(&|x| g(x)[0]), rms(&|x| g(x)[1])];
-        let (u, m, p, h) = (pair(&|x| x.1), pair(&|x| x.2), pair(&|x| x.3), pair(&|x| x.5));
+        let (u, m, p, h, w) = (pair(&|x| x.1), pair(&|x| x.2), pair(&|x| x.3), pair(&|x| x.5), pair(&|x| x.6));
         let mut ess: Vec<f64> = sel.iter().map(|x| x.4).collect();
         let ess = bcal_common::stats::median(&mut ess).unwrap_or(f64::NAN);
         println!(
-            "| {r} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {ess:.0} |",
+            "| {r} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | \
+             {ess:.0} |",
             sel.len(),
             u[0],
             u[1],
             h[0],
             h[1],
+            w[0],
+            w[1],
             m[0],
             m[1],
             p[0],
