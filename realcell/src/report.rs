@@ -193,16 +193,19 @@ pub fn reading(r: &CalibrationReport) -> Vec<String> {
     for (key, name) in METHODS {
         if let Some(c) = cap50(key) {
             let trend = cap50("trend").unwrap_or(f64::NAN);
+            let met = |x: f64| if x <= TARGET_CAPACITY_RMSE_AH { "met" } else { "missed" };
             let data = match (stated_elsewhere, cap50_data(key)) {
                 (Some(sc), Some(d)) => format!(
-                    "; against the data's charge to the cut-off {d:.3} Ah (the stated capacity is the charge to {:.1} V)",
+                    "; against the data's charge to the cut-off {d:.3} Ah, target {} there (the stated capacity is the \
+                     charge to {:.1} V)",
+                    met(d),
                     sc.voltage_v
                 ),
                 _ => String::new(),
             };
             out.push(format!(
                 "{name}: capacity RMSE {c:.3} Ah from the first half of each discharge (target {TARGET_CAPACITY_RMSE_AH} Ah: {}; trend fit {}){data}.",
-                if c <= TARGET_CAPACITY_RMSE_AH { "met" } else { "missed" },
+                met(c),
                 if c < trend { "beaten" } else { "not beaten" }
             ));
         }
