@@ -217,7 +217,8 @@ pub fn stated_capacity(records: &[CellRecord], cutoff_v: f64) -> Option<StatedCa
         bcal_common::stats::median(&mut gaps)
     };
     let at_cutoff = median_gap(cutoff_v)?;
-    let first = (cutoff_v / STATED_LEVELS_STEP_V).floor() as i64 + 1;
+    // The first tenth strictly above the cut-off (2.5 / 0.1 is 24.999...: a nudge before the floor).
+    let first = (cutoff_v / STATED_LEVELS_STEP_V + 1e-9).floor() as i64 + 1;
     let above = (first..).map(|k| k as f64 * STATED_LEVELS_STEP_V).take_while(|v| *v <= STATED_LEVELS_TOP_V + 1e-9);
     let mut best = (cutoff_v, at_cutoff);
     for level_v in above {
