@@ -14,6 +14,7 @@
 //! arithmetic: nothing here reads or prints.
 
 pub use crate::widening::{share_bin, Outcome, EOD_FRACTIONS_PCT, WINDOW};
+use bcal_common::measured::scenario::Sample;
 
 /// The signed relative error of a scored prediction: positive when the predicted end came late.
 pub fn signed_error(o: &Outcome) -> f64 {
@@ -80,6 +81,13 @@ pub struct Start {
 }
 
 impl Start {
+    /// A discharge of `samples` whose load came on at `load_on_s`, at `temperature_k`: its rest is its last
+    /// reading before the load (none when it joined under load).
+    pub fn at_load_on(samples: &[Sample], load_on_s: f64, temperature_k: f64) -> Self {
+        let rest_v = samples.iter().take_while(|s| s.t_s < load_on_s).last().map(|s| s.voltage_v);
+        Start { temperature_k, rest_v }
+    }
+
     /// Whether a discharge that started so compares with one that started as `other`: ambients within
     /// [`SAME_AMBIENT_K`], rest voltages (where both are known) within [`SAME_REST_V`].
     fn compares(&self, other: &Start) -> bool {

@@ -915,10 +915,13 @@ impl<'a> Stream<'a> {
             && self.eod_track.ended_s.is_none()
             && !self.joined_under_load;
         let dv = if loaded_since {
-            let previous = &self.previous_loaded;
-            let start = Start { temperature_k: s.temperature_k, rest_v: self.rest_v_before(load_on_s) };
-            let change = self.voltage_change.get_or_insert_with(|| VoltageChange::new(previous.clone(), start));
-            change.push(r.time_s - load_on_s, r.voltage_v, r.current_a)
+            // Made once per discharge, at its first loaded reading: the rest before it is read then, not at
+            // every reading (a BMS logging a long rest at 1 s would scan it each time).
+            if self.voltage_change.is_none() {
+                let start = Start::at_load_on(&self.samples, load_on_s, s.temperature_k);
+                self.voltage_change = Some(VoltageChange::new(self.previous_loaded.clone(), start));
+            }
+            self.voltage_change.as_mut().and_then(|c| c.push(r.time_s - load_on_s, r.voltage_v, r.current_a))
         } else {
             None
         };
@@ -1111,10 +1114,7 @@ impl<'a> Stream<'a> {
     fn loaded_readings(&self) -> Option<Previous> {
         let on = self.eod_track.load_on_s?;
         let end = self.eod_track.ended_s;
-        let start = Start {
-            temperature_k: self.samples.iter().find(|x| x.t_s >= on)?.temperature_k,
-            rest_v: self.rest_v_before(on),
-        };
+        let start = Start::at_load_on(&self.samples, on, self.samples.iter().find(|x| x.t_s >= on)?.temperature_k);
         let mut past_end = false;
         let readings = self.samples.iter().filter(|x| x.t_s >= on).map_while(|x| {
             if past_end {
@@ -1124,12 +1124,6 @@ impl<'a> Stream<'a> {
             Some((x.t_s - on, x.voltage_v, x.current_a))
         });
         Previous::new(readings, start)
-    }
-
-    /// The current discharge's last reading before its load came on at `on_s` (its rest), V; None when it
-    /// joined under load.
-    fn rest_v_before(&self, on_s: f64) -> Option<f64> {
-        self.samples.iter().take_while(|x| x.t_s < on_s).last().map(|x| x.voltage_v)
     }
 
     /// What the current discharge has measured, cleared for the next one.

@@ -38,8 +38,7 @@ fn recentred_along(records: &[&CellRecord], runs: &[&CycleRun]) -> Vec<CycleRun>
 
 /// How a record started: its ambient and its last reading before the load came on.
 fn start(r: &CellRecord) -> Start {
-    let rest_v = r.samples.iter().take_while(|s| s.t_s < r.load_on_s).last().map(|s| s.voltage_v);
-    Start { temperature_k: r.ambient_k, rest_v }
+    Start::at_load_on(&r.samples, r.load_on_s, r.ambient_k)
 }
 
 /// The voltage change at each reading of each record against the record before it in the sequence
