@@ -6,10 +6,15 @@
 //! posterior's shift of the filter's estimate (a target computed from readings alone, no true parameter) and,
 //! for comparison, to the true one's (an oracle: what a supervised mapping from true parameters could reach).
 //! Both are judged on VAL validation cells (96) by the error of the shifted estimate.
+//!
+//! Second part (2026-11-28): does a learner do better with inputs that do not move with the load level (test
+//! loads lie above training's, so a map through the current, voltage or charge drawn extrapolates), or with
+//! what a bank of differently tuned joint UKFs estimates beside the tuned one (each member alone is scored
+//! too: the non-learned estimators such a learner builds on)? Linear maps, and with squares and products.
 #![allow(clippy::type_complexity)] // one-off analysis tables
 #[path = "shared/mod.rs"]
 mod shared;
-use bcal_calib::Correction;
+use bcal_calib::{Correction, JointUkf, JointUkfSettings};
 use bcal_common::dataset::Split;
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::measured::scenario::{draw_spec, episode_set, simulate, Episode};
@@ -19,8 +24,22 @@ use rand::SeedableRng;
 use rayon::prelude::*;
 use shared::posterior::Posterior;
 
-/// One point: regime, features, the filter's z, the posterior mean's z, the truth's z.
-type Point = (&'static str, Vec<f64>, [f64; 2], [f64; 2], [f64; 2]);
+/// One point: regime, features, the filter's z, the posterior mean's z, the truth's z, the bank's z.
+type Point = (&'static str, Vec<f64>, [f64; 2], [f64; 2], [f64; 2], Vec<[f64; 2]>);
+
+/// The bank beside the tuned filter: a prior twice as wide (nearer the cells' flat one), and the sensor's
+/// own 3 mV and twice the tuned 5 mV as measurement noise.
+fn bank(tuned: JointUkfSettings) -> Vec<(&'static str, JointUkfSettings)> {
+    vec![
+        ("prior x2", JointUkfSettings { prior_std_z: tuned.prior_std_z.map(|v| 2.0 * v), ..tuned }),
+        ("3 mV", JointUkfSettings { meas_std_v: 0.003, ..tuned }),
+        ("10 mV", JointUkfSettings { meas_std_v: 0.01, ..tuned }),
+    ]
+}
+
+/// Indices of the correction's features that do not scale with the load level: the filter's statistics and
+/// innovations, the times, the sampling interval, whether the load is on.
+const LOAD_FREE: [usize; 15] = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 12, 15, 16, 19, 23];
 
 fn points(spec: &MeasuredSpec, eps: &[Episode]) -> Vec<Point> {
     let tracker = &spec.tracker;
@@ -31,10 +50,12 @@ fn points(spec: &MeasuredSpec, eps: &[Episode]) -> Vec<Point> {
         .flat_map_iter(|e| {
             let at = shared::posterior::points(e);
             let mut c = Correction::of_task(spec);
+            let mut members: Vec<JointUkf> = bank(ukf).into_iter().map(|(_, b)| JointUkf::new(b, tracker)).collect();
             let mut obs = vec![0f32; spec.obs_dim()];
             let mut out = Vec::new();
             for (k, s) in e.samples.iter().enumerate() {
                 c.ingest(s);
+                members.iter_mut().for_each(|m| m.step(s));
                 if !at.contains(&k) {
                     continue;
                 }
@@ -44,28 +65,64 @@ fn points(spec: &MeasuredSpec, eps: &[Episode]) -> Vec<Point> {
                 let (mode, _) = post.map(Vector3::new(post.mean[0], z[0], z[1]));
                 let (mean, _) = post.mean(mode);
                 let features = obs.iter().map(|v| f64::from(*v)).collect();
-                out.push((shared::regime(e), features, z, [mean[1], mean[2]], tracker.to_z(&e.spec.truth)));
+                let bz = members.iter().map(|m| tracker.to_z(&m.estimate())).collect();
+                out.push((shared::regime(e), features, z, [mean[1], mean[2]], tracker.to_z(&e.spec.truth), bz));
             }
             out
         })
         .collect()
 }
 
-/// The features, their squares and pairwise products, and a constant.
-fn expand(f: &[f64]) -> Vec<f64> {
-    let mut out = f.to_vec();
-    for i in 0..f.len() {
-        for j in i..f.len() {
-            out.push(f[i] * f[j]);
-        }
-    }
-    out.push(1.0);
-    out
+/// The inputs a learner gets.
+#[derive(Clone, Copy)]
+struct Inputs {
+    /// Only the features of [`LOAD_FREE`].
+    load_free: bool,
+    /// The bank's estimates less the tuned filter's, as more features.
+    bank: bool,
+    /// Squares and pairwise products too.
+    quadratic: bool,
 }
 
-/// Ridge weights from the expanded features of `pts` to `target(point)` (one per parameter), standardised.
-fn fit(pts: &[Point], target: impl Fn(&Point) -> [f64; 2], ridge: f64) -> (Vec<DVector<f64>>, Vec<(f64, f64)>) {
-    let rows: Vec<Vec<f64>> = pts.iter().map(|p| expand(&p.1)).collect();
+impl Inputs {
+    fn name(&self) -> String {
+        format!(
+            "{}{}{}",
+            if self.load_free { "load-free 15" } else { "all 24" },
+            if self.bank { " + bank" } else { "" },
+            if self.quadratic { ", quadratic" } else { ", linear" }
+        )
+    }
+
+    /// The inputs of `p`, their squares and pairwise products where asked, and a constant.
+    fn expand(&self, p: &Point) -> Vec<f64> {
+        let mut f: Vec<f64> = if self.load_free { LOAD_FREE.iter().map(|&i| p.1[i]).collect() } else { p.1.clone() };
+        if self.bank {
+            for b in &p.5 {
+                f.extend([b[0] - p.2[0], b[1] - p.2[1]]);
+            }
+        }
+        let mut out = f.clone();
+        if self.quadratic {
+            for i in 0..f.len() {
+                for j in i..f.len() {
+                    out.push(f[i] * f[j]);
+                }
+            }
+        }
+        out.push(1.0);
+        out
+    }
+}
+
+/// Ridge weights from the expanded inputs of `pts` to `target(point)` (one per parameter), standardised.
+fn fit(
+    pts: &[Point],
+    inputs: Inputs,
+    target: impl Fn(&Point) -> [f64; 2],
+    ridge: f64,
+) -> (Vec<DVector<f64>>, Vec<(f64, f64)>) {
+    let rows: Vec<Vec<f64>> = pts.iter().map(|p| inputs.expand(p)).collect();
     let d = rows[0].len();
     // Standardise each column (the constant stays 1).
     let scale: Vec<(f64, f64)> = (0..d)
@@ -86,8 +143,8 @@ fn fit(pts: &[Point], target: impl Fn(&Point) -> [f64; 2], ridge: f64) -> (Vec<D
     (w, scale)
 }
 
-fn predict(w: &[DVector<f64>], scale: &[(f64, f64)], f: &[f64]) -> [f64; 2] {
-    let e = expand(f);
+fn predict(w: &[DVector<f64>], scale: &[(f64, f64)], inputs: Inputs, p: &Point) -> [f64; 2] {
+    let e = inputs.expand(p);
     let x: Vec<f64> = e.iter().zip(scale).map(|(v, (m, s))| (v - m) / s).collect();
     [0, 1].map(|k| w[k].iter().zip(&x).map(|(a, b)| a * b).sum())
 }
@@ -113,34 +170,55 @@ fn main() {
     };
     let shift = |p: &Point, by: [f64; 2]| [p.2[0] + by[0], p.2[1] + by[1]];
     println!("RMS error at 55-95 % of each validation discharge, % of range (qMobile / Ro)");
+    let rms_of = |r: &str, g: &dyn Fn(&Point) -> [f64; 2]| -> (usize, [f64; 2]) {
+        let sel: Vec<&Point> = va.iter().filter(|p| p.0 == r).collect();
+        let rms =
+            [0, 1].map(|k| (sel.iter().map(|p| err(g(p), p.4)[k].powi(2)).sum::<f64>() / sel.len() as f64).sqrt());
+        (sel.len(), rms)
+    };
+    println!("The bank alone (no learning), same points:");
     println!(
-        "| ridge | sampling | joint UKF | + learned posterior shift | + learned true shift (oracle) | posterior mean |"
+        "| sampling | tuned joint UKF | {} |",
+        bank(spec.ukf_settings()).iter().map(|b| b.0).collect::<Vec<_>>().join(" | ")
     );
-    println!("| ---: | --- | ---: | ---: | ---: | ---: |");
-    for ridge in [1.0, 10.0, 100.0, 1000.0] {
-        let (wp, sp) = fit(&tr, |p| [p.3[0] - p.2[0], p.3[1] - p.2[1]], ridge);
-        let (wt, st) = fit(&tr, |p| [p.4[0] - p.2[0], p.4[1] - p.2[1]], ridge);
-        for r in ["1s", "10-20s"] {
-            let sel: Vec<&Point> = va.iter().filter(|p| p.0 == r).collect();
-            let rms = |g: &dyn Fn(&Point) -> [f64; 2]| -> [f64; 2] {
-                [0, 1].map(|k| (sel.iter().map(|p| err(g(p), p.4)[k].powi(2)).sum::<f64>() / sel.len() as f64).sqrt())
-            };
-            let u = rms(&|p| p.2);
-            let lp = rms(&|p| shift(p, predict(&wp, &sp, &p.1)));
-            let lt = rms(&|p| shift(p, predict(&wt, &st, &p.1)));
-            let pm = rms(&|p| p.3);
-            println!(
-                "| {ridge} | {r} ({}) | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} |",
-                sel.len(),
-                u[0],
-                u[1],
-                lp[0],
-                lp[1],
-                lt[0],
-                lt[1],
-                pm[0],
-                pm[1]
-            );
+    for r in ["1s", "10-20s"] {
+        let u = rms_of(r, &|p| p.2).1;
+        let cols: Vec<String> = (0..bank(spec.ukf_settings()).len())
+            .map(|m| {
+                let b = rms_of(r, &|p| p.5[m]).1;
+                format!("{:.2} / {:.2}", b[0], b[1])
+            })
+            .collect();
+        println!("| {r} | {:.2} / {:.2} | {} |", u[0], u[1], cols.join(" | "));
+    }
+    let all = Inputs { load_free: false, bank: false, quadratic: true };
+    let sets = [
+        all,
+        Inputs { load_free: true, bank: false, quadratic: false },
+        Inputs { load_free: true, bank: false, quadratic: true },
+        Inputs { load_free: false, bank: true, quadratic: false },
+        Inputs { load_free: true, bank: true, quadratic: false },
+        Inputs { load_free: true, bank: true, quadratic: true },
+    ];
+    for inputs in sets {
+        println!("\nInputs: {}", inputs.name());
+        println!(
+            "| ridge | sampling | joint UKF | + learned posterior shift | + learned true shift (oracle) | posterior mean |"
+        );
+        println!("| ---: | --- | ---: | ---: | ---: | ---: |");
+        for ridge in [1.0, 10.0, 100.0, 1000.0] {
+            let (wp, sp) = fit(&tr, inputs, |p| [p.3[0] - p.2[0], p.3[1] - p.2[1]], ridge);
+            let (wt, st) = fit(&tr, inputs, |p| [p.4[0] - p.2[0], p.4[1] - p.2[1]], ridge);
+            for r in ["1s", "10-20s"] {
+                let (n, u) = rms_of(r, &|p| p.2);
+                let lp = rms_of(r, &|p| shift(p, predict(&wp, &sp, inputs, p))).1;
+                let lt = rms_of(r, &|p| shift(p, predict(&wt, &st, inputs, p))).1;
+                let pm = rms_of(r, &|p| p.3).1;
+                println!(
+                    "| {ridge} | {r} ({n}) | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} |",
+                    u[0], u[1], lp[0], lp[1], lt[0], lt[1], pm[0], pm[1]
+                );
+            }
         }
     }
 }
