@@ -256,7 +256,11 @@ impl JointUkf {
             }
             let nsub = (dt_s / self.spec.max_substep_s - 1e-9).ceil().max(1.0);
             let h = dt_s / nsub;
-            let v0 = self.model.voltage_v(&x, &d);
+            // Only a power load needs the voltage at the part's start (P / V); a voltage costs about a step.
+            let v0 = match kind {
+                DriveKind::Power(_) => self.model.voltage_v(&x, &d),
+                DriveKind::Current(_) => f64::NAN,
+            };
             for _ in 0..nsub as usize {
                 let i_a = match kind {
                     DriveKind::Current(i) => i,

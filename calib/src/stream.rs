@@ -1701,7 +1701,14 @@ mod tests {
                 let q = ours[n].q_mobile;
                 assert!((q / truth - 1.0).abs() < 0.03, "discharge {k} starts from {q} C, truth {truth} C");
             } else {
-                assert_eq!(ours[n].q_mobile, ours[n - 1].q_mobile, "discharge {k} starts where {} ended", k - 1);
+                // Where it ended, up to the round trip of the handed-on prior through the filter's range
+                // units (a few roundings of numbers of this size).
+                let (start, end) = (ours[n].q_mobile, ours[n - 1].q_mobile);
+                assert!(
+                    (start - end).abs() <= 8.0 * f64::EPSILON * end.abs(),
+                    "discharge {k} starts at {start} C, where {} ended: {end} C",
+                    k - 1
+                );
             }
             assert_eq!(ours[n].eod_current_a, None, "the EOD current starts over with the discharge");
             let source = if k >= 5 { WidthSource::Learned } else { WidthSource::Posterior };
