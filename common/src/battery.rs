@@ -507,8 +507,8 @@ mod tests {
     use super::*;
     use crate::math::electro;
 
-    /// The C library's asinh is the standard one to a few ulps over the Butler-Volmer arguments a discharge
-    /// reaches (|j / 2 j0| up to about 10) and beyond, odd, and exact at 0.
+    /// The C library's asinh is the standard one to a few ulps for |x| up to 200 (a Butler-Volmer argument
+    /// j / 2 j0 of sinh(200) would be an overpotential of kilovolts) and at the extremes, odd, and exact at 0.
     #[test]
     fn asinh_is_the_standard_one_to_a_few_ulps() {
         let mut worst = 0f64;
