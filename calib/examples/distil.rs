@@ -177,13 +177,11 @@ fn main() {
         (sel.len(), rms)
     };
     println!("The bank alone (no learning), same points:");
-    println!(
-        "| sampling | tuned joint UKF | {} |",
-        bank(spec.ukf_settings()).iter().map(|b| b.0).collect::<Vec<_>>().join(" | ")
-    );
+    let names: Vec<&str> = bank(spec.ukf_settings()).iter().map(|b| b.0).collect();
+    println!("| sampling | tuned joint UKF | {} |", names.join(" | "));
     for r in ["1s", "10-20s"] {
         let u = rms_of(r, &|p| p.2).1;
-        let cols: Vec<String> = (0..bank(spec.ukf_settings()).len())
+        let cols: Vec<String> = (0..names.len())
             .map(|m| {
                 let b = rms_of(r, &|p| p.5[m]).1;
                 format!("{:.2} / {:.2}", b[0], b[1])
@@ -191,9 +189,8 @@ fn main() {
             .collect();
         println!("| {r} | {:.2} / {:.2} | {} |", u[0], u[1], cols.join(" | "));
     }
-    let all = Inputs { load_free: false, bank: false, quadratic: true };
     let sets = [
-        all,
+        Inputs { load_free: false, bank: false, quadratic: true },
         Inputs { load_free: true, bank: false, quadratic: false },
         Inputs { load_free: true, bank: false, quadratic: true },
         Inputs { load_free: false, bank: true, quadratic: false },

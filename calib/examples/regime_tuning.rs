@@ -16,33 +16,33 @@ use rayon::prelude::*;
 
 /// NRMSE over every reading and over the second half of each discharge, qMobile / Ro %.
 fn score(spec: &MeasuredSpec, eps: &[&Episode], ukf: JointUkfSettings) -> [[f64; 2]; 2] {
-    let sums: Vec<[[f64; 2]; 2]> = eps
+    // Per cell: squared errors summed over every reading and over the second half, and their counts.
+    let sums: Vec<([[f64; 2]; 2], [usize; 2])> = eps
         .par_iter()
         .map(|e| {
             let mut f = JointUkf::new(ukf, &spec.tracker);
             let half = 0.5 * e.samples.last().map_or(0.0, |s| s.t_s);
-            let mut out = [[0.0; 2]; 2];
+            let (mut sq, mut n) = ([[0.0; 2]; 2], [0usize; 2]);
             for s in &e.samples {
                 f.step(s);
+                let second = s.t_s >= half;
+                n[0] += 1;
+                n[1] += usize::from(second);
                 for (k, p) in Param::BOTH.into_iter().enumerate() {
                     let err = p.err_pct(&f.estimate(), &e.spec.truth);
-                    out[0][k] += err * err;
-                    if s.t_s >= half {
-                        out[1][k] += err * err;
+                    sq[0][k] += err * err;
+                    if second {
+                        sq[1][k] += err * err;
                     }
                 }
             }
-            out
+            (sq, n)
         })
         .collect();
-    let n: usize = eps.iter().map(|e| e.samples.len()).sum();
-    let n2: usize =
-        eps.iter().map(|e| e.samples.iter().filter(|s| s.t_s >= 0.5 * e.samples.last().unwrap().t_s).count()).sum();
-    let tot = |w: usize, k: usize| sums.iter().map(|s| s[w][k]).sum::<f64>();
-    [
-        [(tot(0, 0) / n as f64).sqrt(), (tot(0, 1) / n as f64).sqrt()],
-        [(tot(1, 0) / n2 as f64).sqrt(), (tot(1, 1) / n2 as f64).sqrt()],
-    ]
+    [0, 1].map(|w| {
+        let n = sums.iter().map(|c| c.1[w]).sum::<usize>() as f64;
+        [0, 1].map(|k| (sums.iter().map(|c| c.0[w][k]).sum::<f64>() / n).sqrt())
+    })
 }
 
 fn main() {
