@@ -26,8 +26,9 @@ def median(values):
     return v[int((len(v) - 1) * 0.5 + 0.5)]
 
 
-def eod_error_pct(path, cutoff_v, fraction=0.5):
-    """|predicted - measured end of discharge| in % of the discharge, or None (cut short, no prediction)."""
+def eod_error_pct(path, cutoff_v, fraction=0.5, signed=False):
+    """|predicted - measured end of discharge| in % of the discharge (`signed`: predicted - measured, positive
+    late), or None (cut short, no prediction)."""
     rows = list(csv.DictReader(open(path, newline="")))
     t = [float(r["t_s"]) for r in rows]
     v = [float(r["voltage_v"]) for r in rows]
@@ -46,7 +47,8 @@ def eod_error_pct(path, cutoff_v, fraction=0.5):
     predicted = rows[j]["eod_s"]
     if predicted == "" or duration <= 0:
         return None
-    return abs(float(predicted) - eod) / duration * 100.0
+    error = (float(predicted) - eod) / duration * 100.0
+    return error if signed else abs(error)
 
 
 def errors(run, method, cutoff_v):

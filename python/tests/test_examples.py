@@ -84,3 +84,44 @@ def test_previous_discharge_signal_recovers_the_slope_it_was_made_with(tmp_path)
     assert "corrected 0.00 / 0.00 %" in out, out
     carried = float(out.split("carried ")[-1].split(" /")[0])
     assert carried > 0.2, out
+
+
+def test_record_room_learns_what_the_record_holds(tmp_path):
+    """A hand-made run whose capacity errors alternate (each the last one times -0.6 plus a little noise: what a
+    prior that carries one discharge's noise into the next gives) and whose ends all come 0.5 % late: the
+    learner on the record takes most of the capacity error, the median recentre none of it; the recentre
+    takes the constant end error off entirely."""
+    import json
+    import random
+
+    rng = random.Random(3)
+    run = tmp_path / "cal"
+    d = run / "readings" / "ukf"
+    d.mkdir(parents=True)
+    judged = list(range(41, 101))
+    (run / "calibration.json").write_text(json.dumps({"cutoff_v": 2.5, "settings": {"prior": {
+        "judged": [{"cycle": c, "rest_before_s": 14000.0} for c in judged], "width": {"usual_rest_s": 14000.0}}}}))
+    head = ("t_s,voltage_v,current_a,q_mobile_c,q_mobile_lo_c,q_mobile_hi_c,r_o_ohm,r_o_lo_ohm,r_o_hi_ohm,eod_s,"
+            "eod_lo_s,eod_hi_s,capacity_ah,capacity_lo_ah,capacity_hi_ah\n")
+    # Load on at 10 s, 2 A, the 2.5 V cut-off crossed at 1010 s by interpolation: 2010 A s drawn; the
+    # prediction at 510 s (50 %) counts.
+    drawn_ah = 2010.0 / 3600.0
+    error_ah = 0.0
+    errors = []
+    for c in judged:
+        error_ah = -0.6 * error_ah + rng.gauss(0.0, 0.01)
+        errors.append(error_ah)
+        rows = [(0.0, 4.2, 0.0), (10.0, 4.0, 2.0), (510.0, 3.6, 2.0), (1000.0, 2.6, 2.0), (1020.0, 2.4, 2.0)]
+        lines = [f"{t},{v},{i},0,0,0,0,0,0,1015,1000,1030,{drawn_ah + error_ah if t == 510.0 else 0.0},0,1"
+                 for t, v, i in rows]
+        (d / f"B0000-{c:04d}.csv").write_text(head + "\n".join(lines) + "\n")
+    out = run_example("record_room.py", str(run))
+    eod, capacity = (line for line in out.splitlines() if line.startswith("  "))
+    # 1015 s against 1010 s: 0.5 % late on every discharge; recentred to nothing.
+    assert "delivered 0.500 / 0.500, recentred 0.000 / 0.000" in eod, out
+    figure = {w: float(capacity.split(w + " ")[1].split(",")[0].split(" ")[0])
+              for w in ("delivered", "recentred", "learner")}
+    # What is left is the noise, 0.8 of the errors' spread (their variance is 1 / (1 - 0.36) of it).
+    assert figure["learner"] < 0.85 * figure["delivered"], out
+    assert figure["recentred"] > 0.95 * figure["delivered"], out
+    assert "lag-1 correlation of the errors -0." in capacity, out
