@@ -26,6 +26,15 @@ def median(values):
     return v[int((len(v) - 1) * 0.5 + 0.5)]
 
 
+def end_s(t, v, on, cutoff_v):
+    """The measured end of a discharge whose last reading is its first at or below the cut-off under load:
+    interpolated at the cut-off between the last two readings, or the last reading's time."""
+    k = len(t) - 1
+    if k > on and v[k - 1] > v[k]:
+        return t[k - 1] + (t[k] - t[k - 1]) * min(max((v[k - 1] - cutoff_v) / (v[k - 1] - v[k]), 0.0), 1.0)
+    return t[k]
+
+
 def eod_error_pct(path, cutoff_v, fraction=0.5, signed=False):
     """|predicted - measured end of discharge| in % of the discharge (`signed`: predicted - measured, positive
     late), or None (cut short, no prediction)."""
@@ -36,11 +45,7 @@ def eod_error_pct(path, cutoff_v, fraction=0.5, signed=False):
     on = next((k for k, a in enumerate(i) if a > LOAD_THRESHOLD_A), None)
     if on is None or not (i[-1] > LOAD_THRESHOLD_A and v[-1] <= cutoff_v) or len(rows) < 2:
         return None
-    k = len(rows) - 1
-    if k > on and v[k - 1] > v[k]:
-        eod = t[k - 1] + (t[k] - t[k - 1]) * min(max((v[k - 1] - cutoff_v) / (v[k - 1] - v[k]), 0.0), 1.0)
-    else:
-        eod = t[k]
+    eod = end_s(t, v, on, cutoff_v)
     duration = eod - t[on]
     at = t[on] + fraction * duration
     j = next(j for j, x in enumerate(t) if x >= at - 1e-9)

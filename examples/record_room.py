@@ -6,20 +6,24 @@
 RUN is a `bcal calibrate --out` folder. The design this measures (docs/calibrator.md, "a learner on the
 record"): before each judged discharge, a learner sees the method's signed errors on the discharges that
 ended before it (at 50 % of each: the end of discharge in % of the discharge, the capacity in Ah against the
-data's charge to the interpolated cut-off, both as `bcal calibrate` scores them, from readings/METHOD/) and
-the rest before this one, and moves the method's prediction at 50 % by the error it expects. The learner:
-least squares refitted before every discharge on the last `--window` discharges' pairs (at least
-`--min-pairs`; before that, no move), on three inputs: the last error, the mean of the last five, and the
-log of the rest before against the cell's usual rest (`calibration.json`, settings.prior). Within linear
-policies on these inputs, this is the optimum of a policy trained on the same record by cost alone (the
-squared error it leaves). The settings were fixed before any figure was seen.
+data's charge to the interpolated cut-off, both as `bcal calibrate` scores them, from readings/METHOD/; a
+discharge that started from a partial charge has no capacity score) and the rest before this one, and moves
+the method's prediction at 50 % by the error it expects. The learner: least squares refitted before every
+discharge on the last `--window` discharges' pairs (at least `--min-pairs`; before that, no move), on three
+inputs beside an intercept: the last error, the mean of the last five, and the log of the rest before
+against the cell's usual rest (`calibration.json`, settings.prior); a ridge of 1e-3 per pair on the inputs'
+coefficients (inputs scaled by the record's spread) keeps a record of equal rests solvable. Within linear
+policies on these inputs this is what a policy trained by cost alone (the squared error it leaves) on the
+same window would settle on. The settings were fixed before any figure was seen.
 
-Printed per run and quantity, over the discharges after the first `--min-pairs` + 1: the method as
-delivered; recentred (the median of its last 10 signed errors taken off, where that earns its place by the
-rule `bcal calibrate` gates every alternative with, `bcal_calib::tune::earns`: the non-learned rule the
-learner must beat); the learner served always and served where it earns; on how many discharges the learner
-beat the delivered prediction; and the errors' lag-1 correlation (what a learner on the record works from).
-Standard library only.
+Printed per run and quantity, over the discharges after the first `--min-pairs` + 1 (the record only):
+the method as delivered; recentred (the median of its last 10 signed errors taken off, the rule
+`bcal_calib::recentre::biases` applies to the end of discharge, here to either quantity) where that earns
+its place by the rule `bcal calibrate` gates every alternative with (`bcal_realcell::tune::online_gate`: a
+lower mean and a lower error on 8 of the last 10, never after a rest of more than a day): the non-learned
+rule the learner must beat; the learner served always and served where it earns; on how many discharges the
+learner beat the delivered prediction and was served; and the errors' lag-1 correlation. Standard library
+only.
 """
 
 import argparse
@@ -33,28 +37,44 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import eod_by_age  # noqa: E402  (its scoring of a calibrate run's readings)
 
 
+def charge_to_ah(t, i, end_s):
+    """The charge drawn from the first reading to `end_s`, Ah, as `bcal_calib::eod::charge_to_ah` takes it: the
+    discharging current (charging counts 0) by the trapezoid rule, the interval holding `end_s` cut there with
+    the current taken linear in it."""
+    q_c = 0.0
+    for k in range(len(t) - 1):
+        i0, i1 = max(i[k], 0.0), max(i[k + 1], 0.0)
+        if t[k + 1] <= end_s:
+            q_c += 0.5 * (i0 + i1) * (t[k + 1] - t[k])
+        else:
+            if t[k] < end_s:
+                f = (end_s - t[k]) / (t[k + 1] - t[k])
+                q_c += 0.5 * (i0 + (i0 + f * (i1 - i0))) * (end_s - t[k])
+            break
+    return q_c / 3600.0
+
+
 def signed_errors(path, cutoff_v):
-    """(EOD error in % of the discharge, capacity error in Ah), both signed (predicted - measured) at the first
-    reading at or after 50 % of the discharge, or None where `bcal calibrate` would not score it."""
+    """(EOD error in % of the discharge, capacity error in Ah), each signed (predicted - measured) at the first
+    reading at or after 50 % of the discharge, or None where `bcal calibrate` would not score it (the
+    capacity against the data's charge from the reading before the load came on to the interpolated cut-off,
+    as `bcal calibrate`'s records measure it)."""
     rows = list(csv.DictReader(open(path, newline="")))
     eod = eod_by_age.eod_error_pct(path, cutoff_v, signed=True)
-    if eod is None or "capacity_ah" not in rows[0]:
-        return None
+    if eod is None:
+        return None, None
     t = [float(r["t_s"]) for r in rows]
     v = [float(r["voltage_v"]) for r in rows]
     i = [float(r["current_a"]) for r in rows]
     on = next(k for k, a in enumerate(i) if a > eod_by_age.LOAD_THRESHOLD_A)
     k = len(rows) - 1
-    frac = min(max((v[k - 1] - cutoff_v) / (v[k - 1] - v[k]), 0.0), 1.0) if v[k - 1] > v[k] else 1.0
-    end_s = t[k - 1] + (t[k] - t[k - 1]) * frac
-    # The data's charge: the trapezoid of the current to the last reading above the cut-off, then that
-    # reading's current to the interpolated crossing.
-    drawn_as = sum(0.5 * (i[j] + i[j + 1]) * (t[j + 1] - t[j]) for j in range(k - 1)) + i[k - 1] * (end_s - t[k - 1])
-    at = t[on] + 0.5 * (end_s - t[on])
+    ended_s = eod_by_age.end_s(t, v, on, cutoff_v)
+    at = t[on] + 0.5 * (ended_s - t[on])
     j = next(j for j, x in enumerate(t) if x >= at - 1e-9)
-    if rows[j]["capacity_ah"] == "":
-        return None
-    return eod, float(rows[j]["capacity_ah"]) - drawn_as / 3600.0
+    if rows[j].get("capacity_ah", "") == "":
+        return eod, None
+    drawn_ah = charge_to_ah(t[max(on - 1, 0):k + 1], i[max(on - 1, 0):k + 1], ended_s)
+    return eod, float(rows[j]["capacity_ah"]) - drawn_ah
 
 
 def solve(a, b):
@@ -71,9 +91,9 @@ def solve(a, b):
     return [m[r][n] / m[r][r] for r in range(n)]
 
 
-def least_squares(xs, ys, ridge=1e-9):
-    """Coefficients of y on x (x rows start with 1), a tiny ridge on all but the intercept for a singular
-    record (a constant rest, say)."""
+def least_squares(xs, ys, ridge):
+    """Coefficients of y on x (x rows start with 1), with `ridge` per row on all but the intercept's (a
+    record of equal rests is otherwise singular)."""
     n = len(xs[0])
     a = [[sum(x[p] * x[q] for x in xs) + (ridge * len(xs) if p == q and p > 0 else 0.0) for q in range(n)]
          for p in range(n)]
@@ -81,6 +101,8 @@ def least_squares(xs, ys, ridge=1e-9):
 
 
 INPUTS = ("last", "mean5", "rest")
+# bcal_calib::prior_width::LONG_REST_S: after a longer rest no alternative serves (`online_gate`).
+LONG_REST_S = 86_400.0
 
 
 def corrected(errors, rests, usual_s, window, min_pairs, inputs_used=INPUTS):
@@ -106,23 +128,31 @@ def corrected(errors, rests, usual_s, window, min_pairs, inputs_used=INPUTS):
     return out
 
 
+def median(values):
+    """The median as `bcal_common::stats::median` takes it (the mean of the middle two of an even count)."""
+    v = sorted(values)
+    n = len(v)
+    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
 def recentred(errors, window=10):
-    """Each discharge's error after the move the recentre rule makes (`bcal_calib::recentre::biases`): the
-    median of the signed errors of the last `window` discharges before it; none before any."""
-    return [e - eod_by_age.median(errors[max(0, k - window):k]) if k else e for k, e in enumerate(errors)]
+    """Each discharge's error after the median of the signed errors of the last `window` discharges before it
+    is taken off (none before any): the rule `bcal_calib::recentre::biases` applies to the end of discharge,
+    applied here to either quantity."""
+    return [e - median(errors[max(0, k - window):k]) if k else e for k, e in enumerate(errors)]
 
 
-def gated(errors, alternative, window=10, share=0.75):
-    """The alternative where it earns its place as `bcal_calib::tune::earns` rules (over the last `window`
-    discharges before it: a lower mean absolute error and a lower one on at least `share` of them), the
-    method's own error elsewhere."""
+def gated(errors, alternative, long_rest, window=10, share=0.75):
+    """The alternative where it earns its place as `bcal_realcell::tune::online_gate` rules (over the last
+    `window` discharges before it: a lower mean absolute error and a lower one on at least `share` of them;
+    never after a rest of more than a day, `long_rest`), the method's own error elsewhere."""
     out = []
     for k, e in enumerate(errors):
         mine = [abs(x) for x in alternative[max(0, k - window):k]]
         theirs = [abs(x) for x in errors[max(0, k - window):k]]
         wins = sum(a < b for a, b in zip(mine, theirs))
         earns = len(theirs) == window and sum(mine) < sum(theirs) and wins >= math.ceil(share * window)
-        out.append(alternative[k] if earns else e)
+        out.append(alternative[k] if earns and not long_rest[k] else e)
     return out
 
 
@@ -150,22 +180,28 @@ def main():
         prior = j["settings"]["prior"]
         rest_of = {d["cycle"]: d["rest_before_s"] for d in prior["judged"]}
         usual_s = prior["width"]["usual_rest_s"]
-        scored = {}
+        # A discharge that started from a partial charge is scored on its end, not its capacity.
+        partial = set(j["records"].get("partial_start", []))
+        scored = ({}, {})
         for f in sorted((run / "readings" / a.method).glob("*.csv")):
             cycle = int(f.stem.rsplit("-", 1)[1])
-            e = signed_errors(f, j["cutoff_v"])
-            if e is not None and rest_of.get(cycle) is not None:
-                scored[cycle] = e
-        if len(scored) <= a.min_pairs + 1:
-            raise SystemExit(f"{run}: {len(scored)} discharges scored by {a.method}, too few for a record")
-        cycles = sorted(scored)
-        rests = [rest_of[c] for c in cycles]
-        print(f"{run.name} ({a.method}, {len(cycles)} discharges scored, the first {a.min_pairs + 1} only as record):")
+            if rest_of.get(cycle) is None:
+                continue
+            for q, e in enumerate(signed_errors(f, j["cutoff_v"])):
+                if e is not None and not (q == 1 and cycle in partial):
+                    scored[q][cycle] = e
+        print(f"{run.name} ({a.method}; on each quantity the first {a.min_pairs + 1} discharges scored are record only):")
         for q, (name, unit, fmt) in enumerate([("EOD at 50 %", "%", ".3f"), ("capacity from 50 %", "Ah", ".4f")]):
-            e = [scored[c][q] for c in cycles]
+            cycles = sorted(scored[q])
+            if len(cycles) <= a.min_pairs + 1:
+                print(f"  {name}: {len(cycles)} discharges scored, too few for a record")
+                continue
+            e = [scored[q][c] for c in cycles]
+            rests = [rest_of[c] for c in cycles]
+            long_rest = [r > LONG_REST_S for r in rests]
             learner = corrected(e, rests, usual_s, a.window, a.min_pairs, inputs_used)
-            ways = {"delivered": e, "recentred": gated(e, recentred(e)), "learner": learner,
-                    "learner where it earns": gated(e, learner)}
+            ways = {"delivered": e, "recentred": gated(e, recentred(e), long_rest), "learner": learner,
+                    "learner where it earns": gated(e, learner, long_rest)}
             judged = range(a.min_pairs + 1, len(e))
             mean = sum(e) / len(e)
             d = [x - mean for x in e]
@@ -174,7 +210,7 @@ def main():
             if unit == "%":
                 def figure(v):
                     v = sorted(abs(v[k]) for k in judged)
-                    return f"{eod_by_age.median(v):{fmt}} / {v[int(0.9 * (len(v) - 1) + 0.5)]:{fmt}}"
+                    return f"{median(v):{fmt}} / {v[int(0.9 * (len(v) - 1) + 0.5)]:{fmt}}"
                 what = "median / p90"
             else:
                 def figure(v):
@@ -182,8 +218,15 @@ def main():
                 what = "RMSE"
             parts = [f"{w} {figure(v)}" for w, v in ways.items()]
             gained = sum(abs(learner[k]) < abs(e[k]) for k in judged)
-            print(f"  {name} {what}, {unit}: " + ", ".join(parts) + f" (the learner better than delivered on "
-                  f"{gained} of {len(judged)}; lag-1 correlation of the errors {rho})")
+            served = sum(ways["learner where it earns"][k] != e[k] for k in judged)
+            print(f"  {name} {what}, {unit}, {len(judged)} discharges: " + ", ".join(parts) +
+                  f" (the learner better than delivered on {gained}, served where it earns on {served}; lag-1 "
+                  f"correlation of the errors {rho})")
+            # The capacity's scoring checked against bcal calibrate's own, over every judged discharge.
+            theirs = j.get("methods", {}).get(a.method, {}).get("scores", {}).get("capacity_vs_data", {}).get("50", {})
+            if q == 1 and "rmse" in theirs:
+                print(f"    scored as bcal calibrate does: every judged discharge {rms(e):.6f} Ah, calibration.json "
+                      f"{theirs['rmse']:.6f} Ah")
 
 
 if __name__ == "__main__":

@@ -87,10 +87,11 @@ def test_previous_discharge_signal_recovers_the_slope_it_was_made_with(tmp_path)
 
 
 def test_record_room_learns_what_the_record_holds(tmp_path):
-    """A hand-made run whose capacity errors alternate (each the last one times -0.6 plus a little noise: what a
-    prior that carries one discharge's noise into the next gives) and whose ends all come 0.5 % late: the
-    learner on the record takes most of the capacity error, the median recentre none of it; the recentre
-    takes the constant end error off entirely."""
+    """A hand-made run of 200 discharges whose capacity errors alternate (each the last one times -0.8 plus a
+    fresh part: what a prior that carries one discharge's noise into the next gives) and whose ends all come
+    0.5 % late: the learner on the record takes off about what the record predicts (its error near the fresh
+    part's, 0.6 of the delivered one's; 0.50-0.85 over 200 seeds), the median recentre none of it; the
+    recentre takes the constant end error off entirely."""
     import json
     import random
 
@@ -98,30 +99,52 @@ def test_record_room_learns_what_the_record_holds(tmp_path):
     run = tmp_path / "cal"
     d = run / "readings" / "ukf"
     d.mkdir(parents=True)
-    judged = list(range(41, 101))
-    (run / "calibration.json").write_text(json.dumps({"cutoff_v": 2.5, "settings": {"prior": {
-        "judged": [{"cycle": c, "rest_before_s": 14000.0} for c in judged], "width": {"usual_rest_s": 14000.0}}}}))
+    judged = list(range(41, 241))
+    (run / "calibration.json").write_text(json.dumps({"cutoff_v": 2.5, "records": {"partial_start": []}, "settings": {
+        "prior": {"judged": [{"cycle": c, "rest_before_s": 14000.0} for c in judged],
+                  "width": {"usual_rest_s": 14000.0}}}}))
     head = ("t_s,voltage_v,current_a,q_mobile_c,q_mobile_lo_c,q_mobile_hi_c,r_o_ohm,r_o_lo_ohm,r_o_hi_ohm,eod_s,"
             "eod_lo_s,eod_hi_s,capacity_ah,capacity_lo_ah,capacity_hi_ah\n")
-    # Load on at 10 s, 2 A, the 2.5 V cut-off crossed at 1010 s by interpolation: 2010 A s drawn; the
-    # prediction at 510 s (50 %) counts.
+    # Load on at 10 s, 2 A, the 2.5 V cut-off crossed at 1010 s by interpolation: 2010 A s drawn from the
+    # reading before the load came on (10 A s on the way up, then 2 A for 1000 s); the prediction at 510 s
+    # (50 %) counts.
     drawn_ah = 2010.0 / 3600.0
     error_ah = 0.0
-    errors = []
     for c in judged:
-        error_ah = -0.6 * error_ah + rng.gauss(0.0, 0.01)
-        errors.append(error_ah)
+        error_ah = -0.8 * error_ah + rng.gauss(0.0, 0.01)
         rows = [(0.0, 4.2, 0.0), (10.0, 4.0, 2.0), (510.0, 3.6, 2.0), (1000.0, 2.6, 2.0), (1020.0, 2.4, 2.0)]
         lines = [f"{t},{v},{i},0,0,0,0,0,0,1015,1000,1030,{drawn_ah + error_ah if t == 510.0 else 0.0},0,1"
                  for t, v, i in rows]
         (d / f"B0000-{c:04d}.csv").write_text(head + "\n".join(lines) + "\n")
     out = run_example("record_room.py", str(run))
-    eod, capacity = (line for line in out.splitlines() if line.startswith("  "))
+    eod = next(line for line in out.splitlines() if line.startswith("  EOD"))
+    capacity = next(line for line in out.splitlines() if line.startswith("  capacity"))
     # 1015 s against 1010 s: 0.5 % late on every discharge; recentred to nothing.
     assert "delivered 0.500 / 0.500, recentred 0.000 / 0.000" in eod, out
     figure = {w: float(capacity.split(w + " ")[1].split(",")[0].split(" ")[0])
               for w in ("delivered", "recentred", "learner")}
-    # What is left is the noise, 0.8 of the errors' spread (their variance is 1 / (1 - 0.36) of it).
-    assert figure["learner"] < 0.85 * figure["delivered"], out
+    assert 0.4 * figure["delivered"] < figure["learner"] < 0.9 * figure["delivered"], out
+    # The median of errors that turn each time is near 0: recentred or not, about the same.
     assert figure["recentred"] > 0.95 * figure["delivered"], out
     assert "lag-1 correlation of the errors -0." in capacity, out
+
+
+def test_record_rooms_learner_sees_only_the_discharges_before():
+    """The move the learner makes at a discharge does not change with that discharge's own error or any
+    later one: the corrected error moves by exactly what the error itself moves."""
+    import importlib.util
+    import random
+
+    spec = importlib.util.spec_from_file_location("record_room", REPO / "examples" / "record_room.py")
+    record_room = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(record_room)
+    rng = random.Random(11)
+    errors = [rng.gauss(0.0, 0.01) for _ in range(60)]
+    rests = [3600.0 * rng.uniform(2.0, 30.0) for _ in errors]
+    base = record_room.corrected(errors, rests, 14000.0, 30, 10)
+    for k in (11, 30, 59):
+        changed = errors[:k] + [x + 0.05 for x in errors[k:]]
+        moved = record_room.corrected(changed, rests, 14000.0, 30, 10)
+        assert moved[:k] == base[:k]
+        assert abs((moved[k] - changed[k]) - (base[k] - errors[k])) < 1e-12, k
+        assert base[k] != errors[k], "the learner moves once it has a record"
