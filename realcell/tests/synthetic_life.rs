@@ -273,10 +273,11 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
     assert_eq!(serde_json::to_value(factor).unwrap(), chosen["prior_factor"]);
 }
 
-/// One discharge under a square wave, `peak_a` at half duty with a 20 s period, read once per half-period
-/// near its end, as NASA's B0025-B0028 logger reads its 4 A wave (every 10-12 s, in step with it), from a
-/// cell at 24 C; and the charge it truly delivered until its loaded voltage first crossed the cut-off, Ah.
-fn square_discharge(n: u32, peak_a: f64, rng: &mut StdRng) -> (Discharge, f64) {
+/// One discharge under a square wave, `peak_a` at half duty with a 20 s period, from a cell at 24 C, and the
+/// charge it truly delivered until its loaded voltage first crossed the cut-off, Ah. `in_step`: read once per
+/// half-period near its end, as NASA's B0025 logger reads its 4 A wave (every 10-12 s, in step with it);
+/// otherwise every 10-11.6 s whatever the wave's phase, as a logger not tied to the load would.
+fn square_discharge(n: u32, peak_a: f64, in_step: bool, rng: &mut StdRng) -> (Discharge, f64) {
     let (q, r) = truth(n);
     let c = cell::Cell::new(cell::CellParams::base(q, r, AMBIENT_K));
     let mut s = c.full();
@@ -312,6 +313,8 @@ fn square_discharge(n: u32, peak_a: f64, rng: &mut StdRng) -> (Discharge, f64) {
             }
             next = if t + 10.0 < rest_s {
                 t + 10.0
+            } else if !in_step {
+                t + 10.0 + 1.6 * rng.random::<f64>()
             } else {
                 while rest_s + f64::from(half) * half_s + 8.5 <= t + 1e-9 {
                     half += 1;
@@ -346,7 +349,7 @@ fn square_discharge(n: u32, peak_a: f64, rng: &mut StdRng) -> (Discharge, f64) {
 fn a_square_wave_read_once_per_half_period_is_calibrated_at_its_mean_current() {
     let mut rng = StdRng::seed_from_u64(20261128);
     let peak_a = 4.0;
-    let all: Vec<(Discharge, f64)> = (1..=24).map(|n| square_discharge(n, peak_a, &mut rng)).collect();
+    let all: Vec<(Discharge, f64)> = (1..=24).map(|n| square_discharge(n, peak_a, true, &mut rng)).collect();
     let fc = bcal_doctor::fit::FitConfig::default();
     assert!(all.iter().all(|(d, _)| d.alternating_load(fc.load_threshold_a, fc.step_threshold_a)));
     let cal = calibrate_life(&all);
@@ -386,6 +389,40 @@ fn a_square_wave_read_once_per_half_period_is_calibrated_at_its_mean_current() {
     assert!(cap("ukf") < 0.03 && cap("fit") < 0.03, "ukf {} fit {}", cap("ukf"), cap("fit"));
     assert!(cap("ukf") < 0.1 * cap("uncalibrated"), "ukf {} uncalibrated {}", cap("ukf"), cap("uncalibrated"));
     assert!(eod50("ukf") < 1.0 && eod50("fit") < 1.0, "ukf {} fit {}", eod50("ukf"), eod50("fit"));
+}
+
+/// The same square wave read at a random phase (every 10-11.6 s, not tied to the load): each reading's current
+/// is then not the load over the interval before it, which is how an alternating load is read (as B0025's
+/// logger, in step, allows). The calibration completes and every record is kept, and the filter still beats
+/// the new-cell model, but far less well than in step: a known limit, not a target (the figures print with
+/// `-- --nocapture`). A cycler whose logger runs free of its square wave would want the load taken at its
+/// mean over each interval instead.
+#[test]
+fn a_square_wave_read_at_a_random_phase_is_calibrated_though_less_well() {
+    let mut rng = StdRng::seed_from_u64(20261128);
+    let peak_a = 4.0;
+    let all: Vec<(Discharge, f64)> = (1..=24).map(|n| square_discharge(n, peak_a, false, &mut rng)).collect();
+    let fc = bcal_doctor::fit::FitConfig::default();
+    assert!(all.iter().all(|(d, _)| d.alternating_load(fc.load_threshold_a, fc.step_threshold_a)));
+    let cal = calibrate_life(&all);
+    let r = &cal.report;
+    assert_eq!(r.records.reaching_cutoff, 12, "{:?}", r.records);
+    assert!(r.records.refused.is_empty(), "{:?}", r.records.refused);
+    let cap = |m: &str| r.methods[m].scores.capacity_vs_data["50"].rmse;
+    let eod50 = |m: &str| r.methods[m].scores.eod_error_pct["50"].median;
+    eprintln!(
+        "square wave at a random phase: capacity RMSE from 50 %: ukf {:.4} previous {:.4} uncalibrated {:.4} Ah; \
+         EOD at 50 %: ukf {:.2} previous {:.2} uncalibrated {:.2} %; partial starts flagged {:?}",
+        cap("ukf"),
+        cap("previous_cycle"),
+        cap("uncalibrated"),
+        eod50("ukf"),
+        eod50("previous_cycle"),
+        eod50("uncalibrated"),
+        r.records.partial_start
+    );
+    assert!(cap("ukf") < 0.5 * cap("uncalibrated"), "ukf {} uncalibrated {}", cap("ukf"), cap("uncalibrated"));
+    assert!(eod50("ukf") < 0.5 * eod50("uncalibrated"), "ukf {} uncalibrated {}", eod50("ukf"), eod50("uncalibrated"));
 }
 
 /// A life whose judged cycles 17-20 come from the cold: 4 C, the resistance multiplied by `ro_factor` and
