@@ -341,21 +341,29 @@ fn square_discharge(n: u32, peak_a: f64, in_step: bool, rng: &mut StdRng) -> (Di
     (d, truth_c.expect("the loop ends past the crossing") / 3600.0)
 }
 
+/// 24 discharges under a square wave of `peak_a` ([`square_discharge`], read `in_step` or not) and their
+/// calibration (12 training, 12 judged): every one is read as an alternating load, reaches the cut-off and is
+/// kept.
+fn square_wave_life(peak_a: f64, in_step: bool) -> (Vec<(Discharge, f64)>, bcal_realcell::calibrate::Calibration) {
+    let mut rng = StdRng::seed_from_u64(20261128);
+    let all: Vec<(Discharge, f64)> = (1..=24).map(|n| square_discharge(n, peak_a, in_step, &mut rng)).collect();
+    let fc = bcal_doctor::fit::FitConfig::default();
+    assert!(all.iter().all(|(d, _)| d.alternating_load(fc.load_threshold_a, fc.step_threshold_a)));
+    let cal = calibrate_life(&all);
+    assert_eq!(cal.report.records.reaching_cutoff, 12, "{:?}", cal.report.records);
+    assert!(cal.report.records.refused.is_empty(), "{:?}", cal.report.records.refused);
+    (all, cal)
+}
+
 /// A load that switches as often as it is sampled (a square wave read once per half-period) calibrates, as
 /// NASA's B0025 does, where it used to be refused: every reading is fitted with its load run over the
 /// interval before it, and predictions assume the mean current over time (half the peak), not the loaded
 /// readings' (the peak, which would put every end at half its time).
 #[test]
 fn a_square_wave_read_once_per_half_period_is_calibrated_at_its_mean_current() {
-    let mut rng = StdRng::seed_from_u64(20261128);
     let peak_a = 4.0;
-    let all: Vec<(Discharge, f64)> = (1..=24).map(|n| square_discharge(n, peak_a, true, &mut rng)).collect();
-    let fc = bcal_doctor::fit::FitConfig::default();
-    assert!(all.iter().all(|(d, _)| d.alternating_load(fc.load_threshold_a, fc.step_threshold_a)));
-    let cal = calibrate_life(&all);
+    let (all, cal) = square_wave_life(peak_a, true);
     let r = &cal.report;
-    assert_eq!(r.records.reaching_cutoff, 12, "{:?}", r.records);
-    assert!(r.records.refused.is_empty(), "{:?}", r.records.refused);
     for rec in &cal.judged {
         assert!((rec.current_a - 0.5 * peak_a).abs() < 0.05, "cycle {}: {} A", rec.cycle, rec.current_a);
     }
@@ -399,15 +407,8 @@ fn a_square_wave_read_once_per_half_period_is_calibrated_at_its_mean_current() {
 /// mean over each interval instead.
 #[test]
 fn a_square_wave_read_at_a_random_phase_is_calibrated_though_less_well() {
-    let mut rng = StdRng::seed_from_u64(20261128);
-    let peak_a = 4.0;
-    let all: Vec<(Discharge, f64)> = (1..=24).map(|n| square_discharge(n, peak_a, false, &mut rng)).collect();
-    let fc = bcal_doctor::fit::FitConfig::default();
-    assert!(all.iter().all(|(d, _)| d.alternating_load(fc.load_threshold_a, fc.step_threshold_a)));
-    let cal = calibrate_life(&all);
+    let (_, cal) = square_wave_life(4.0, false);
     let r = &cal.report;
-    assert_eq!(r.records.reaching_cutoff, 12, "{:?}", r.records);
-    assert!(r.records.refused.is_empty(), "{:?}", r.records.refused);
     let cap = |m: &str| r.methods[m].scores.capacity_vs_data["50"].rmse;
     let eod50 = |m: &str| r.methods[m].scores.eod_error_pct["50"].median;
     eprintln!(
