@@ -11,7 +11,8 @@ discharge that started from a partial charge has no capacity score) and the rest
 the method's prediction at 50 % by the error it expects. The learner: least squares refitted before every
 discharge on the last `--window` discharges' pairs (at least `--min-pairs`; before that, no move), on three
 inputs beside an intercept: the last error, the mean of the last five, and the log of the rest before
-against the cell's usual rest (`calibration.json`, settings.prior); a ridge of 1e-3 per pair on the inputs'
+against the cell's usual rest (`calibration.json`, settings.prior; a rest the schedule does not give counts
+as the usual one); a ridge of 1e-3 per pair on the inputs'
 coefficients (inputs scaled by the record's spread) keeps a record of equal rests solvable. Within linear
 policies on these inputs this is what a policy trained by cost alone (the squared error it leaves) on the
 same window would settle on. The settings were fixed before any figure was seen.
@@ -177,16 +178,18 @@ def main():
         if not report.exists():
             raise SystemExit(f"{report}: not found (RUN is a `bcal calibrate --out` folder)")
         j = json.load(open(report))
-        prior = j["settings"]["prior"]
-        rest_of = {d["cycle"]: d["rest_before_s"] for d in prior["judged"]}
-        usual_s = prior["width"]["usual_rest_s"]
+        prior = j.get("settings", {}).get("prior")
+        if prior is None or "cutoff_v" not in j:
+            raise SystemExit(f"{report}: no settings.prior or cutoff_v (a calibration.json of `bcal calibrate` with a "
+                             "streaming method is needed)")
+        # A rest the schedule does not give counts as the usual one (the input then says nothing).
+        usual_s = (prior.get("width") or {}).get("usual_rest_s") or 1.0
+        rest_of = {d["cycle"]: d.get("rest_before_s") for d in prior.get("judged", [])}
         # A discharge that started from a partial charge is scored on its end, not its capacity.
         partial = set(j["records"].get("partial_start", []))
         scored = ({}, {})
         for f in sorted((run / "readings" / a.method).glob("*.csv")):
             cycle = int(f.stem.rsplit("-", 1)[1])
-            if rest_of.get(cycle) is None:
-                continue
             for q, e in enumerate(signed_errors(f, j["cutoff_v"])):
                 if e is not None and not (q == 1 and cycle in partial):
                     scored[q][cycle] = e
@@ -197,7 +200,7 @@ def main():
                 print(f"  {name}: {len(cycles)} discharges scored, too few for a record")
                 continue
             e = [scored[q][c] for c in cycles]
-            rests = [rest_of[c] for c in cycles]
+            rests = [rest_of.get(c) or usual_s for c in cycles]
             long_rest = [r > LONG_REST_S for r in rests]
             learner = corrected(e, rests, usual_s, a.window, a.min_pairs, inputs_used)
             ways = {"delivered": e, "recentred": gated(e, recentred(e), long_rest), "learner": learner,
