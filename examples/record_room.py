@@ -213,7 +213,7 @@ def main():
             if unit == "%":
                 def figure(v):
                     v = sorted(abs(v[k]) for k in judged)
-                    return f"{median(v):{fmt}} / {v[int(0.9 * (len(v) - 1) + 0.5)]:{fmt}}"
+                    return f"{eod_by_age.median(v):{fmt}} / {v[int(0.9 * (len(v) - 1) + 0.5)]:{fmt}}"
                 what = "median / p90"
             else:
                 def figure(v):

@@ -256,7 +256,7 @@ impl JointUkf {
             }
             let nsub = (dt_s / self.spec.max_substep_s - 1e-9).ceil().max(1.0);
             let h = dt_s / nsub;
-            // Only a power load needs the voltage at the part's start (P / V); a voltage costs about a step.
+            // Only a power load needs the voltage at the part's start (P / V): under a current it is skipped.
             let v0 = match kind {
                 DriveKind::Power(_) => self.model.voltage_v(&x, &d),
                 DriveKind::Current(_) => f64::NAN,

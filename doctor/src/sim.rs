@@ -419,8 +419,8 @@ impl ExtendedCell {
     /// 2013 as progpy ships it), split the way the step uses it: the rates of the charges and the temperature,
     /// and the steady values the three overpotential lags (ohmic, negative, positive) relax toward. Written
     /// here rather than called because the common model's asinh (then `f64::asinh`, glibc `hypot` and `log1p`;
-    /// since 2026-11-28 the C library's, about twice as fast, still slower than this one) was half of the
-    /// doctor's run time; `tests::rates_and_steady_values_match_the_common_model` holds the two equal.
+    /// the C library's since 2026-11-28) was half of the doctor's run time;
+    /// `tests::rates_and_steady_values_match_the_common_model` holds the two equal.
     #[inline]
     fn rates_and_steady(&self, i_a: f64, d: &Degradation) -> (ModelState, [f64; 3]) {
         let p = &self.model.params;
