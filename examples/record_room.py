@@ -1,7 +1,7 @@
 """How much of a calibrator's error on a real cell could a learner on its record over past discharges take?
 
     python examples/record_room.py RUN [RUN ...] [--method ukf] [--window 30] [--min-pairs 10]
-        [--inputs last,mean5,rest]
+        [--inputs last,mean5,rest] [--against data|stated]
 
 RUN is a `bcal calibrate --out` folder. The design this measures (docs/calibrator.md, "a learner on the
 record"): before each judged discharge, a learner sees the method's signed errors on the discharges that
@@ -16,6 +16,10 @@ as the usual one); a ridge of 1e-3 per pair on the inputs'
 coefficients (inputs scaled by the record's spread) keeps a record of equal rests solvable. Within linear
 policies on these inputs this is what a policy trained by cost alone (the squared error it leaves) on the
 same window would settle on. The settings were fixed before any figure was seen.
+
+`--against stated` puts the capacity the source states (`calibration.json`'s records.capacity_refs) where
+the data's charge stands, in what the learner sees and in its score: the two references differ where the
+source states the charge to another voltage than the cut-off (NASA: to 2.6-2.7 V on every cell).
 
 Printed per run and quantity, over the discharges after the first `--min-pairs` + 1 (the record only):
 the method as delivered; recentred (the median of its last 10 signed errors taken off, the rule
@@ -55,11 +59,11 @@ def charge_to_ah(t, i, end_s):
     return q_c / 3600.0
 
 
-def signed_errors(path, cutoff_v):
+def signed_errors(path, cutoff_v, reference_ah=None):
     """(EOD error in % of the discharge, capacity error in Ah), each signed (predicted - measured) at the first
     reading at or after 50 % of the discharge, or None where `bcal calibrate` would not score it (the
-    capacity against the data's charge from the reading before the load came on to the interpolated cut-off,
-    as `bcal calibrate`'s records measure it)."""
+    capacity against `reference_ah` where given, else against the data's charge from the reading before the
+    load came on to the interpolated cut-off, as `bcal calibrate`'s records measure it)."""
     rows = list(csv.DictReader(open(path, newline="")))
     eod = eod_by_age.eod_error_pct(path, cutoff_v, signed=True)
     if eod is None:
@@ -74,8 +78,9 @@ def signed_errors(path, cutoff_v):
     j = next(j for j, x in enumerate(t) if x >= at - 1e-9)
     if rows[j].get("capacity_ah", "") == "":
         return eod, None
-    drawn_ah = charge_to_ah(t[max(on - 1, 0):k + 1], i[max(on - 1, 0):k + 1], ended_s)
-    return eod, float(rows[j]["capacity_ah"]) - drawn_ah
+    if reference_ah is None:
+        reference_ah = charge_to_ah(t[max(on - 1, 0):k + 1], i[max(on - 1, 0):k + 1], ended_s)
+    return eod, float(rows[j]["capacity_ah"]) - reference_ah
 
 
 def solve(a, b):
@@ -169,6 +174,9 @@ def main():
     p.add_argument("--min-pairs", type=int, default=10)
     p.add_argument("--inputs", default=",".join(INPUTS),
                    help="the learner's inputs beside its intercept, of last,mean5,rest (to see which carries a gain)")
+    p.add_argument("--against", choices=("data", "stated"), default="data",
+                   help="the capacity the learner learns and is scored against: the data's charge to the cut-off, or "
+                        "the capacity the source states (calibration.json's records.capacity_refs)")
     a = p.parse_args()
     inputs_used = [x for x in a.inputs.split(",") if x]
     if any(x not in INPUTS for x in inputs_used):
@@ -187,13 +195,38 @@ def main():
         rest_of = {d["cycle"]: d.get("rest_before_s") for d in prior.get("judged", [])}
         # A discharge that started from a partial charge is scored on its end, not its capacity.
         partial = set(j["records"].get("partial_start", []))
+        stated = None
+        if a.against == "stated":
+            refs = j["records"].get("capacity_refs")
+            if refs is None:
+                raise SystemExit(f"{report}: no records.capacity_refs (a report of a bcal older than --against "
+                                 "stated; run bcal calibrate again)")
+            # As `bcal calibrate` scores it: a discharge whose source states no capacity has none to score.
+            stated = {r["cycle"]: r["stated_ah"] for r in refs if (r.get("stated_ah") or 0.0) > 0.0}
+            # How the two references stand apart on the judged discharges, beside what the training ones showed.
+            gaps = sorted(r["stated_ah"] - r["data_ah"] for r in refs
+                          if r["cycle"] in stated and r.get("data_ah") is not None and not r.get("partial_start"))
+            if gaps:
+                mean = sum(gaps) / len(gaps)
+                sd = math.sqrt(sum((g - mean) ** 2 for g in gaps) / len(gaps))
+                trained = (j["records"].get("stated_capacity") or {}).get("cutoff_median_gap_ah")
+                print(f"{run.name}: the stated capacity less the data's charge to the cut-off on {len(gaps)} judged "
+                      f"discharges: median {median(gaps):+.4f} Ah, sd {sd:.4f}" +
+                      ("" if trained is None else f"; on the training discharges median {trained:+.4f} Ah"))
         scored = ({}, {})
         for f in sorted((run / "readings" / a.method).glob("*.csv")):
             cycle = int(f.stem.rsplit("-", 1)[1])
-            for q, e in enumerate(signed_errors(f, j["cutoff_v"])):
+            if stated is not None and cycle not in stated:
+                scored[0][cycle] = signed_errors(f, j["cutoff_v"])[0]
+                continue
+            reference = None if stated is None else stated[cycle]
+            for q, e in enumerate(signed_errors(f, j["cutoff_v"], reference)):
                 if e is not None and not (q == 1 and cycle in partial):
                     scored[q][cycle] = e
-        print(f"{run.name} ({a.method}; on each quantity the first {a.min_pairs + 1} discharges scored are record only):")
+        scored = tuple({c: e for c, e in s.items() if e is not None} for s in scored)
+        against = "the data's charge" if stated is None else "the stated capacity"
+        print(f"{run.name} ({a.method}; capacity against {against}; on each quantity the first {a.min_pairs + 1} "
+              "discharges scored are record only):")
         for q, (name, unit, fmt) in enumerate([("EOD at 50 %", "%", ".3f"), ("capacity from 50 %", "Ah", ".4f")]):
             cycles = sorted(scored[q])
             if len(cycles) <= a.min_pairs + 1:
@@ -226,7 +259,8 @@ def main():
                   f" (the learner better than delivered on {gained}, served where it earns on {served}; lag-1 "
                   f"correlation of the errors {rho})")
             # The capacity's scoring checked against bcal calibrate's own, over every judged discharge.
-            theirs = j.get("methods", {}).get(a.method, {}).get("scores", {}).get("capacity_vs_data", {}).get("50", {})
+            key = "capacity" if stated is not None else "capacity_vs_data"
+            theirs = j.get("methods", {}).get(a.method, {}).get("scores", {}).get(key, {}).get("50", {})
             if q == 1 and "rmse" in theirs:
                 print(f"    scored as bcal calibrate does: every judged discharge {rms(e):.6f} Ah, calibration.json "
                       f"{theirs['rmse']:.6f} Ah")

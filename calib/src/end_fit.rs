@@ -15,6 +15,8 @@ use bcal_common::measured::tracker::TrackerSpec;
 /// the whole discharge: the reading that ends a discharge is the stream's slowest (B0005's discharges 41-80
 /// through `bcal calibrate --follow`: at most 21 ms, against 0.6 ms for any reading without the fit).
 const BISECTIONS: usize = 25;
+/// The part of the rest before the load the model is run through, s (NASA's records rest under a minute).
+const REST_RUN_S: f64 = 600.0;
 
 /// The qMobile, C, under which the model's voltage reaches `spec.cutoff_v` at `end_s`, given the
 /// discharge's readings from its rest on (`samples`, in time order; those after `end_s` are ignored) and
@@ -32,12 +34,17 @@ pub fn q_mobile_to_end(spec: &TrackerSpec, samples: &[Sample], end_s: f64, r_o_o
     let t0_k = temperature_k(first);
     let xn0 = xn_from_rest_voltage(&model, rest.iter().sum::<f64>() / rest.len() as f64, t0_k);
     let ref_k = spec.model.reference_k.unwrap_or(first.temperature_k);
+    // The model starts at rest where the last [`REST_RUN_S`] of the rest begin: a rest logged for hours
+    // (a live stream's) would otherwise be run through on every bisection step (16 s at the cut-off after a
+    // rest of 300 000 readings), for a state the rest current barely moves.
+    let load_on_s = samples[rest.len()].t_s;
+    let from = samples[..rest.len()].partition_point(|s| s.t_s < load_on_s - REST_RUN_S).min(rest.len() - 1);
     // The model's voltage at the end minus the cut-off under qMobile `q` (an emptied model reads below).
     let margin_v = |q: f64| {
         let d = Degradation { q_mobile_c: q, r_o_ohm };
         let mut cell =
             CellModel::at_rest(model.clone(), xn0, t0_k, spec.max_substep_s).with_arrhenius(&spec.model, ref_k);
-        for w in samples[..upto].windows(2) {
+        for w in samples[from..upto].windows(2) {
             cell.advance_between(&w[0], &w[1], &d, temperature_k(&w[1]));
         }
         let last = &samples[upto - 1];
@@ -108,5 +115,32 @@ mod tests {
             assert_eq!(q_mobile_to_end(&spec, &loaded, end_s, truth.r_o_ohm), None, "no rest, no start");
         }
         assert!(emptied > 0, "no cell emptied above 2.5 V: the deep cut-off went untested");
+    }
+
+    /// A rest logged for five hours before the load, its readings carrying a current sensor's 40 mA offset
+    /// (below what counts as a load): the fit runs the model through the last 600 s of it only (the same
+    /// fit as with those 600 s alone logged), so the offset's charge over the rest (720 C, a tenth of the
+    /// cell's) is not taken from the cell: the fit stays within 5 % of the one with a 30 s rest and no
+    /// offset.
+    #[test]
+    fn a_long_logged_rest_is_not_run_through() {
+        let cfg = ScenarioConfig::default();
+        let spec = TrackerSpec::default();
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(5);
+        let ep_spec = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
+        let ep = simulate(&cfg, &ep_spec).unwrap();
+        let k = ep.true_voltage_v.iter().position(|v| *v < spec.cutoff_v).unwrap();
+        let end_s = ep.samples[k].t_s;
+        let loaded = ep.samples.iter().position(|s| s.current_a > REST_CURRENT_A).unwrap();
+        let rest = ep.samples[0];
+        let with_rest = |rest_s: f64, offset_a: f64| {
+            let mut v: Vec<Sample> =
+                (0..rest_s as usize).map(|t| Sample { t_s: t as f64 - rest_s, current_a: offset_a, ..rest }).collect();
+            v.extend(ep.samples[loaded..k].iter().copied());
+            q_mobile_to_end(&spec, &v, end_s, ep_spec.truth.r_o_ohm).expect("a fit")
+        };
+        let (short, long) = (with_rest(30.0, 0.0), with_rest(18_000.0, 0.04));
+        assert_eq!(long, with_rest(REST_RUN_S, 0.04), "the rest before its last {REST_RUN_S} s is not run through");
+        assert!((long / short - 1.0).abs() < 0.05, "five hours at 40 mA: {long} C against {short} C");
     }
 }

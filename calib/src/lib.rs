@@ -14,7 +14,8 @@
 //!   rollouts the learner's validation and the evaluator share; [`tune`]: choices made on validation cells;
 //!   [`stream`]: one calibrator on live readings (`bcal calibrate --follow`, the Python package);
 //!   [`prior_width`] and [`widening`]: a discharge's prior width and its prediction intervals, learned from
-//!   the discharges before it (for `bcal calibrate` and a live stream alike); [`end_fit`]: the qMobile a
+//!   the discharges before it (for `bcal calibrate` and a live stream alike); [`record_learner`]: a learner
+//!   on a calibrator's errors across discharges (`bcal calibrate`); [`end_fit`]: the qMobile a
 //!   discharge's measured end gives, which a live stream hands on.
 //!
 //! No libtorch here (the learner and the direct mapping's training own it), and nothing prints.
@@ -30,6 +31,7 @@ pub mod eod;
 pub mod joint_ukf;
 pub mod prior_width;
 pub mod recentre;
+pub mod record_learner;
 pub mod rescue;
 pub mod stream;
 pub mod tracker;

@@ -71,7 +71,9 @@ pub struct CalibrateArgs {
     /// Calibrators, comma separated: `rl:RUN` (the RL policy of a measured-only run folder, or a policy file;
     /// `rl:` given more than once: an ensemble of runs of one cell config trained from other seeds, each run's
     /// delivered policy, whose mean action corrects the filter),
-    /// `ukf` (the joint UKF, its settings chosen on the last training cycles), `adaptive_ukf` (that filter
+    /// `ukf` (the joint UKF, its settings chosen on the last training cycles; with it `ukf_learned`, the same
+    /// filter with its capacity moved by a learner on its own record across the cell's discharges, reported
+    /// beside it), `adaptive_ukf` (that filter
     /// with its noise adapted by covariance matching, the rule chosen on the same cycles), `fit` (the doctor's
     /// offline least squares on the whole discharge: an oracle that sees the future). The references
     /// (uncalibrated, previous cycle, prior, parameter trend) always run. Over a cell's discharges the
@@ -148,7 +150,7 @@ pub fn read_with_starts(
     cell: &str,
     cycles: Option<&RangeInclusive<u32>>,
     opts: &ReadOptions,
-) -> anyhow::Result<(Vec<Discharge>, Vec<RecordStart>)> {
+) -> anyhow::Result<(Vec<Discharge>, Vec<RecordStart>, Vec<Unread>)> {
     let (ds, rep) = bcal_doctor::input::read_any(data, cell, cycles, opts).with_context(|| {
         if data.is_dir() {
             format!("reading cell {cell} from {}", data.display())
@@ -159,7 +161,20 @@ pub fn read_with_starts(
     for line in rep.summary() {
         eprintln!("{line}");
     }
-    Ok((ds, rep.starts))
+    // What was not read goes into the report too (a record is never dropped without a word there).
+    let mut unread: Vec<Unread> = rep
+        .missing_files
+        .iter()
+        .map(|f| Unread { cycle: None, why: format!("{f}: named in the metadata, not on disk") })
+        .collect();
+    unread.extend(rep.skipped.iter().map(|s| Unread { cycle: s.cycle, why: s.reason.clone() }));
+    Ok((ds, rep.starts, unread))
+}
+
+/// A record the reader could not read: its cycle where known, and why (naming the file).
+pub struct Unread {
+    pub cycle: Option<u32>,
+    pub why: String,
 }
 
 /// The training cycles given, or the cell's default ([`bcal_doctor::input::default_train_cycles`], said on
@@ -170,11 +185,11 @@ fn train_cycles(
     data: &Path,
     cell: &str,
     opts: &ReadOptions,
-) -> anyhow::Result<(RangeInclusive<u32>, Option<(Vec<Discharge>, Vec<RecordStart>)>)> {
+) -> anyhow::Result<(RangeInclusive<u32>, Option<(Vec<Discharge>, Vec<RecordStart>, Vec<Unread>)>)> {
     if let Some(t) = given {
         return Ok((parse_cycle_range(t)?, None));
     }
-    let (all, starts) = read_with_starts(data, cell, None, opts)?;
+    let (all, starts, unread) = read_with_starts(data, cell, None, opts)?;
     let range = bcal_doctor::input::default_train_cycles(cell, &all)?;
     eprintln!(
         "training cycles {}..{} (the first third of {cell}'s {} discharges, at most {}, at least {}; --train-cycles \
@@ -185,7 +200,7 @@ fn train_cycles(
         bcal_doctor::input::DEFAULT_TRAIN_MAX,
         bcal_doctor::input::DEFAULT_TRAIN_MIN
     );
-    Ok((range, Some((all, starts))))
+    Ok((range, Some((all, starts, unread))))
 }
 
 /// The policy files of `rl:RUN`: a run folder's checkpoints (best and last by each criterion, duplicates
@@ -325,20 +340,24 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
             shown(&train_range)
         );
     }
-    let (train, mut judged, starts) = match everything {
+    let (train, mut judged, starts, unread) = match everything {
         // Read once already; the starts of records outside both ranges are never looked up.
-        Some((all, starts)) => {
+        Some((all, starts, unread)) => {
             let (train, rest): (Vec<Discharge>, Vec<Discharge>) =
                 all.into_iter().partition(|d| train_range.contains(&d.cycle));
-            (train, rest.into_iter().filter(|d| judged_range.contains(&d.cycle)).collect(), starts)
+            let judged = rest.into_iter().filter(|d| judged_range.contains(&d.cycle)).collect();
+            let within = |u: &Unread| u.cycle.is_none_or(|c| train_range.contains(&c) || judged_range.contains(&c));
+            (train, judged, starts, unread.into_iter().filter(within).collect())
         }
         None => {
-            let (train, mut starts) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
-            let (judged, judged_starts) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
+            let (train, mut starts, mut unread) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
+            let (judged, judged_starts, judged_unread) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
             starts.extend(judged_starts);
-            (train, judged, starts)
+            unread.extend(judged_unread);
+            (train, judged, starts, unread)
         }
     };
+    let unread: Vec<String> = unread.into_iter().map(|u| u.why).collect();
     if train.is_empty() && judged.is_empty() {
         bail!(
             "{cell}: no discharge read from {} in cycles {} or {} (the reader's lines above say what was missing \
@@ -415,6 +434,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         model,
         starts,
         rests: Some(rests),
+        unread,
     };
     let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
     cal.report.seconds = started.elapsed().as_secs_f64();
@@ -465,8 +485,11 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };
     let (range, everything) = train_cycles(a.train_cycles.as_deref(), &a.data, &cell, &opts)?;
     let (ds, starts) = match everything {
-        Some((all, starts)) => (all.into_iter().filter(|d| range.contains(&d.cycle)).collect(), starts),
-        None => read_with_starts(&a.data, &cell, Some(&range), &opts)?,
+        Some((all, starts, _)) => (all.into_iter().filter(|d| range.contains(&d.cycle)).collect(), starts),
+        None => {
+            let (ds, starts, _) = read_with_starts(&a.data, &cell, Some(&range), &opts)?;
+            (ds, starts)
+        }
     };
     let (cut, cut_source) = cutoff_or_refuse(a.cutoff_v, &a.data, &cell, &ds)?;
     let mut summary = RecordSummary::default();

@@ -86,12 +86,12 @@ def test_previous_discharge_signal_recovers_the_slope_it_was_made_with(tmp_path)
     assert carried > 0.2, out
 
 
-def test_record_room_learns_what_the_record_holds(tmp_path):
-    """A hand-made run of 200 discharges whose capacity errors alternate (each the last one times -0.8 plus a
-    fresh part: what a prior that carries one discharge's noise into the next gives) and whose ends all come
-    0.5 % late: the learner on the record takes off about what the record predicts (its error near the fresh
-    part's, 0.6 of the delivered one's; 0.50-0.85 over 200 seeds), the median recentre none of it; the
-    recentre takes the constant end error off entirely."""
+def record_room_run(tmp_path, stated_offset_ah=None):
+    """A hand-made `bcal calibrate --out` folder of 200 judged discharges for record_room.py: each discharge's
+    capacity error at 50 % is -0.8 times the last one plus a fresh part (what a prior that carries one
+    discharge's noise into the next gives), and every end comes 0.5 % late. With `stated_offset_ah` its
+    report carries each discharge's capacity references (records.capacity_refs), the stated capacity that
+    much above the data's charge."""
     import json
     import random
 
@@ -100,15 +100,19 @@ def test_record_room_learns_what_the_record_holds(tmp_path):
     d = run / "readings" / "ukf"
     d.mkdir(parents=True)
     judged = list(range(41, 241))
-    (run / "calibration.json").write_text(json.dumps({"cutoff_v": 2.5, "records": {"partial_start": []}, "settings": {
-        "prior": {"judged": [{"cycle": c, "rest_before_s": 14000.0} for c in judged],
-                  "width": {"usual_rest_s": 14000.0}}}}))
-    head = ("t_s,voltage_v,current_a,q_mobile_c,q_mobile_lo_c,q_mobile_hi_c,r_o_ohm,r_o_lo_ohm,r_o_hi_ohm,eod_s,"
-            "eod_lo_s,eod_hi_s,capacity_ah,capacity_lo_ah,capacity_hi_ah\n")
     # Load on at 10 s, 2 A, the 2.5 V cut-off crossed at 1010 s by interpolation: 2010 A s drawn from the
     # reading before the load came on (10 A s on the way up, then 2 A for 1000 s); the prediction at 510 s
     # (50 %) counts.
     drawn_ah = 2010.0 / 3600.0
+    records = {"partial_start": []}
+    if stated_offset_ah is not None:
+        records["capacity_refs"] = [{"cycle": c, "stated_ah": drawn_ah + stated_offset_ah, "data_ah": drawn_ah,
+                                     "partial_start": False} for c in judged]
+    (run / "calibration.json").write_text(json.dumps({"cutoff_v": 2.5, "records": records, "settings": {
+        "prior": {"judged": [{"cycle": c, "rest_before_s": 14000.0} for c in judged],
+                  "width": {"usual_rest_s": 14000.0}}}}))
+    head = ("t_s,voltage_v,current_a,q_mobile_c,q_mobile_lo_c,q_mobile_hi_c,r_o_ohm,r_o_lo_ohm,r_o_hi_ohm,eod_s,"
+            "eod_lo_s,eod_hi_s,capacity_ah,capacity_lo_ah,capacity_hi_ah\n")
     error_ah = 0.0
     for c in judged:
         error_ah = -0.8 * error_ah + rng.gauss(0.0, 0.01)
@@ -116,17 +120,46 @@ def test_record_room_learns_what_the_record_holds(tmp_path):
         lines = [f"{t},{v},{i},0,0,0,0,0,0,1015,1000,1030,{drawn_ah + error_ah if t == 510.0 else 0.0},0,1"
                  for t, v, i in rows]
         (d / f"B0000-{c:04d}.csv").write_text(head + "\n".join(lines) + "\n")
-    out = run_example("record_room.py", str(run))
-    eod = next(line for line in out.splitlines() if line.startswith("  EOD"))
+    return run
+
+
+def capacity_figures(out):
     capacity = next(line for line in out.splitlines() if line.startswith("  capacity"))
+    return capacity, {w: float(capacity.split(w + " ")[1].split(",")[0].split(" ")[0])
+                      for w in ("delivered", "recentred", "learner")}
+
+
+def test_record_room_learns_what_the_record_holds(tmp_path):
+    """On the hand-made run (`record_room_run`) the learner on the record takes off about what the record
+    predicts (its error near the fresh part's, 0.6 of the delivered one's; 0.50-0.85 over 200 seeds), the
+    median recentre none of it; the recentre takes the constant end error off entirely."""
+    out = run_example("record_room.py", str(record_room_run(tmp_path)))
+    eod = next(line for line in out.splitlines() if line.startswith("  EOD"))
+    capacity, figure = capacity_figures(out)
     # 1015 s against 1010 s: 0.5 % late on every discharge; recentred to nothing.
     assert "delivered 0.500 / 0.500, recentred 0.000 / 0.000" in eod, out
-    figure = {w: float(capacity.split(w + " ")[1].split(",")[0].split(" ")[0])
-              for w in ("delivered", "recentred", "learner")}
     assert 0.4 * figure["delivered"] < figure["learner"] < 0.9 * figure["delivered"], out
     # The median of errors that turn each time is near 0: recentred or not, about the same.
     assert figure["recentred"] > 0.95 * figure["delivered"], out
     assert "lag-1 correlation of the errors -0." in capacity, out
+
+
+def test_record_room_against_the_stated_capacity(tmp_path):
+    """`--against stated` learns and scores against the capacities the report states: here 0.06 Ah above the
+    data's charge, so every prediction errs 0.06 Ah low beside the alternating part: the delivered error is
+    the offset's size, the learner takes it off (to below the data's delivered error), the gated recentre
+    most of it. A report without the references is refused, naming what to do."""
+    run = record_room_run(tmp_path, stated_offset_ah=0.06)
+    _, data = capacity_figures(run_example("record_room.py", str(run)))
+    out = run_example("record_room.py", "--against", "stated", str(run))
+    assert "capacity against the stated capacity" in out, out
+    _, stated = capacity_figures(out)
+    assert stated["delivered"] > 0.06 > 2.0 * data["delivered"], (out, data)
+    assert stated["learner"] < 0.9 * data["delivered"] and stated["recentred"] < 0.5 * stated["delivered"], out
+    bare = record_room_run(tmp_path / "bare")
+    fail = subprocess.run([sys.executable, str(REPO / "examples" / "record_room.py"), "--against", "stated", str(bare)],
+                          capture_output=True, text=True, timeout=300)
+    assert fail.returncode != 0 and "records.capacity_refs" in fail.stderr and "bcal calibrate again" in fail.stderr
 
 
 def test_record_rooms_learner_sees_only_the_discharges_before():

@@ -69,6 +69,9 @@ pub struct CalibrateInput<'a> {
     /// leaves judged records out, and each still ends the rest before the next); None: from `starts` and
     /// the records given ([`crate::prior::rests_before`]).
     pub rests: Option<BTreeMap<u32, f64>>,
+    /// Records of the selected cycles the reader could not read, each with why (naming the file): said in
+    /// the report beside the ones refused here.
+    pub unread: Vec<String>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -498,6 +501,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         r.partial_start = short.contains(&r.cycle);
     }
     summary.partial_start = judged.iter().filter(|r| r.partial_start).map(|r| r.cycle).collect();
+    summary.unread = input.unread.clone();
     // What the stated capacity measures, read before any discharge is judged (it names a definition, it
     // moves no prediction).
     summary.stated_capacity = crate::record::stated_capacity(&train, cut);
@@ -526,14 +530,24 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     summary.records = judged.len();
     summary.reaching_cutoff = judged.iter().filter(|r| r.eod_s.is_some()).count();
     summary.cut_short = judged.iter().filter(|r| r.eod_s.is_none()).map(|r| r.cycle).collect();
+    summary.capacity_refs = judged
+        .iter()
+        .map(|r| crate::record::CapacityRefs {
+            cycle: r.cycle,
+            stated_ah: r.stated_capacity_ah,
+            data_ah: r.data_capacity_ah,
+            partial_start: r.partial_start,
+        })
+        .collect();
     progress(&format!(
-        "{}: {} training and {} judged discharges ({} reach the {cut} V cut-off); {} refused; rests known before {} \
-         of them",
+        "{}: {} training and {} judged discharges ({} reach the {cut} V cut-off); {} refused, {} not read; rests \
+         known before {} of them",
         input.cell,
         train.len(),
         judged.len(),
         summary.reaching_cutoff,
         summary.refused.len(),
+        summary.unread.len(),
         rests.len()
     ));
     if !summary.partial_start.is_empty() {
@@ -612,12 +626,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let (life_tuning, life_used) = (life.as_ref().map(|l| &l.tuning), life.as_ref().map(|l| &l.used));
     // Each discharge hands on its end fit to the next ([`crate::carry`]).
     let carrying = Carrying::end_fits(&spec.tracker, life_tuning, &train, &train_fits, &neutral, &rests, cut);
-    let (judged_carried, judged_kept) = end_fits(&spec.tracker, &judged, &judged_fits, cut);
+    let (judged_carried, judged_kept) = end_fits(&spec.tracker, &judged, &judged_fits, carrying.fits.last(), cut);
     let width = carrying.width;
     let end_knee_median = carrying.knees.median();
     progress(&format!(
         "prior: each discharge hands on its end fit (the qMobile that puts the model's end at the measured one; {} \
-         of {} discharges kept their voltage fit, cut short or out of range; knee against it {:.4} Ah from a full \
+         of {} discharges kept their voltage fit, out of range, or handed on the fit carried into them, cut short; knee against it {:.4} Ah from a full \
          cell, {:.4} Ah from the discharge's own start); {}; width \
          learned on {} consecutive training fits ({} after a rest of more than a day): {}",
         carrying.kept_voltage_fit + judged_kept,
@@ -677,7 +691,10 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         (tb, before(&mut walk, &judged, judged_carried, &first, &knees, cut))
     };
     let (train_before, judged_before) = sequence(&carrying.fits, &judged_carried);
-    let (train_ref_before, judged_ref_before) = sequence(&train_fits, &judged_fits);
+    // The references carry voltage fits; one cut short hands on the fit before it there too.
+    let train_ref_fits = crate::carry::over_cut_short(&train, &train_fits, None);
+    let judged_ref_fits = crate::carry::over_cut_short(&judged, &judged_fits, train_ref_fits.last());
+    let (train_ref_before, judged_ref_before) = sequence(&train_ref_fits, &judged_ref_fits);
 
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
@@ -764,6 +781,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // each judged discharge that has ended.
     let deliver = |key: &'static str,
                    r: tune::Runs,
+                   learn: bool,
                    entry: &mut serde_json::Value,
                    widenings: &mut serde_json::Map<String, serde_json::Value>,
                    runs: &mut Vec<(&'static str, Vec<CycleRun>)>| {
@@ -787,6 +805,28 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             "previous_cycle": {"eod_weight": weights_json(&d.previous_eod_weights),
                 "capacity_weight": weights_json(&d.previous_capacity_weights)}});
         let (mut held, gate, capacity_gate) = (d.runs, d.prior_gate, d.capacity_gate);
+        // The learner on the calibrator's record (issue 18): a method of its own beside the one it builds on,
+        // so that every run measures what the learning adds.
+        if learn {
+            let without = MethodEntry::new(key, score(&judged, &held.judged));
+            let (learned, weights) = tune::learn_capacity(&held, &r, &validation, &judged);
+            entry["learned_capacity"] = serde_json::json!({"weight": weights_json(&weights),
+                "without": {"capacity_rmse_ah": without.capacity_rmse_ah,
+                    "capacity_rmse_ah_vs_data": without.capacity_rmse_ah_vs_data},
+                "what": format!("each reading's capacity (value and bounds), as delivered after the above, is blended \
+                    with the same moved by the error a learner on this calibrator's record expects: least squares \
+                    refitted before each discharge on the signed capacity errors (where the scores take the capacity \
+                    in that share, against the data's charge) of the last {} discharges that ended (validation cycles \
+                    first; at least {} pairs), on the last error, the mean of the last five and the log of the rest \
+                    before; the moved capacity's weight per share (10 / 50 / 90 %) is the delivered one's mean squared \
+                    error over the sum of both over the last {} discharges it moved (none before {}; `weight`: its \
+                    median over the judged discharges blended, and how many); `without`: the capacity figures \
+                    without it (before the intervals are widened, which leaves the values as they are); the end of \
+                    discharge is left as delivered",
+                    bcal_calib::record_learner::RECORD_WINDOW, bcal_calib::record_learner::MIN_RECORD_PAIRS,
+                    bcal_calib::blend::BLEND_WINDOW, bcal_calib::blend::MIN_BLEND_PAIRS)});
+            held = learned;
+        }
         let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
         let w = calibrate_intervals(&hist, &judged, &mut held.judged);
         widenings.insert(key.into(), serde_json::to_value(&w).unwrap_or_default());
@@ -1017,7 +1057,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             }
             None => policy,
         };
-        deliver("rl", delivered, &mut rl_settings, &mut widenings, &mut runs);
+        deliver("rl", delivered, false, &mut rl_settings, &mut widenings, &mut runs);
         settings.insert("rl".into(), rl_settings);
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
     }
@@ -1025,8 +1065,11 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let mut top = choice.clone();
         top.candidates.truncate(5);
         let mut entry = serde_json::json!({"settings": best, "prior_factor": factor, "validation": top});
-        deliver("ukf", r.clone(), &mut entry, &mut widenings, &mut runs);
+        deliver("ukf", r.clone(), false, &mut entry, &mut widenings, &mut runs);
         settings.insert("ukf".into(), entry);
+        let mut entry = serde_json::json!({"builds_on": "ukf"});
+        deliver("ukf_learned", r.clone(), true, &mut entry, &mut widenings, &mut runs);
+        settings.insert("ukf_learned".into(), entry);
     }
     if let Some((rule, cands, choice)) = &adaptive_best {
         let (best, factor, _) = ukf_best.clone().expect("chosen above");
@@ -1034,7 +1077,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let r = raw(&cands[choice.index].1, choice);
         progress(&format!("adaptive UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         let mut entry = serde_json::json!({"filter": best, "prior_factor": factor, "rule": rule, "validation": choice});
-        deliver("adaptive_ukf", r, &mut entry, &mut widenings, &mut runs);
+        deliver("adaptive_ukf", r, false, &mut entry, &mut widenings, &mut runs);
         settings.insert("adaptive_ukf".into(), entry);
     }
     // The references, run on the validation cycles too (their errors start the references' intervals).

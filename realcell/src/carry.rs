@@ -12,8 +12,9 @@
 //! two give their prior alone the same one-ahead error along the training cycles (within 0.05 points), and
 //! the end fit the better joint UKF on every judged life (docs/realcell.md, "what a discharge hands on").
 //! The references that carry a fit (the previous cycle's, the oracle's) keep the voltage fit and its knee.
-//! A discharge that stopped above its cut-off, or whose end no qMobile within the calibrator's range
-//! reaches, hands on its voltage fit.
+//! A discharge whose end no qMobile within the calibrator's range reaches hands on its voltage fit. One that
+//! stopped above its cut-off hands on what was carried into it ([`over_cut_short`]): a fit on part of a
+//! discharge does not pin qMobile down.
 
 use crate::prior::{learn_width, PriorWalk, RestWidth};
 use crate::record::CellRecord;
@@ -25,15 +26,17 @@ use bcal_doctor::lifetime::LifetimeModel;
 use std::collections::BTreeMap;
 
 /// Every record's end fit (its voltage fit's Ro and model), with how many records kept their voltage fit
-/// (cut short, or no qMobile in range reaches the end).
+/// (no qMobile in range reaches the end) or, cut short, handed on what was carried into them
+/// ([`over_cut_short`]; `before_first`: what the first record starts from).
 pub fn end_fits(
     spec: &TrackerSpec,
     records: &[CellRecord],
     fits: &[(Degradation, ModelExtension)],
+    before_first: Option<&(Degradation, ModelExtension)>,
     cutoff_v: f64,
 ) -> (Vec<(Degradation, ModelExtension)>, usize) {
     let mut kept = 0;
-    let out = records
+    let out: Vec<(Degradation, ModelExtension)> = records
         .iter()
         .zip(fits)
         .map(|(r, (d, ext))| {
@@ -43,7 +46,25 @@ pub fn end_fits(
             (q.map_or(*d, |q| Degradation { q_mobile_c: q, ..*d }), ext.clone())
         })
         .collect();
-    (out, kept)
+    (over_cut_short(records, &out, before_first), kept)
+}
+
+/// `fits` (one per record) with each record that stopped above its cut-off handing on what was carried into
+/// it: the fit of the record before (`before_first` before the first; without it the record keeps its own).
+/// The offline fit of part of a discharge makes that part's voltage right with a qMobile the part does not
+/// pin down: B0055's discharges cut at 40 % and 25 % of their load (as NASA's B0049-B0052 records end where
+/// the software crashed) fit 30 % and 57 % low, and the discharge after each started there.
+pub fn over_cut_short(
+    records: &[CellRecord],
+    fits: &[(Degradation, ModelExtension)],
+    before_first: Option<&(Degradation, ModelExtension)>,
+) -> Vec<(Degradation, ModelExtension)> {
+    let mut out: Vec<(Degradation, ModelExtension)> = Vec::with_capacity(fits.len());
+    for (r, f) in records.iter().zip(fits) {
+        let carried = if r.eod_s.is_some() { None } else { out.last().or(before_first).cloned() };
+        out.push(carried.unwrap_or_else(|| f.clone()));
+    }
+    out
 }
 
 /// What each record of a sequence knows before it starts (no look-ahead: only discharges that ended): the
@@ -132,7 +153,7 @@ impl Carrying {
         rests: &BTreeMap<u32, f64>,
         cutoff_v: f64,
     ) -> Self {
-        let (carried, kept) = end_fits(spec, train, fits, cutoff_v);
+        let (carried, kept) = end_fits(spec, train, fits, None, cutoff_v);
         Self { kept_voltage_fit: kept, ..Self::along(spec, life, train, carried, neutral, rests, cutoff_v) }
     }
 }
@@ -159,8 +180,21 @@ mod tests {
             fits.push((Degradation { q_mobile_c: 0.95 * q, ..truth }, ModelExtension::default()));
         }
         let short = CellRecord { eod_s: None, ..records[0].clone() };
-        let (_, kept) = end_fits(&spec, &[short], &fits[..1], cfg.cutoff_v);
-        assert_eq!(kept, 1, "a discharge cut short hands on its voltage fit");
+        let (alone, kept) = end_fits(&spec, std::slice::from_ref(&short), &fits[..1], None, cfg.cutoff_v);
+        assert_eq!((kept, alone[0].0), (1, fits[0].0), "a first discharge cut short, nothing before it: its own fit");
+        // One cut short between two whole ones hands on the end fit carried into it, not its own fit (a fit of
+        // part of a discharge, here 40 % low): the one after it starts from what the one before measured.
+        let cut = CellRecord { cycle: 2, ..short };
+        let low = (Degradation { q_mobile_c: 0.6 * truths[1], r_o_ohm: 0.12 }, ModelExtension::default());
+        let three = [records[0].clone(), cut, records[2].clone()];
+        let (carried, kept) = end_fits(&spec, &three, &[fits[0].clone(), low, fits[2].clone()], None, cfg.cutoff_v);
+        assert_eq!(kept, 1);
+        assert_eq!(carried[1], carried[0], "the cut-short record hands on the fit before it");
+        assert!((carried[0].0.q_mobile_c / truths[0] - 1.0).abs() < 0.02, "{:?}", carried[0]);
+        let before = (Degradation { q_mobile_c: 7000.0, r_o_ohm: 0.1 }, ModelExtension::default());
+        let first_cut = over_cut_short(&three[1..], &carried[1..], Some(&before));
+        assert_eq!(first_cut[0], before, "a first record cut short hands on what it started from");
+        assert_eq!(first_cut[1], carried[2], "a whole record keeps its own");
 
         let neutral = ModelExtension::default();
         let c = Carrying::end_fits(&spec, None, &records, &fits, &neutral, &BTreeMap::new(), cfg.cutoff_v);

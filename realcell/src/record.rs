@@ -157,11 +157,29 @@ pub struct RecordSummary {
     pub cut_short: Vec<u32>,
     /// Records refused, with the reason.
     pub refused: Vec<String>,
+    /// Records of the selected cycles the reader could not read (a file missing, empty or malformed), with
+    /// the reason.
+    pub unread: Vec<String>,
     /// Judged discharges that started from a partial charge ([`CellRecord::partial_start`]): their end of
     /// discharge is scored, their capacity is not.
     pub partial_start: Vec<u32>,
     /// What the source's stated capacity measures, read off the training records ([`stated_capacity`]).
     pub stated_capacity: Option<StatedCapacity>,
+    /// Each judged discharge's capacity references, so that a run can be scored again from its report alone
+    /// (`examples/record_room.py --against stated`).
+    pub capacity_refs: Vec<CapacityRefs>,
+}
+
+/// What a judged discharge's predicted capacities are scored against.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct CapacityRefs {
+    pub cycle: u32,
+    /// The capacity the source states, Ah ([`CellRecord::stated_capacity_ah`]).
+    pub stated_ah: Option<f64>,
+    /// The data's charge to the interpolated cut-off, Ah ([`CellRecord::data_capacity_ah`]).
+    pub data_ah: Option<f64>,
+    /// Started from a partial charge: its capacity is not scored.
+    pub partial_start: bool,
 }
 
 /// The voltage the source's stated capacity is drawn to, as the data shows it: NASA's metadata states the

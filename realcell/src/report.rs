@@ -103,6 +103,9 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
     for refused in &r.records.refused {
         let _ = writeln!(s, "- refused: {refused}");
     }
+    for unread in &r.records.unread {
+        let _ = writeln!(s, "- not read: {unread}");
+    }
     if !r.records.partial_start.is_empty() {
         let _ = writeln!(
             s,
@@ -224,6 +227,18 @@ pub fn reading(r: &CalibrationReport) -> Vec<String> {
             a.median, b.median, a.p90, b.p90
         ));
     }
+    // The learner on the record against the filter it builds on: what learning adds.
+    if let (Some(l), Some(u)) = (cap50("ukf_learned"), cap50("ukf")) {
+        let data = match (cap50_data("ukf_learned"), cap50_data("ukf")) {
+            (Some(ld), Some(ud)) => format!("; against the data's charge {ld:.4} vs {ud:.4} Ah ({:.2} times)", ld / ud),
+            _ => String::new(),
+        };
+        out.push(format!(
+            "Joint UKF + learner on its record against the joint UKF, capacity from half of each discharge: {l:.4} vs \
+             {u:.4} Ah against the stated capacity ({:.2} times){data}.",
+            l / u
+        ));
+    }
     out
 }
 
@@ -267,6 +282,7 @@ fn color(key: &str) -> RGBColor {
     match key {
         "rl" => RGBColor(214, 39, 40),
         "ukf" => RGBColor(31, 119, 180),
+        "ukf_learned" => RGBColor(23, 190, 207),
         "fit" => RGBColor(44, 160, 44),
         "previous_cycle" => RGBColor(148, 103, 189),
         "trend" => RGBColor(255, 127, 14),

@@ -24,9 +24,10 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 /// The calibrators and references, by report key.
-pub const METHODS: [(&str, &str); 8] = [
+pub const METHODS: [(&str, &str); 9] = [
     ("rl", "RL-LAC"),
     ("ukf", "Joint UKF"),
+    ("ukf_learned", "Joint UKF + learner on its record"),
     ("adaptive_ukf", "Adaptive UKF (covariance matching)"),
     ("fit", "Offline fit (sees the future)"),
     ("prior", "Prior (previous fit + expected change)"),

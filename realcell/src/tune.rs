@@ -206,6 +206,11 @@ fn error_pairs(
 /// (what a BMS counts by the end), Ah: NaN where there is none to score (a partial start, a discharge cut
 /// short), infinite where the prediction failed.
 fn capacity_error_at(records: &[CellRecord], runs: &[CycleRun], fraction_pct: u32) -> Vec<f64> {
+    capacity_signed_error_at(records, runs, fraction_pct).into_iter().map(f64::abs).collect()
+}
+
+/// [`capacity_error_at`] with its sign: predicted minus the data's charge, Ah.
+fn capacity_signed_error_at(records: &[CellRecord], runs: &[CycleRun], fraction_pct: u32) -> Vec<f64> {
     records
         .iter()
         .zip(runs)
@@ -217,7 +222,7 @@ fn capacity_error_at(records: &[CellRecord], runs: &[CycleRun], fraction_pct: u3
             if r.partial_start || run.steps.is_empty() {
                 return f64::NAN;
             }
-            run.steps[k.min(run.steps.len() - 1)].capacity.value.map_or(f64::INFINITY, |v| (v - m).abs())
+            run.steps[k.min(run.steps.len() - 1)].capacity.value.map_or(f64::INFINITY, |v| v - m)
         })
         .collect()
 }
@@ -321,6 +326,76 @@ pub fn deliver(own: &Runs, with: &Companions, validation: &[CellRecord], judged:
         prior_gate,
         capacity_gate,
     }
+}
+
+/// The capacity of `delivered` blended with the same moved by what a learner on its record expects
+/// ([`bcal_calib::record_learner`]): per share of the discharge, before each discharge (validation cycles
+/// first) the learner fits the signed capacity errors where the scores take the capacity in that share (as
+/// [`gate_capacity`] judges it) over the discharges that ended before, with the rest before each, and moves
+/// the capacity (value and bounds) of this discharge's readings in that share by the error it expects. The
+/// moved and the delivered capacity are then blended ([`bcal_calib::blend`]) by their squared errors over
+/// the last discharges where the learner moved it: a learner that errs more gets little weight, before it
+/// has a record none. The end of discharge is left alone (there the learner loses on five of six NASA
+/// cells: docs/calibrator.md, "a learner on the record"). A reading's share is the one `shares`' predicted
+/// end puts it at. Returns the runs and, per share, the judged discharges' weights on the moved capacity.
+/// `bcal calibrate` delivers the joint UKF so learned as a method of its own (`ukf_learned`) beside it.
+pub fn learn_capacity(
+    delivered: &Runs,
+    shares: &Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+) -> (Runs, Weights) {
+    use bcal_calib::record_learner::{expected_error, Entry};
+    let records: Vec<&CellRecord> = validation.iter().chain(judged).collect();
+    let n_val = validation.len();
+    // Per share: each discharge's expected error (None: no record yet) and its weight on the moved capacity.
+    let mut expected: [Vec<Option<f64>>; EOD_FRACTIONS_PCT.len()] = Default::default();
+    let mut weights: [Vec<Option<f64>>; EOD_FRACTIONS_PCT.len()] = Default::default();
+    for b in 0..EOD_FRACTIONS_PCT.len() {
+        let at = capacity_scored_at(b);
+        let errors: Vec<f64> = capacity_signed_error_at(validation, &delivered.validation, at)
+            .into_iter()
+            .chain(capacity_signed_error_at(judged, &delivered.judged, at))
+            .collect();
+        let entries: Vec<Entry> =
+            errors.iter().zip(&records).map(|(&error, r)| Entry { error, rest_before_s: r.rest_before_s }).collect();
+        expected[b] = (0..records.len()).map(|k| expected_error(&entries[..k], records[k].rest_before_s)).collect();
+        // (moved, delivered) absolute errors where the learner moved the capacity.
+        let mut pairs: Vec<(f64, f64)> = Vec::new();
+        weights[b] = (0..records.len())
+            .map(|k| {
+                let w = expected[b][k].and(bcal_calib::blend::blend_weight(&pairs));
+                if let Some(x) = expected[b][k] {
+                    pairs.push(((errors[k] - x).abs(), errors[k].abs()));
+                }
+                w
+            })
+            .collect();
+    }
+    let set = |records: &[CellRecord], runs: &[CycleRun], by: &[CycleRun], offset: usize| {
+        by_share(
+            records,
+            runs,
+            runs,
+            by,
+            |k| weights.iter().any(|w| w[offset + k].is_some()),
+            |k, bin, _, so| {
+                let mut step = so.clone();
+                if let (Some(w), Some(x)) = (weights[bin][offset + k], expected[bin][offset + k]) {
+                    let mix = |v: Option<f64>| v.map(|v| bcal_calib::blend::blended(w, v - x, v));
+                    let c = so.capacity;
+                    step.capacity = Predicted { value: mix(c.value), lo: mix(c.lo), hi: mix(c.hi) };
+                }
+                step
+            },
+        )
+    };
+    let runs = Runs {
+        validation: set(validation, &delivered.validation, &shares.validation, 0),
+        judged: set(judged, &delivered.judged, &shares.judged, n_val),
+    };
+    let judged_weights = std::array::from_fn(|b| weights[b][n_val..].to_vec());
+    (runs, judged_weights)
 }
 
 /// Per share of the discharge ([`EOD_FRACTIONS_PCT`], by index), the calibrator's weight in its blend with
@@ -840,6 +915,69 @@ mod tests {
         for (k, run) in runs.validation.iter().enumerate() {
             let blended = run.steps.iter().all(|s| (s.eod.value.unwrap() - 100.0).abs() < 1e-9);
             assert_eq!(blended, k >= bcal_calib::blend::MIN_BLEND_PAIRS, "validation {k}");
+        }
+    }
+
+    /// A calibrator whose capacity errs by 0.02 Ah per e-fold of the rest before the discharge (rests of 2-8
+    /// h in no order): once the learner on its record has seen enough discharges it moves the capacity onto
+    /// the data's, its moved capacity takes the weight once it has beaten the delivered one on enough of
+    /// them, and the end of discharge is left as it was.
+    #[test]
+    fn the_capacity_learned_on_the_record_takes_off_what_follows_the_rest() {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 0.1), hi: Some(v + 0.1) };
+        let rest_s = |c: u32| 3600.0 * (2.0 + f64::from((c * 7) % 13) * 0.5);
+        let error_ah = |c: u32| 0.02 * (rest_s(c) / 14_400.0).ln();
+        let build = |cycles: std::ops::Range<u32>| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles
+                .map(|c| {
+                    let (mut r, run) = crate::record::test_discharge(c, 1.0, |_| at(100.0), at(1.0 + error_ah(c)));
+                    r.rest_before_s = Some(rest_s(c));
+                    (r, run)
+                })
+                .unzip()
+        };
+        let (validation, v) = build(1..21);
+        let (judged, j) = build(21..41);
+        let delivered = Runs { validation: v, judged: j };
+        let (runs, weights) = learn_capacity(&delivered, &delivered, &validation, &judged);
+        // The learner expects from the 12th discharge (11 in its record), its blend weighs it from the 20th
+        // (8 discharges moved): every judged one, near all of the weight.
+        let min_pairs = bcal_calib::record_learner::MIN_RECORD_PAIRS + bcal_calib::blend::MIN_BLEND_PAIRS;
+        assert_eq!(min_pairs + 1, 19);
+        for w in &weights {
+            assert!(w.iter().all(|w| w.is_some_and(|w| w > 0.99)), "{w:?}");
+        }
+        for (k, run) in runs.validation.iter().enumerate() {
+            let moved = run.steps[50].capacity != delivered.validation[k].steps[50].capacity;
+            assert_eq!(moved, k > min_pairs, "validation {k}");
+        }
+        for (k, (run, d)) in runs.judged.iter().zip(&delivered.judged).enumerate() {
+            let c = judged[k].cycle;
+            for (s, sd) in run.steps.iter().zip(&d.steps) {
+                assert_eq!(s.eod, sd.eod, "judged {k}: the end is left alone");
+                let cap = s.capacity.value.unwrap();
+                // Within 5 % of the error per e-fold of rest (the delivered errs by up to 0.028 Ah).
+                assert!((cap - 1.0).abs() < 1e-3, "judged {k}: {cap} (erred {})", error_ah(c));
+                assert!((s.capacity.hi.unwrap() - cap - 0.1).abs() < 1e-9, "judged {k}: the bounds move with it");
+            }
+        }
+        // A calibrator that never errs: nothing to learn, nothing moved.
+        let (validation, v) = build(1..21);
+        let (judged, j) = build(21..41);
+        let exact = |runs: Vec<CycleRun>| -> Vec<CycleRun> {
+            runs.into_iter()
+                .map(|mut run| {
+                    run.steps.iter_mut().for_each(|s| s.capacity = at(1.0));
+                    run
+                })
+                .collect()
+        };
+        let delivered = Runs { validation: exact(v), judged: exact(j) };
+        let (runs, weights) = learn_capacity(&delivered, &delivered, &validation, &judged);
+        assert!(weights.iter().flatten().all(Option::is_none), "{weights:?}");
+        for (run, d) in runs.judged.iter().zip(&delivered.judged) {
+            assert!(run.steps.iter().zip(&d.steps).all(|(s, sd)| s.capacity == sd.capacity && s.eod == sd.eod));
         }
     }
 

@@ -123,6 +123,7 @@ fn calibrate_life(all: &[(Discharge, f64)]) -> bcal_realcell::calibrate::Calibra
         model: None,
         starts: Vec::new(),
         rests: None,
+        unread: Vec::new(),
     };
     calibrate(&input, &mut |m| eprintln!("{m}")).expect("the synthetic life calibrates")
 }
@@ -191,6 +192,14 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
     assert!(md.contains("the stated capacity is the data's charge to about 3.2 V"), "{md}");
     assert!(md.contains("against the data's charge to the cut-off") && md.contains("target met there"), "{md}");
     assert_eq!(r.records.reaching_cutoff, 12, "every synthetic record ends at the cut-off under load");
+    // Each judged discharge's references travel with the report, so that a run is scored again from it alone.
+    assert_eq!(r.records.capacity_refs.len(), cal.judged.len());
+    for (refs, rec) in r.records.capacity_refs.iter().zip(&cal.judged) {
+        assert_eq!(
+            (refs.cycle, refs.data_ah, refs.stated_ah),
+            (rec.cycle, rec.data_capacity_ah, rec.stated_capacity_ah)
+        );
+    }
     assert!(
         r.records.refused.iter().any(|why| why.contains("cycle 25") && why.contains("left out")),
         "{:?}",

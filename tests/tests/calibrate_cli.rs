@@ -230,10 +230,10 @@ fn calibrate_carries_what_it_can_of_a_diagnosis_naming_ocv_or_voltage_offset() {
 /// `--stride` leaves judged records out, and each still ends the rest before the next: a kept discharge
 /// after a long pause is still known to follow one. Twelve discharges of a slowly fading cell in NASA's
 /// layout, 6 h apart but for a 3-day pause before cycle 9; training 1..6, judged 7, 9, 11.
-#[test]
-fn stride_keeps_the_rest_before_each_kept_discharge() {
-    let dir = tempfile::tempdir().unwrap();
-    let nasa = dir.path().join("nasa");
+/// A NASA PCoE folder under `dir` of twelve discharges of cell B0049 (the fading cell), six hours apart but
+/// for three days before cycle 9.
+fn write_nasa(dir: &Path) -> PathBuf {
+    let nasa = dir.join("nasa");
     std::fs::create_dir_all(nasa.join("data")).unwrap();
     let mut meta =
         String::from("type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n");
@@ -254,6 +254,13 @@ fn stride_keeps_the_rest_before_each_kept_discharge() {
         ));
     }
     std::fs::write(nasa.join("metadata.csv"), meta).unwrap();
+    nasa
+}
+
+#[test]
+fn stride_keeps_the_rest_before_each_kept_discharge() {
+    let dir = tempfile::tempdir().unwrap();
+    let nasa = write_nasa(dir.path());
     let out = dir.path().join("out");
     let cut = CUTOFF_V.to_string();
     let (ok, err) = calibrate(&[
@@ -278,4 +285,42 @@ fn stride_keeps_the_rest_before_each_kept_discharge() {
         serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap();
     assert_eq!(report["cycles_judged"], serde_json::json!([7, 9, 11]));
     assert_eq!(report["methods"]["ukf"]["scores"]["after_long_rest"]["cycles"], serde_json::json!([9]));
+}
+
+/// Records the reader could not read (a file the metadata names that is not on disk, an empty one: NASA's
+/// B0049-B0052, whose software crashed) are named in the report beside the ones calibrated, not only on
+/// stderr.
+#[test]
+fn records_not_read_are_named_in_the_report() {
+    let dir = tempfile::tempdir().unwrap();
+    let nasa = write_nasa(dir.path());
+    std::fs::remove_file(nasa.join("data").join("00011.csv")).unwrap();
+    std::fs::write(nasa.join("data").join("00012.csv"), "").unwrap();
+    let out = dir.path().join("out");
+    let cut = CUTOFF_V.to_string();
+    let (ok, err) = calibrate(&[
+        "--data",
+        nasa.to_str().unwrap(),
+        "--cell",
+        "B0049",
+        "--train-cycles",
+        "1..6",
+        "--cutoff-v",
+        &cut,
+        "--calibrator",
+        "ukf",
+        "--quick",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap();
+    assert_eq!(report["cycles_judged"], serde_json::json!([7, 8, 9, 10]));
+    let unread: Vec<String> = serde_json::from_value(report["records"]["unread"].clone()).unwrap();
+    assert_eq!(unread.len(), 2, "{unread:?}");
+    assert!(unread.iter().any(|u| u.contains("00011.csv") && u.contains("not on disk")), "{unread:?}");
+    assert!(unread.iter().any(|u| u.contains("00012.csv")), "{unread:?}");
+    let md = std::fs::read_to_string(out.join("calibration.md")).unwrap();
+    assert!(md.contains("- not read: 00011.csv"), "{md}");
 }
