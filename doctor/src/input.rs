@@ -92,7 +92,9 @@ pub const MIN_DEFAULT_SPLIT: usize = 8;
 /// after the training ones). By default the cycles `bcal calibrate` trains on ([`default_train_cycles`]):
 /// their first three quarters fitted, the last quarter held out (B0005: 1..30 against 31..40), so the
 /// diagnosis feeds `bcal calibrate --model` (which refuses a model whose choice saw the cycles it judges).
-/// A life too short for that ([`MIN_DEFAULT_SPLIT`] training cycles) splits its first third against the
+/// A life of fewer than [`MIN_DEFAULT_SPLIT`] training cycles is split the same way, within them, though its
+/// held-out part is then short (a split past them made a diagnosis `bcal calibrate` refused: a 23-discharge
+/// life trains on 1..7 and was diagnosed on 1..8); one of two discharges splits its first third against the
 /// rest.
 pub fn cycle_ranges(
     all: &[Discharge],
@@ -108,8 +110,8 @@ pub fn cycle_ranges(
         (None, None) => {
             let cycles = distinct_cycles(all);
             let k = default_train_len(cycles.len());
-            if k >= MIN_DEFAULT_SPLIT {
-                let fit = k * 3 / 4;
+            if k >= 2 {
+                let fit = (k * 3 / 4).max(1);
                 (cycles[0]..=cycles[fit - 1], cycles[fit]..=cycles[k - 1])
             } else {
                 let split = first + (last - first) / 3;
@@ -215,16 +217,18 @@ mod tests {
     }
 
     #[test]
-    fn split_defaults_to_a_third_and_honours_ranges() {
+    fn split_defaults_within_calibrates_training_cycles_and_honours_ranges() {
         let all: Vec<Discharge> = (1..=9).map(record).collect();
         let (t, h) = split_cycles(&all, None, None, 1).unwrap();
         assert_eq!(t.iter().map(|d| d.cycle).collect::<Vec<_>>(), vec![1, 2, 3]);
-        assert_eq!(h.len(), 6);
+        assert_eq!(h.iter().map(|d| d.cycle).collect::<Vec<_>>(), vec![4], "within calibrate's 1..4");
         // A longer life: calibrate's training cycles, fitted on three quarters and judged on the last.
         let life = |n: u32| cycle_ranges(&(1..=n).map(record).collect::<Vec<_>>(), None, None);
         assert_eq!(life(168), (1..=30, 31..=40));
         assert_eq!(life(40), (1..=9, 10..=13));
-        assert_eq!(life(23), (1..=8, 9..=23));
+        // A short one too, within calibrate's training cycles (1..7 of 23), so calibrate takes the model.
+        assert_eq!(life(23), (1..=5, 6..=7));
+        assert_eq!(life(2), (1..=1, 2..=2));
         let (t, h) = split_cycles(&all, Some(2..=4), None, 2).unwrap();
         assert_eq!((t.iter().map(|d| d.cycle).collect::<Vec<_>>(), h[0].cycle), (vec![2, 4], 5));
         let e = split_cycles(&all, Some(20..=30), None, 1).unwrap_err();

@@ -24,7 +24,7 @@ pub struct DiagnoseArgs {
     /// Training cycles A..B (inclusive, 1-based; NASA: order of the cell's discharges). Default, when
     /// --holdout is not given either: the first three quarters of the cycles `bcal calibrate` trains on (the
     /// first third of the life, at most 40; B0005: 1..30, held out 31..40), so the diagnosis feeds `bcal
-    /// calibrate --model`; a life under 24 discharges: its first third against the rest. With --holdout:
+    /// calibrate --model`, a short life's too (within them; two discharges: the first against the second). With --holdout:
     /// every cycle before it.
     #[arg(long, value_name = "A..B")]
     pub cycles: Option<String>,

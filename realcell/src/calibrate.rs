@@ -726,10 +726,25 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
     let validation_ref_before: Vec<Before> = validation_idx.iter().map(|&k| train_ref_before[k].clone()).collect();
     if (input.ukf || input.adaptive_ukf || !input.policies.is_empty()) && validation.is_empty() {
+        let reaching = train.iter().filter(|r| r.eod_s.is_some()).count();
+        // Where most records stop under load above the cut-off, the cut-off is the records' own, not this one.
+        let mut ends: Vec<f64> = train
+            .iter()
+            .filter(|r| r.eod_s.is_none())
+            .filter_map(|r| r.samples.iter().rev().find(|s| s.current_a > crate::record::LOAD_THRESHOLD_A))
+            .map(|s| s.voltage_v)
+            .collect();
+        let what = match bcal_common::stats::median(&mut ends) {
+            Some(v) if ends.len() * 2 > train.len() => format!(
+                "the training records stop under load at {v:.2} V (median), above the {cut} V cut-off: give the \
+                 cut-off they were run to with --cutoff-v (e.g. --cutoff-v {:.1}), or widen --train-cycles",
+                ((v - 1e-9) * 10.0).ceil() / 10.0
+            ),
+            _ => "widen --train-cycles".to_string(),
+        };
         return Err(CalibrateError::Validation(format!(
-            "the streaming calibrators' settings are chosen on the last training cycles, and {} of the training \
-             cycles reach the {cut} V cut-off (at least {} are needed): widen --train-cycles",
-            train.iter().filter(|r| r.eod_s.is_some()).count(),
+            "the streaming calibrators' settings are chosen on the last training cycles, and {reaching} of the \
+             training cycles reach the {cut} V cut-off (at least {} are needed): {what}",
             2 * tune::MIN_VALIDATION
         )));
     }

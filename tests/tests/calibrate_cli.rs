@@ -84,6 +84,12 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
     let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "5..8", "--cycles", "1..4"]].concat());
     assert!(!ok && err.contains("must come after --train-cycles"), "{err}");
 
+    // A cut-off below where the records stop under load (theirs is 3.05 V): none reaches it, and the refusal
+    // says where they stop and which cut-off to give, not only to widen the training cycles.
+    let low = ["--data", data, "--cutoff-v", "2.5", "--out", out, "--calibrator", "ukf", "--quick"];
+    let (ok, err) = calibrate(&low);
+    assert!(!ok && err.contains("above the 2.5 V cut-off") && err.contains("--cutoff-v 3.1"), "{err}");
+
     // A temperature or cut-off that is not a number is refused before anything is read.
     let (ok, err) = calibrate(&[&common[..], &["--ambient-c", "nan"]].concat());
     assert!(!ok && err.contains("--ambient-c NaN: not a finite number"), "{err}");
