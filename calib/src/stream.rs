@@ -10,7 +10,8 @@
 //! A stream may span many discharges (a BMS's feed, or records joined end to end). A stream made with
 //! [`Stream::of`] starts a new discharge after a charge (the first reading that no longer charges) or after
 //! a gap of more than [`NEW_DISCHARGE_GAP_S`] without readings (the cell rested or was charged out of
-//! sight): the calibrator is built anew on the same setting, and the EOD current starts over. Its prior
+//! sight): the calibrator is built anew on the same setting, and the EOD current starts over (a load of less
+//! than [`MIN_DISCHARGE_S`], a spurious sample, was no discharge and hands nothing on). Its prior
 //! mean is what the last discharge told of the cell: where its voltage reached the cut-off under load, the
 //! qMobile that puts the model's end there ([`crate::end_fit`], at the calibrator's final Ro), as `bcal
 //! calibrate` starts from the previous discharge's offline fit; else the estimate it ended with. The
@@ -65,6 +66,9 @@ pub const PREDICT_DT_S: f64 = 1.0;
 pub const PREDICT_MAX_S: f64 = 40_000.0;
 /// The voltages a Li-ion cell can read, V: outside them the column is in another unit or broken.
 pub const CELL_VOLTAGE_RANGE_V: [f64; 2] = [0.5, 5.0];
+/// The temperatures a working Li-ion cell reads, deg C: outside them the column is in kelvin or broken (a
+/// kelvin column read as Celsius would run the model 273 K hot).
+pub const CELL_TEMPERATURE_RANGE_C: [f64; 2] = [-60.0, 120.0];
 /// A gap without readings longer than this starts a new discharge, s (half an hour: a sampled stream
 /// never pauses that long within a discharge, and a cell that rested or was charged unseen that long is
 /// no longer in the state the model carried).
@@ -73,6 +77,10 @@ pub const NEW_DISCHARGE_GAP_S: f64 = 1800.0;
 /// at rest) is not a charge and does not end the discharge it falls in. Measured from the first charging
 /// reading to the first reading after it, so a charge read once an hour still counts.
 pub const MIN_CHARGE_S: f64 = 60.0;
+/// A discharge lasts at least this long under load, s: a shorter one (a single loaded reading, as the spurious
+/// first sample of NASA's charge records reads) hands nothing on, and the next discharge starts from what
+/// was carried into it. Measured from its first loaded reading to its last.
+pub const MIN_DISCHARGE_S: f64 = 60.0;
 /// A reading later than the one before by more than this is refused as a clock error, s (a year): taken,
 /// one timestamp far in the future (a glitch, milliseconds since the epoch read as seconds) would have every
 /// later reading refused as not increasing.
@@ -104,6 +112,13 @@ pub enum ReadingError {
         CELL_VOLTAGE_RANGE_V[1]
     )]
     VoltageOutOfRange { voltage_v: f64 },
+    #[error(
+        "temperature_c = {temperature_c} is outside where a Li-ion cell works ({}-{} deg C); give degrees Celsius \
+         (a kelvin column named temperature_k)",
+        CELL_TEMPERATURE_RANGE_C[0],
+        CELL_TEMPERATURE_RANGE_C[1]
+    )]
+    TemperatureOutOfRange { temperature_c: f64 },
     #[error(
         "current_a = {current_a} is more than a cell carries ({} A); give amperes (a milliampere column divided by \
          1000, or named current_ma)",
@@ -835,6 +850,11 @@ impl<'a> Stream<'a> {
         if r.current_a.abs() > MAX_CELL_CURRENT_A {
             return Err(ReadingError::CurrentOutOfRange { current_a: r.current_a });
         }
+        if let Some(t) =
+            r.temperature_c.filter(|t| !(CELL_TEMPERATURE_RANGE_C[0]..=CELL_TEMPERATURE_RANGE_C[1]).contains(t))
+        {
+            return Err(ReadingError::TemperatureOutOfRange { temperature_c: t });
+        }
         if let Some(previous_s) = self.last_t_s.filter(|p| r.time_s <= *p) {
             return Err(ReadingError::TimeNotIncreasing { time_s: r.time_s, previous_s });
         }
@@ -1016,7 +1036,16 @@ impl<'a> Stream<'a> {
         }
         self.discharge_start_s = Some(start_s);
         let piece = std::mem::take(&mut self.joined_under_load);
-        if self.loaded_n == 0 && self.carried.is_none() {
+        // A load too short to be a discharge (`MIN_DISCHARGE_S`) tells nothing of the cell's charge, and the
+        // calibrator's estimate after it has read one loaded reading at a rested cell's voltage.
+        let blip = self.loaded_n > 0
+            && self.eod_track.load_on_s.zip(self.last_loaded_t_s).is_none_or(|(on, last)| last - on < MIN_DISCHARGE_S);
+        let discharged = self.loaded_n > 0 && !blip;
+        if blip {
+            // No discharge: the next one keeps its number (`reset_discharge`).
+            self.loaded_n = 0;
+        }
+        if !discharged && self.carried.is_none() {
             // Nothing has discharged yet (a stream that began on a charge or at rest): the next discharge
             // starts from the setting's own prior, as the stream's first does, with no rest known before it.
             self.cal = build(setup, *net).expect("the stream's calibrator was built from this setting");
@@ -1027,7 +1056,7 @@ impl<'a> Stream<'a> {
         }
         // The rest: from the last reading that discharged (a charge seen in between is part of it).
         let rest_s = self.last_loaded_t_s.or(self.last_t_s).map(|t| (start_s - t).max(0.0));
-        if self.loaded_n > 0 {
+        if discharged {
             let end = self.end_fit.take().unwrap_or_else(|| self.cal.estimate());
             let mean_z = self.prior_mean.map(|m| spec.to_z(&m));
             self.ends.push(Carried { end_z: spec.to_z(&end), rest_s: self.rest_before_s, mean_z });
@@ -1045,12 +1074,12 @@ impl<'a> Stream<'a> {
         }
         // The discharge's loaded readings, to the cut-off, for the voltage change of the next (a piece's
         // start is unseen: its times since the load came on are not the discharge's), and its fit.
-        if self.loaded_n > 0 {
+        if discharged {
             self.previous_loaded = if piece { None } else { self.loaded_readings() };
             self.previous_fit = self.voltage_fit.take();
         }
         // A piece joined under load is the rest of a discharge the life has counted already.
-        if self.loaded_n > 0 && !piece {
+        if discharged && !piece {
             self.discharged += 1;
             let at =
                 Condition { ambient_c: self.ambient_k - KELVIN_0C, current_a: self.load.current_a().unwrap_or(0.0) };
@@ -1385,6 +1414,11 @@ mod tests {
                 let ma = Reading { current_a: 2000.0, ..*r };
                 let e = stream.step(&ma).unwrap_err();
                 assert!(matches!(e, ReadingError::CurrentOutOfRange { .. }) && e.to_string().contains("current_ma"));
+                let kelvin = Reading { temperature_c: Some(297.15), ..*r };
+                let e = stream.step(&kelvin).unwrap_err();
+                assert!(
+                    matches!(e, ReadingError::TemperatureOutOfRange { .. }) && e.to_string().contains("temperature_k")
+                );
                 // One timestamp in milliseconds since the epoch: refused, and the readings after it go on.
                 let far = Reading { time_s: 1.7e12, ..*r };
                 assert!(matches!(stream.step(&far), Err(ReadingError::TimeJump { .. })));
@@ -2174,6 +2208,43 @@ mod tests {
         }
         let after = charged.step(&Reading { time_s: t + 200.0, current_a: 0.0, ..readings[mid] }).unwrap();
         assert_eq!(after.discharge, est[0].discharge + 1);
+    }
+
+    /// One loaded reading at a rested cell's voltage before a charge (the spurious first sample of NASA's
+    /// charge records) is no discharge: it hands nothing on, the next discharge keeps its number and starts
+    /// from what the discharge before it handed on, as it does without the reading.
+    #[test]
+    fn a_single_loaded_reading_before_a_charge_is_no_discharge() {
+        let (readings, starts, setup) = two_discharges();
+        let first = &readings[..starts[1]];
+        let end_s = first.last().unwrap().time_s;
+        let spike = Reading { time_s: end_s + 3000.0, voltage_v: 4.19, current_a: 4.03, temperature_c: None };
+        let charging = charge(end_s + 3020.0, 90, -1.5, 3.9, 0.3);
+        let second_at = charging.last().unwrap().time_s + 600.0;
+        let shift = second_at - readings[starts[1]].time_s;
+        let second: Vec<Reading> =
+            readings[starts[1]..].iter().map(|r| Reading { time_s: r.time_s + shift, ..*r }).collect();
+        let run = |with_spike: bool| -> Vec<Estimate> {
+            let mut stream = fed(&setup, first);
+            if with_spike {
+                stream.step(&spike).unwrap();
+            }
+            for r in &charging {
+                stream.step(r).unwrap();
+            }
+            second.iter().map(|r| stream.step(r).unwrap()).collect()
+        };
+        let (plain, spiked) = (run(false), run(true));
+        assert_eq!(plain[0].discharge, spiked[0].discharge, "the spike took a discharge number");
+        for (a, b) in plain.iter().zip(&spiked) {
+            assert!(
+                (a.q_mobile / b.q_mobile - 1.0).abs() < 0.01,
+                "at {} s: {} C against {} C",
+                a.time_s,
+                a.q_mobile,
+                b.q_mobile
+            );
+        }
     }
 
     /// A load that pauses above the cut-off and comes back below it: the end lies between the last reading

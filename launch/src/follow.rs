@@ -364,6 +364,13 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
         if line.trim().is_empty() || line.trim_start().starts_with('#') {
             continue;
         }
+        // A CSV header again (files joined, a logger restarted): the rows after it are read by it, whatever
+        // order or units it names (read by the first one they would be scrambled or refused).
+        if let (Some(Layout::Csv { .. }), Ok(again @ Layout::Csv { .. })) = (&layout, Layout::from_first(&line)) {
+            eprintln!("line {line_no}: a header again: the rows after it are read by it");
+            layout = Some(again);
+            continue;
+        }
         let Some(lay) = &layout else {
             layout = Some(Layout::from_first(&line).map_err(|why| anyhow::anyhow!("line {line_no}: {why}"))?);
             if matches!(layout, Some(Layout::Csv { .. })) {

@@ -98,6 +98,42 @@ fn follow_stdin_answers_each_reading_before_the_next_and_skips_bad_lines() {
     );
 }
 
+/// A header in the middle of the stream (two logs joined; the second names its columns in another order and
+/// its current in mA) is read as a header: the rows after it give the estimates the same readings give
+/// under one header.
+#[test]
+fn follow_reads_a_header_in_the_middle_of_the_stream_as_a_header() {
+    let rs = readings(20);
+    let run = |lines: &[String]| -> (Vec<serde_json::Value>, String) {
+        let mut p = Piped::start("bcal", &["calibrate", "--follow", "-"]);
+        for l in lines {
+            p.write_line(l);
+        }
+        p.close_stdin();
+        let status = p.wait_timeout(WAIT).expect("bcal ends at the end of its input");
+        let mut out = Vec::new();
+        while let Some(l) = p.next_line(Duration::from_millis(200)) {
+            out.push(json(&l));
+        }
+        let err = p.stderr();
+        assert!(status.success(), "{err}");
+        (out, err)
+    };
+    let mut one = vec!["time_s,voltage_v,current_a".to_string()];
+    one.extend(rs.iter().map(|(t, v, i)| format!("{t},{v:.5},{i}")));
+    let mut two = vec!["time_s,voltage_v,current_a".to_string()];
+    two.extend(rs[..10].iter().map(|(t, v, i)| format!("{t},{v:.5},{i}")));
+    two.push("current_ma,time_s,voltage_v".to_string());
+    two.extend(rs[10..].iter().map(|(t, v, i)| format!("{},{t},{v:.5}", i * 1000.0)));
+    let ((a, _), (b, err)) = (run(&one), run(&two));
+    assert!(err.contains("line 12: a header again") && err.contains("0 bad lines skipped"), "{err}");
+    assert_eq!(a.len(), rs.len());
+    assert_eq!(b.len(), rs.len());
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!((&x["q_mobile"], &x["r_o"], &x["eod_s"]), (&y["q_mobile"], &y["r_o"], &y["eod_s"]), "{x}\n{y}");
+    }
+}
+
 #[test]
 fn follow_file_reads_what_another_process_appends_and_ends_when_idle() {
     let dir = tempfile::tempdir().unwrap();
