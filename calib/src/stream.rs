@@ -113,7 +113,7 @@ pub enum ReadingError {
     )]
     VoltageOutOfRange { voltage_v: f64 },
     #[error(
-        "temperature_c = {temperature_c} is outside where a Li-ion cell works ({}-{} deg C); give degrees Celsius \
+        "temperature_c = {temperature_c} is outside where a Li-ion cell works (from {} to {} deg C); give degrees Celsius \
          (a kelvin column named temperature_k)",
         CELL_TEMPERATURE_RANGE_C[0],
         CELL_TEMPERATURE_RANGE_C[1]
