@@ -18,7 +18,7 @@ use bcal_common::policy::PolicyFile;
 use bcal_doctor::read::{reading_columns, CurrentSign, NamedColumn, ReadingColumns};
 use std::io::{BufRead, Read, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -53,7 +53,7 @@ enum Event {
 /// Reads `source` line by line into `tx`: standard input until it closes; a file from its start, then
 /// every line appended to it, polling at [`POLL`] (only complete lines: a line still being written waits
 /// for its newline).
-fn reader(source: String, tx: Sender<Event>) {
+fn reader(source: String, tx: Sender<Event>, unterminated: Arc<AtomicUsize>) {
     let send_lines = |buf: &mut Vec<u8>, line_no: &mut u64| -> bool {
         while let Some(nl) = buf.iter().position(|b| *b == b'\n') {
             let line: Vec<u8> = buf.drain(..=nl).collect();
@@ -63,6 +63,8 @@ fn reader(source: String, tx: Sender<Event>) {
                 return false;
             }
         }
+        // What waits for its newline, for the summary should the follow end first.
+        unterminated.store(buf.len(), Ordering::SeqCst);
         true
     };
     let mut line_no = 0u64;
@@ -105,9 +107,17 @@ fn reader(source: String, tx: Sender<Event>) {
     loop {
         match file.read(&mut chunk) {
             Ok(0) => {
-                // Nothing new: a file that shrank was replaced or truncated, and following it would mix
-                // two streams.
+                // Nothing new: a file that shrank was replaced or truncated, and one whose path now names
+                // another file was replaced (rotated); following either would mix two streams or miss one.
                 if let Ok(meta) = std::fs::metadata(&path) {
+                    if replaced(&file, &meta) {
+                        let _ = tx.send(Event::Failed(format!(
+                            "{} was replaced by another file while followed (rotated or moved); start the follow \
+                             again on the new file",
+                            path.display()
+                        )));
+                        return;
+                    }
                     if meta.len() < read_so_far {
                         let _ = tx.send(Event::Failed(format!(
                             "{} shrank from {read_so_far} to {} bytes while followed (truncated or replaced); \
@@ -133,6 +143,18 @@ fn reader(source: String, tx: Sender<Event>) {
             }
         }
     }
+}
+
+/// Whether `path_meta` (the followed path's metadata now) names another file than the one `file` reads.
+#[cfg(unix)]
+fn replaced(file: &std::fs::File, path_meta: &std::fs::Metadata) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    file.metadata().is_ok_and(|m| (m.dev(), m.ino()) != (path_meta.dev(), path_meta.ino()))
+}
+
+#[cfg(not(unix))]
+fn replaced(_file: &std::fs::File, _path_meta: &std::fs::Metadata) -> bool {
+    false
 }
 
 /// The layout of the lines, decided by the first one that is not empty or a `#` comment.
@@ -329,7 +351,9 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     }
     let (tx, rx): (Sender<Event>, Receiver<Event>) = mpsc::channel();
     let source = a.source.clone();
-    std::thread::spawn(move || reader(source, tx));
+    let unterminated = Arc::new(AtomicUsize::new(0));
+    let pending = Arc::clone(&unterminated);
+    std::thread::spawn(move || reader(source, tx, pending));
     eprintln!(
         "follow: {} on {} (model {}, cut-off {} V, prior q_mobile {} C, r_o {} ohm); one JSON line per reading",
         kind.name(),
@@ -394,6 +418,12 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
         }
     };
     drop(out);
+    // A last line without its newline when a followed file went idle or the follow was stopped (a writer
+    // that died mid-line): said, not taken (standard input's end takes it as a line).
+    let tail = unterminated.load(Ordering::SeqCst);
+    if tail > 0 && !matches!(ended, Ended::EndOfInput) {
+        eprintln!("follow: the last {tail} bytes had no newline when the follow ended (a line cut short): not read");
+    }
     eprintln!("{}", summary(&ended, &stream, &skipped, last.as_ref(), &step_us));
     Ok(())
 }

@@ -167,6 +167,42 @@ fn follow_file_reads_what_another_process_appends_and_ends_when_idle() {
     assert!(err.contains("follow: no new line for 1.5 s (--idle-s): 13 readings taken, 0 bad lines skipped"), "{err}");
 }
 
+/// A followed file whose writer died mid-line: the cut line is said at the end, not taken; a followed file
+/// replaced by another at its path (a log rotated) ends the follow, naming what to do, rather than idling on
+/// the old one.
+#[test]
+fn follow_file_says_what_it_could_not_take_and_refuses_a_replaced_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let rs = readings(4);
+    let rows = |rs: &[(f64, f64, f64)]| -> String {
+        let mut text = String::from("time_s,voltage_v,current_a\n");
+        text.extend(rs.iter().map(|(t, v, i)| format!("{t},{v:.5},{i}\n")));
+        text
+    };
+    let cut = dir.path().join("cut.csv");
+    std::fs::write(&cut, rows(&rs) + "1000,3.9").unwrap();
+    let mut p = Piped::start("bcal", &["calibrate", "--follow", cut.to_str().unwrap(), "--idle-s", "1"]);
+    let status = p.wait_timeout(WAIT).expect("ends when idle");
+    let err = p.stderr();
+    assert!(status.success(), "{err}");
+    assert!(
+        err.contains("the last 8 bytes had no newline") && err.contains(&format!("{} readings taken", rs.len())),
+        "{err}"
+    );
+
+    let live = dir.path().join("live.csv");
+    std::fs::write(&live, rows(&rs[..3])).unwrap();
+    let mut p = Piped::start("bcal", &["calibrate", "--follow", live.to_str().unwrap(), "--idle-s", "10"]);
+    for k in 1..=3 {
+        estimate_of(&p, k + 1);
+    }
+    std::fs::rename(&live, dir.path().join("live.csv.1")).unwrap();
+    std::fs::write(&live, rows(&rs) + &rows(&rs)).unwrap();
+    let status = p.wait_timeout(WAIT).expect("ends on the replaced file");
+    let err = p.stderr();
+    assert!(!status.success() && err.contains("was replaced by another file while followed"), "{err}");
+}
+
 #[test]
 fn follow_ends_on_ctrl_c_with_a_summary() {
     let dir = tempfile::tempdir().unwrap();
