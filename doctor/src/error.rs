@@ -12,6 +12,8 @@ pub enum DoctorError {
     Csv { path: PathBuf, source: csv::Error },
     #[error("{path}: missing column `{column}` (found: {found}); {hint}")]
     MissingColumn { path: PathBuf, column: String, found: String, hint: &'static str },
+    #[error("{path}: empty (no header, no rows): the logger wrote nothing; leave the file out or export it again")]
+    EmptyFile { path: PathBuf },
     #[error("{path}, line {line}: field `{column}` = `{value}` is not a finite number; fix or remove that row")]
     BadField { path: PathBuf, line: u64, column: String, value: String },
     #[error(

@@ -879,11 +879,16 @@ impl Columns {
                 (col, bdf)
             })
         };
-        let missing = |what: &str| DoctorError::MissingColumn {
-            path: path.to_path_buf(),
-            column: what.to_string(),
-            found: shown(&headers.iter().collect::<Vec<_>>().join(","), 200),
-            hint: COLUMNS_HINT,
+        let missing = |what: &str| {
+            if headers.iter().all(|h| h.trim().is_empty()) {
+                return DoctorError::EmptyFile { path: path.to_path_buf() };
+            }
+            DoctorError::MissingColumn {
+                path: path.to_path_buf(),
+                column: what.to_string(),
+                found: shown(&headers.iter().collect::<Vec<_>>().join(","), 200),
+                hint: COLUMNS_HINT,
+            }
         };
         let time = take(Quantity::Time).or_else(|| take(Quantity::UnixTime));
         let (time, bdf_t) = time.ok_or_else(|| missing("time (time_s, Test Time / s)"))?;
@@ -1396,6 +1401,9 @@ fn check_time(times: &[f64], time_s: f64, path: &Path, line: u64) -> Result<(), 
 }
 
 fn column(headers: &csv::StringRecord, name: &str, path: &Path, hint: &'static str) -> Result<usize, DoctorError> {
+    if headers.iter().all(|h| h.trim().is_empty()) {
+        return Err(DoctorError::EmptyFile { path: path.to_path_buf() });
+    }
     headers.iter().position(|h| h.trim() == name).ok_or_else(|| DoctorError::MissingColumn {
         path: path.to_path_buf(),
         column: name.to_string(),

@@ -56,6 +56,30 @@ fn missing_files_named_in_metadata_are_skipped_and_counted() {
     assert_eq!(only.len(), 1);
 }
 
+/// An empty file (NASA's B0049-B0052 hold some: the software crashed) is called empty, not a file that lacks
+/// a column, in the generic reader and in a NASA folder (where it is skipped while the others read).
+#[test]
+fn an_empty_file_is_called_empty() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("empty.csv");
+    write(&path, "");
+    let err = read_generic(&path, None).unwrap_err();
+    assert!(matches!(err, DoctorError::EmptyFile { .. }) && err.to_string().contains("empty.csv: empty"), "{err}");
+    std::fs::create_dir(dir.path().join("data")).unwrap();
+    write(
+        &dir.path().join("metadata.csv"),
+        "type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n\
+         discharge,[2010 7 21 15 0 35],4,B0049,0,1,00001.csv,1.6,,\n\
+         discharge,[2010 7 21 19 0 35],4,B0049,1,2,00002.csv,1.6,,\n",
+    );
+    write(&dir.path().join("data/00001.csv"), &nasa_record(20));
+    write(&dir.path().join("data/00002.csv"), "");
+    let opts = bcal_doctor::read::ReadOptions::default();
+    let (records, report) = bcal_doctor::input::read_any(dir.path(), "B0049", None, &opts).unwrap();
+    assert_eq!(records.len(), 1);
+    assert!(report.skipped.iter().any(|s| s.reason.contains("00002.csv: empty")), "{:?}", report.skipped);
+}
+
 #[test]
 fn non_numeric_and_nan_fields_are_reported_with_file_and_line() {
     let dir = tempfile::tempdir().unwrap();

@@ -120,6 +120,7 @@ fn check_err(err: &DoctorError, path: &Path, bytes: &[u8]) -> Result<(), TestCas
         }
         DoctorError::Csv { .. }
         | DoctorError::MissingColumn { .. }
+        | DoctorError::EmptyFile { .. }
         | DoctorError::TooFewSamples { .. }
         | DoctorError::VoltageInMillivolts { .. }
         | DoctorError::VoltageOutOfRange { .. }
