@@ -368,6 +368,7 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     let mut out = stdout.lock();
     let mut layout: Option<Layout> = None;
     let mut skipped: Vec<u64> = Vec::new();
+    let mut watch = SignWatch::default();
     let mut last = None;
     let mut step_us: Vec<f64> = Vec::new();
     let mut last_line_at = Instant::now();
@@ -402,7 +403,7 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
             }
             // A JSON first line is a reading too: take it below.
             let lay = layout.as_ref().expect("set above");
-            if let Some(e) = take(lay, &line, line_no, sign, &mut stream, &mut step_us, &mut skipped) {
+            if let Some(e) = take(lay, &line, line_no, sign, &mut stream, &mut watch, &mut step_us, &mut skipped) {
                 if emit(&mut out, line_no, &e).is_err() {
                     break Ended::OutputClosed;
                 }
@@ -410,7 +411,7 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
             }
             continue;
         };
-        if let Some(e) = take(lay, &line, line_no, sign, &mut stream, &mut step_us, &mut skipped) {
+        if let Some(e) = take(lay, &line, line_no, sign, &mut stream, &mut watch, &mut step_us, &mut skipped) {
             if emit(&mut out, line_no, &e).is_err() {
                 break Ended::OutputClosed;
             }
@@ -428,20 +429,62 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Watches for a charge whose voltage falls: a discharge written with the other sign (a stream cannot be read
+/// ahead, so `--current-sign auto` takes discharges positive). Said once on stderr.
+#[derive(Default)]
+struct SignWatch {
+    /// Where the present run of charging readings began: time s, voltage V.
+    start: Option<(f64, f64)>,
+    warned: bool,
+}
+
+/// A charge read for this long ...
+const SIGN_WATCH_S: f64 = 300.0;
+/// ... whose voltage fell by this much is a discharge, V (a charge's voltage rises, or holds under CV).
+const SIGN_WATCH_FALL_V: f64 = 0.1;
+/// A current this negative counts as charging, A.
+const SIGN_WATCH_A: f64 = -0.5;
+
+impl SignWatch {
+    fn see(&mut self, r: &Reading) -> Option<String> {
+        if r.current_a > SIGN_WATCH_A {
+            self.start = None;
+            return None;
+        }
+        let (t0, v0) = *self.start.get_or_insert((r.time_s, r.voltage_v));
+        if self.warned || r.time_s - t0 < SIGN_WATCH_S || v0 - r.voltage_v < SIGN_WATCH_FALL_V {
+            return None;
+        }
+        self.warned = true;
+        Some(format!(
+            "the current has been negative (charging) for {:.0} s while the voltage fell from {v0:.3} to {:.3} V: a \
+             discharge written negative? give --current-sign discharge-negative (estimates so far read it as a \
+             charge)",
+            r.time_s - t0,
+            r.voltage_v
+        ))
+    }
+}
+
 /// Parses and steps one data line: the estimate, or None (reported on standard error, counted in
 /// `skipped`) for a bad line.
+#[allow(clippy::too_many_arguments)]
 fn take(
     layout: &Layout,
     line: &str,
     line_no: u64,
     sign: f64,
     stream: &mut Stream,
+    watch: &mut SignWatch,
     step_us: &mut Vec<f64>,
     skipped: &mut Vec<u64>,
 ) -> Option<Estimate> {
     let started = Instant::now();
     let result = layout.parse(line).and_then(|r| {
         let r = Reading { current_a: sign * r.current_a, ..r };
+        if let Some(why) = watch.see(&r) {
+            eprintln!("line {line_no}: {why}");
+        }
         stream.step(&r).map_err(|e| e.to_string())
     });
     match result {
@@ -598,6 +641,25 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A discharge written negative reads as a charge whose voltage falls: said once, after five minutes; a
+    /// real charge (its voltage rising, then held) and short negative pulses are not.
+    #[test]
+    fn a_charge_whose_voltage_falls_is_named_once() {
+        let at = |t: f64, v: f64, i: f64| Reading { time_s: t, voltage_v: v, current_a: i, temperature_c: None };
+        let mut w = SignWatch::default();
+        let said: Vec<String> =
+            (0..100).filter_map(|k| w.see(&at(10.0 * k as f64, 4.1 - 0.002 * k as f64, -2.0))).collect();
+        assert_eq!(said.len(), 1, "{said:?}");
+        assert!(said[0].contains("--current-sign discharge-negative"), "{}", said[0]);
+        let mut charge = SignWatch::default();
+        let rising = (0..100).map(|k| at(10.0 * k as f64, (3.6 + 0.01 * k as f64).min(4.2), -1.5));
+        assert!(rising.filter_map(|r| charge.see(&r)).next().is_none());
+        let mut pulses = SignWatch::default();
+        let pulsed =
+            (0..100).map(|k| at(10.0 * k as f64, 4.0 - 0.002 * k as f64, if k % 10 == 0 { -2.0 } else { 2.0 }));
+        assert!(pulsed.filter_map(|r| pulses.see(&r)).next().is_none());
+    }
 
     #[test]
     fn csv_header_finds_columns_in_any_order_and_names_what_is_missing() {
