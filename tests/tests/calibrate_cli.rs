@@ -263,21 +263,17 @@ fn write_nasa(dir: &Path) -> PathBuf {
     nasa
 }
 
-#[test]
-fn stride_keeps_the_rest_before_each_kept_discharge() {
-    let dir = tempfile::tempdir().unwrap();
-    let nasa = write_nasa(dir.path());
-    let out = dir.path().join("out");
+/// `bcal calibrate` of the joint UKF on the NASA folder `nasa` (B0049, trained on 1..6, `--quick`) with
+/// `extra` flags, into `out`: its `calibration.json`.
+fn calibrate_nasa(nasa: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
     let cut = CUTOFF_V.to_string();
-    let (ok, err) = calibrate(&[
+    let common = [
         "--data",
         nasa.to_str().unwrap(),
         "--cell",
         "B0049",
         "--train-cycles",
         "1..6",
-        "--stride",
-        "2",
         "--cutoff-v",
         &cut,
         "--calibrator",
@@ -285,10 +281,17 @@ fn stride_keeps_the_rest_before_each_kept_discharge() {
         "--quick",
         "--out",
         out.to_str().unwrap(),
-    ]);
+    ];
+    let (ok, err) = calibrate(&[&common[..], extra].concat());
     assert!(ok, "{err}");
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap();
+    serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap()
+}
+
+#[test]
+fn stride_keeps_the_rest_before_each_kept_discharge() {
+    let dir = tempfile::tempdir().unwrap();
+    let nasa = write_nasa(dir.path());
+    let report = calibrate_nasa(&nasa, &dir.path().join("out"), &["--stride", "2"]);
     assert_eq!(report["cycles_judged"], serde_json::json!([7, 9, 11]));
     assert_eq!(report["methods"]["ukf"]["scores"]["after_long_rest"]["cycles"], serde_json::json!([9]));
 }
@@ -303,30 +306,12 @@ fn records_not_read_are_named_in_the_report() {
     std::fs::remove_file(nasa.join("data").join("00011.csv")).unwrap();
     std::fs::write(nasa.join("data").join("00012.csv"), "").unwrap();
     let out = dir.path().join("out");
-    let cut = CUTOFF_V.to_string();
-    let (ok, err) = calibrate(&[
-        "--data",
-        nasa.to_str().unwrap(),
-        "--cell",
-        "B0049",
-        "--train-cycles",
-        "1..6",
-        "--cutoff-v",
-        &cut,
-        "--calibrator",
-        "ukf",
-        "--quick",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(ok, "{err}");
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap();
+    let report = calibrate_nasa(&nasa, &out, &[]);
     assert_eq!(report["cycles_judged"], serde_json::json!([7, 8, 9, 10]));
     let unread: Vec<String> = serde_json::from_value(report["records"]["unread"].clone()).unwrap();
     assert_eq!(unread.len(), 2, "{unread:?}");
     assert!(unread.iter().any(|u| u.contains("00011.csv") && u.contains("not on disk")), "{unread:?}");
-    assert!(unread.iter().any(|u| u.contains("00012.csv")), "{unread:?}");
+    assert!(unread.iter().any(|u| u.contains("00012.csv: empty")), "{unread:?}");
     let md = std::fs::read_to_string(out.join("calibration.md")).unwrap();
     assert!(md.contains("- not read: 00011.csv"), "{md}");
 }
