@@ -35,8 +35,8 @@ pub fn q_mobile_to_end(spec: &TrackerSpec, samples: &[Sample], end_s: f64, r_o_o
     let xn0 = xn_from_rest_voltage(&model, rest.iter().sum::<f64>() / rest.len() as f64, t0_k);
     let ref_k = spec.model.reference_k.unwrap_or(first.temperature_k);
     // The model starts at rest where the last [`REST_RUN_S`] of the rest begin: a rest logged for hours
-    // (a live stream's) would otherwise be run through on every bisection step (16 s at the cut-off after a
-    // rest of 300 000 readings), for a state the rest current barely moves.
+    // (a live stream's) would otherwise be run through on every bisection step (seconds at the cut-off after
+    // a rest of a few hundred thousand readings), for a state the rest current barely moves.
     let load_on_s = samples[rest.len()].t_s;
     let from = samples[..rest.len()].partition_point(|s| s.t_s < load_on_s - REST_RUN_S).min(rest.len() - 1);
     // The model's voltage at the end minus the cut-off under qMobile `q` (an emptied model reads below).

@@ -77,9 +77,11 @@ pub const NEW_DISCHARGE_GAP_S: f64 = 1800.0;
 /// at rest) is not a charge and does not end the discharge it falls in. Measured from the first charging
 /// reading to the first reading after it, so a charge read once an hour still counts.
 pub const MIN_CHARGE_S: f64 = 60.0;
-/// A discharge lasts at least this long under load, s: a shorter one (a single loaded reading, as the spurious
-/// first sample of NASA's charge records reads) hands nothing on, and the next discharge starts from what
-/// was carried into it. Measured from its first loaded reading to its last.
+/// A discharge lasts at least this long under load, s: a shorter one that never reached its cut-off (a single
+/// loaded reading, as the spurious first sample of NASA's charge records reads) hands nothing on, and the
+/// next discharge starts from what was carried into it, its rest measured from the last discharge that
+/// counted. Measured from the first loaded reading to the first reading after the load, as a charge's
+/// ([`MIN_CHARGE_S`]), so a discharge read every few minutes still counts.
 pub const MIN_DISCHARGE_S: f64 = 60.0;
 /// A reading later than the one before by more than this is refused as a clock error, s (a year): taken,
 /// one timestamp far in the future (a glitch, milliseconds since the epoch read as seconds) would have every
@@ -384,8 +386,15 @@ pub struct Stream<'a> {
     /// Whether the current discharge began under load (after a gap in the readings): a piece of a
     /// discharge, whose start is unseen. It is neither scored nor measured nor end-fitted.
     joined_under_load: bool,
-    /// Time of the last reading that discharged the cell, s.
+    /// Time of the last reading that discharged the cell before its discharge ended, s (a loaded reading
+    /// after the cut-off, NASA's spurious first charge sample, does not move the rest's start) ...
     last_loaded_t_s: Option<f64>,
+    /// ... and the same as the last discharge that counted left it (what a load too short to count,
+    /// [`MIN_DISCHARGE_S`], gives back).
+    counted_last_loaded_t_s: Option<f64>,
+    /// The first reading after the load of this discharge went off, s: how long a load lasted is measured
+    /// to it, as a charge's is ([`MIN_DISCHARGE_S`]).
+    load_off_s: Option<f64>,
     /// How long the load has stayed on since it last came on, s, and the charge drawn meanwhile, Ah (across
     /// gaps in the readings, which a stream read in the wrong time unit is made of).
     loaded_run: (f64, f64),
@@ -751,6 +760,8 @@ impl<'a> Stream<'a> {
             last_sample: None,
             joined_under_load: false,
             last_loaded_t_s: None,
+            counted_last_loaded_t_s: None,
+            load_off_s: None,
             loaded_run: (0.0, 0.0),
             ends: Vec::new(),
             carried: None,
@@ -920,7 +931,12 @@ impl<'a> Stream<'a> {
         self.load.push(r.time_s, r.current_a);
         if r.current_a > LOAD_THRESHOLD_A {
             self.loaded_n += 1;
-            self.last_loaded_t_s = Some(r.time_s);
+            if self.eod_track.ended_s.is_none() {
+                self.last_loaded_t_s = Some(r.time_s);
+            }
+            self.load_off_s = None;
+        } else if self.loaded_n > 0 && self.load_off_s.is_none() {
+            self.load_off_s = Some(r.time_s);
         }
         let eod_current_a = self.load.current_a();
         let eod_method_s = eod_current_a.and_then(|i| self.predict_eod_s(i));
@@ -1038,12 +1054,19 @@ impl<'a> Stream<'a> {
         let piece = std::mem::take(&mut self.joined_under_load);
         // A load too short to be a discharge (`MIN_DISCHARGE_S`) tells nothing of the cell's charge, and the
         // calibrator's estimate after it has read one loaded reading at a rested cell's voltage.
+        // (One that reached its cut-off counted, however short: its end was scored.)
+        let off_s = self.load_off_s.unwrap_or(start_s);
         let blip = self.loaded_n > 0
-            && self.eod_track.load_on_s.zip(self.last_loaded_t_s).is_none_or(|(on, last)| last - on < MIN_DISCHARGE_S);
+            && self.eod_track.ended_s.is_none()
+            && self.eod_track.load_on_s.is_none_or(|on| off_s - on < MIN_DISCHARGE_S);
         let discharged = self.loaded_n > 0 && !blip;
         if blip {
-            // No discharge: the next one keeps its number (`reset_discharge`).
+            // No discharge: the next one keeps its number (`reset_discharge`), and its rest runs from the
+            // last discharge that counted.
             self.loaded_n = 0;
+            self.last_loaded_t_s = self.counted_last_loaded_t_s;
+        } else if discharged {
+            self.counted_last_loaded_t_s = self.last_loaded_t_s;
         }
         if !discharged && self.carried.is_none() {
             // Nothing has discharged yet (a stream that began on a charge or at rest): the next discharge
@@ -1169,6 +1192,7 @@ impl<'a> Stream<'a> {
         // charge) was no discharge: the next one keeps its number.
         self.discharge += u32::from(self.loaded_n > 0);
         self.loaded_n = 0;
+        self.load_off_s = None;
     }
 
     /// Records the reading's predictions (the calibrator's and the prior's) and, at the first loaded
@@ -2237,13 +2261,25 @@ mod tests {
         let (plain, spiked) = (run(false), run(true));
         assert_eq!(plain[0].discharge, spiked[0].discharge, "the spike took a discharge number");
         for (a, b) in plain.iter().zip(&spiked) {
-            assert!(
-                (a.q_mobile / b.q_mobile - 1.0).abs() < 0.01,
-                "at {} s: {} C against {} C",
-                a.time_s,
-                a.q_mobile,
-                b.q_mobile
-            );
+            assert_eq!((a.q_mobile, a.r_o, a.eod_s), (b.q_mobile, b.r_o, b.eod_s), "at {} s", a.time_s);
+        }
+        // The same sample minutes after the discharge's end, in the rest before the charge (as B0005's records
+        // joined end to end read it): the rest before the next discharge still runs from the discharge's last
+        // loaded reading. (The calibrator read the sample, and its width after it moves the next prior's
+        // width, by half here: the estimates stay within 0.5 %. Not fixed: the calibrator reads on after a
+        // discharge's end.)
+        let late = Reading { time_s: end_s + 600.0, ..spike };
+        let (mut joined, mut alone) = (fed(&setup, first), fed(&setup, first));
+        joined.step(&late).unwrap();
+        for r in &charging {
+            joined.step(r).unwrap();
+            alone.step(r).unwrap();
+        }
+        for (a, r) in plain.iter().zip(&second) {
+            let b = joined.step(r).unwrap();
+            alone.step(r).unwrap();
+            assert_eq!(joined.rest_before_s, alone.rest_before_s, "at {} s", r.time_s);
+            assert!((a.q_mobile / b.q_mobile - 1.0).abs() < 5e-3, "at {} s: {a:?} against {b:?}", a.time_s);
         }
     }
 

@@ -85,7 +85,8 @@ fn distinct_cycles(all: &[Discharge]) -> Vec<u32> {
     cycles
 }
 
-/// Fewest training cycles [`cycle_ranges`] splits 3:1 by default (`launch/run.sh --cell` asks as many).
+/// Fewest training cycles whose default 3:1 split ([`cycle_ranges`]) leaves a held-out part of two or more
+/// (`launch/run.sh --cell` asks as many); a shorter life is split the same way, its held-out part shorter.
 pub const MIN_DEFAULT_SPLIT: usize = 8;
 
 /// The training and held-out cycle ranges: as given, or what the other leaves (the held-out cycles start

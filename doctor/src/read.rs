@@ -166,6 +166,8 @@ pub struct Skipped {
 pub struct ReadReport {
     /// Files named in the metadata for the selected cell and cycles that are not on disk.
     pub missing_files: Vec<String>,
+    /// Their cycle numbers, in the same order (empty for readers without cycles).
+    pub missing_cycles: Vec<u32>,
     /// Discharge rows of the selected cell in the metadata (present or not) inside the cycle range.
     pub rows_selected: usize,
     /// `nasa`, `generic` or `bdf` (the vocabulary of the columns read; empty for the older readers).
@@ -383,6 +385,7 @@ fn nasa_folder(
         let path = root.join("data").join(&file);
         if !path.is_file() {
             report.missing_files.push(file);
+            report.missing_cycles.push(cycle);
             continue;
         }
         let read = nasa_record(&path, cell, cycle, ambient_c + CELSIUS_TO_KELVIN, opts).and_then(|(d, sign)| {
@@ -880,7 +883,7 @@ impl Columns {
             })
         };
         let missing = |what: &str| {
-            if headers.iter().all(|h| h.trim().is_empty()) {
+            if no_header(headers) {
                 return DoctorError::EmptyFile { path: path.to_path_buf() };
             }
             DoctorError::MissingColumn {
@@ -1400,8 +1403,14 @@ fn check_time(times: &[f64], time_s: f64, path: &Path, line: u64) -> Result<(), 
     }
 }
 
+/// Whether a file's first line holds nothing (an empty file, or one blank line): a header of empty names
+/// (commas) is a header, and lacks columns.
+fn no_header(headers: &csv::StringRecord) -> bool {
+    headers.is_empty() || (headers.len() == 1 && headers[0].trim().is_empty())
+}
+
 fn column(headers: &csv::StringRecord, name: &str, path: &Path, hint: &'static str) -> Result<usize, DoctorError> {
-    if headers.iter().all(|h| h.trim().is_empty()) {
+    if no_header(headers) {
         return Err(DoctorError::EmptyFile { path: path.to_path_buf() });
     }
     headers.iter().position(|h| h.trim() == name).ok_or_else(|| DoctorError::MissingColumn {

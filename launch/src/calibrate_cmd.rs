@@ -165,7 +165,12 @@ pub fn read_with_starts(
     let mut unread: Vec<Unread> = rep
         .missing_files
         .iter()
-        .map(|f| Unread { cycle: None, why: format!("{f}: named in the metadata, not on disk") })
+        .enumerate()
+        .map(|(k, f)| {
+            let cycle = rep.missing_cycles.get(k).copied();
+            let of = cycle.map_or(String::new(), |c| format!(" (cycle {c})"));
+            Unread { cycle, why: format!("{f}{of}: named in the metadata, not on disk") }
+        })
         .collect();
     unread.extend(rep.skipped.iter().map(|s| Unread { cycle: s.cycle, why: s.reason.clone() }));
     Ok((ds, rep.starts, unread))

@@ -11,7 +11,7 @@
 //! while the reader is blocked in a read.
 
 use anyhow::{bail, Context};
-use bcal_calib::stream::{resolve, CalibratorKind, Estimate, Reading, Stream, WidthSource};
+use bcal_calib::stream::{resolve, CalibratorKind, Estimate, Reading, Stream, WidthSource, LOAD_THRESHOLD_A};
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::PolicyFile;
@@ -391,10 +391,14 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
         }
         // A CSV header again (files joined, a logger restarted): the rows after it are read by it, whatever
         // order or units it names (read by the first one they would be scrambled or refused).
-        if let (Some(Layout::Csv { .. }), Ok(again @ Layout::Csv { .. })) = (&layout, Layout::from_first(&line)) {
-            eprintln!("line {line_no}: a header again: the rows after it are read by it");
-            layout = Some(again);
-            continue;
+        // (Only a line with letters beyond an exponent's is tried: a data row is parsed once.)
+        let wordy = line.bytes().any(|b| b.is_ascii_alphabetic() && !matches!(b, b'e' | b'E'));
+        if wordy && matches!(layout, Some(Layout::Csv { .. })) {
+            if let Ok(again @ Layout::Csv { .. }) = Layout::from_first(&line) {
+                eprintln!("line {line_no}: a header again: the rows after it are read by it");
+                layout = Some(again);
+                continue;
+            }
         }
         let Some(lay) = &layout else {
             layout = Some(Layout::from_first(&line).map_err(|why| anyhow::anyhow!("line {line_no}: {why}"))?);
@@ -446,9 +450,15 @@ const SIGN_WATCH_FALL_V: f64 = 0.1;
 const SIGN_WATCH_A: f64 = -0.5;
 
 impl SignWatch {
-    fn see(&mut self, r: &Reading) -> Option<String> {
-        if r.current_a > SIGN_WATCH_A {
+    /// `r` with the stream's sign applied; `flipped`: the sign was `--current-sign discharge-negative`.
+    fn see(&mut self, r: &Reading, flipped: bool) -> Option<String> {
+        if r.current_a > LOAD_THRESHOLD_A {
+            // A discharge: the run of charging readings is over.
             self.start = None;
+            return None;
+        }
+        // Rests and a charge's tail (the off halves of a square wave, too) neither start nor end a run.
+        if r.current_a > SIGN_WATCH_A {
             return None;
         }
         let (t0, v0) = *self.start.get_or_insert((r.time_s, r.voltage_v));
@@ -456,10 +466,14 @@ impl SignWatch {
             return None;
         }
         self.warned = true;
+        let what = if flipped {
+            "a discharge written positive? leave out --current-sign discharge-negative"
+        } else {
+            "a discharge written negative? give --current-sign discharge-negative"
+        };
         Some(format!(
-            "the current has been negative (charging) for {:.0} s while the voltage fell from {v0:.3} to {:.3} V: a \
-             discharge written negative? give --current-sign discharge-negative (estimates so far read it as a \
-             charge)",
+            "the current has been charging for {:.0} s while the voltage fell from {v0:.3} to {:.3} V: {what} \
+             (estimates so far read it as a charge)",
             r.time_s - t0,
             r.voltage_v
         ))
@@ -482,7 +496,7 @@ fn take(
     let started = Instant::now();
     let result = layout.parse(line).and_then(|r| {
         let r = Reading { current_a: sign * r.current_a, ..r };
-        if let Some(why) = watch.see(&r) {
+        if let Some(why) = watch.see(&r, sign < 0.0) {
             eprintln!("line {line_no}: {why}");
         }
         stream.step(&r).map_err(|e| e.to_string())
@@ -647,18 +661,29 @@ mod tests {
     #[test]
     fn a_charge_whose_voltage_falls_is_named_once() {
         let at = |t: f64, v: f64, i: f64| Reading { time_s: t, voltage_v: v, current_a: i, temperature_c: None };
-        let mut w = SignWatch::default();
-        let said: Vec<String> =
-            (0..100).filter_map(|k| w.see(&at(10.0 * k as f64, 4.1 - 0.002 * k as f64, -2.0))).collect();
-        assert_eq!(said.len(), 1, "{said:?}");
-        assert!(said[0].contains("--current-sign discharge-negative"), "{}", said[0]);
-        let mut charge = SignWatch::default();
-        let rising = (0..100).map(|k| at(10.0 * k as f64, (3.6 + 0.01 * k as f64).min(4.2), -1.5));
-        assert!(rising.filter_map(|r| charge.see(&r)).next().is_none());
-        let mut pulses = SignWatch::default();
-        let pulsed =
+        let falling = |i: f64| (0..100).map(move |k| at(10.0 * k as f64, 4.1 - 0.002 * k as f64, i));
+        let said = |readings: &mut dyn Iterator<Item = Reading>, flipped: bool| -> Vec<String> {
+            let mut w = SignWatch::default();
+            readings.filter_map(|r| w.see(&r, flipped)).collect()
+        };
+        let plain = said(&mut falling(-2.0), false);
+        assert!(plain.len() == 1 && plain[0].contains("give --current-sign discharge-negative"), "{plain:?}");
+        // The same under --current-sign discharge-negative: leave it out.
+        let flipped = said(&mut falling(-2.0), true);
+        assert!(flipped.len() == 1 && flipped[0].contains("leave out --current-sign"), "{flipped:?}");
+        // A square wave written negative (its off halves at rest) is named too.
+        let mut square = (0..100).map(|k| at(10.0 * k as f64, 4.1 - 0.002 * k as f64, -4.0 * f64::from(k % 2 == 0)));
+        assert_eq!(said(&mut square, false).len(), 1);
+        // A charge (constant current, its voltage rising, then constant voltage, the current tapering) is not.
+        let mut cc_cv = (0..200).map(|k| {
+            let v = (3.6 + 0.01 * k as f64).min(4.2);
+            at(10.0 * k as f64, v, if v < 4.2 { -1.5 } else { -1.5 * (-0.05 * (k - 60) as f64).exp() })
+        });
+        assert!(said(&mut cc_cv, false).is_empty());
+        // Nor short negative pulses within a discharge.
+        let mut pulsed =
             (0..100).map(|k| at(10.0 * k as f64, 4.0 - 0.002 * k as f64, if k % 10 == 0 { -2.0 } else { 2.0 }));
-        assert!(pulsed.filter_map(|r| pulses.see(&r)).next().is_none());
+        assert!(said(&mut pulsed, false).is_empty());
     }
 
     #[test]

@@ -626,7 +626,9 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let (life_tuning, life_used) = (life.as_ref().map(|l| &l.tuning), life.as_ref().map(|l| &l.used));
     // Each discharge hands on its end fit to the next ([`crate::carry`]).
     let carrying = Carrying::end_fits(&spec.tracker, life_tuning, &train, &train_fits, &neutral, &rests, cut);
-    let (judged_carried, judged_kept) = end_fits(&spec.tracker, &judged, &judged_fits, carrying.fits.last(), cut);
+    let start = (spec.tracker.prior, neutral.clone());
+    let (judged_carried, judged_kept) =
+        end_fits(&spec.tracker, &judged, &judged_fits, carrying.fits.last().or(Some(&start)), cut);
     let width = carrying.width;
     let end_knee_median = carrying.knees.median();
     progress(&format!(
@@ -692,8 +694,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     };
     let (train_before, judged_before) = sequence(&carrying.fits, &judged_carried);
     // The references carry voltage fits; one cut short hands on the fit before it there too.
-    let train_ref_fits = crate::carry::over_cut_short(&train, &train_fits, None);
-    let judged_ref_fits = crate::carry::over_cut_short(&judged, &judged_fits, train_ref_fits.last());
+    let train_ref_fits = crate::carry::over_cut_short(&train, &train_fits, Some(&start));
+    let judged_ref_fits = crate::carry::over_cut_short(&judged, &judged_fits, train_ref_fits.last().or(Some(&start)));
     let (train_ref_before, judged_ref_before) = sequence(&train_ref_fits, &judged_ref_fits);
 
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();

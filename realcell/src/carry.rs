@@ -153,7 +153,9 @@ impl Carrying {
         rests: &BTreeMap<u32, f64>,
         cutoff_v: f64,
     ) -> Self {
-        let (carried, kept) = end_fits(spec, train, fits, None, cutoff_v);
+        // A first record cut short hands on what the first starts from: the setting's prior.
+        let start = (spec.prior, neutral.clone());
+        let (carried, kept) = end_fits(spec, train, fits, Some(&start), cutoff_v);
         Self { kept_voltage_fit: kept, ..Self::along(spec, life, train, carried, neutral, rests, cutoff_v) }
     }
 }
