@@ -796,9 +796,12 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // delivered (recentred where that serves, blended: what it would replace), on most of the last that
     // ended (`tune::deliver`). Then its intervals are widened from its runs along the validation cycles and
     // each judged discharge that has ended.
+    // With `learned` (its key and entry), the learner on the calibrator's record (issue 18) is delivered too,
+    // as a method of its own beside the one it builds on, from the same delivered runs, so that every run
+    // measures what the learning adds.
     let deliver = |key: &'static str,
                    r: tune::Runs,
-                   learn: bool,
+                   learned: Option<(&'static str, &mut serde_json::Value)>,
                    entry: &mut serde_json::Value,
                    widenings: &mut serde_json::Map<String, serde_json::Value>,
                    runs: &mut Vec<(&'static str, Vec<CycleRun>)>| {
@@ -821,13 +824,13 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 bcal_calib::blend::BLEND_WINDOW, bcal_calib::blend::MIN_BLEND_PAIRS),
             "previous_cycle": {"eod_weight": weights_json(&d.previous_eod_weights),
                 "capacity_weight": weights_json(&d.previous_capacity_weights)}});
-        let (mut held, gate, capacity_gate) = (d.runs, d.prior_gate, d.capacity_gate);
-        // The learner on the calibrator's record (issue 18): a method of its own beside the one it builds on,
-        // so that every run measures what the learning adds.
-        if learn {
-            let without = MethodEntry::new(key, score(&judged, &held.judged));
-            let (learned, weights) = tune::learn_capacity(&held, &r, &validation, &judged);
-            entry["learned_capacity"] = serde_json::json!({"weight": weights_json(&weights),
+        let (held, gate, capacity_gate) = (d.runs, d.prior_gate, d.capacity_gate);
+        let learned = learned.map(|(learned_key, learned_entry)| {
+            learned_entry["recentred"] = entry["recentred"].clone();
+            learned_entry["blended"] = entry["blended"].clone();
+            let without = MethodEntry::new(learned_key, score(&judged, &held.judged));
+            let (learned_runs, weights) = tune::learn_capacity(&held, &r, &validation, &judged);
+            learned_entry["learned_capacity"] = serde_json::json!({"weight": weights_json(&weights),
                 "without": {"capacity_rmse_ah": without.capacity_rmse_ah,
                     "capacity_rmse_ah_vs_data": without.capacity_rmse_ah_vs_data},
                 "what": format!("each reading's capacity (value and bounds), as delivered after the above, is blended \
@@ -842,12 +845,9 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                     discharge is left as delivered",
                     bcal_calib::record_learner::RECORD_WINDOW, bcal_calib::record_learner::MIN_RECORD_PAIRS,
                     bcal_calib::blend::BLEND_WINDOW, bcal_calib::blend::MIN_BLEND_PAIRS)});
-            held = learned;
-        }
-        let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
-        let w = calibrate_intervals(&hist, &judged, &mut held.judged);
-        widenings.insert(key.into(), serde_json::to_value(&w).unwrap_or_default());
-        entry["held_to_prior"] = serde_json::json!({
+            (learned_key, learned_entry, learned_runs)
+        });
+        let held_to_prior = serde_json::json!({
             "prior_cycles": served_cycles(&judged, &gate),
             "prior_capacity_cycles": served_cycles(&judged, &capacity_gate),
             "alone": {"capacity_rmse_ah": alone.capacity_rmse_ah, "eod_error_pct": alone.eod_error_pct},
@@ -858,7 +858,15 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 (`prior_cycles`, per share); the capacity there by its own record, the capacity error against \
                 the data's charge (`prior_capacity_cycles`); `alone`: the calibrator's figures without it",
                 tune::MIN_WIN_SHARE * 100.0, tune::GATE_WINDOW)});
-        runs.push((key, held.judged));
+        // Each delivered method's intervals are widened from its own runs.
+        let own = std::iter::once((key, entry, held));
+        for (k, e, mut held) in own.chain(learned) {
+            let hist: Vec<(&CellRecord, &CycleRun)> = validation.iter().zip(&held.validation).collect();
+            let w = calibrate_intervals(&hist, &judged, &mut held.judged);
+            widenings.insert(k.into(), serde_json::to_value(&w).unwrap_or_default());
+            e["held_to_prior"] = held_to_prior.clone();
+            runs.push((k, held.judged));
+        }
     };
 
     // The joint UKF: the grid's settings, chosen on the validation cycles (first: the RL correction may
@@ -1074,7 +1082,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             }
             None => policy,
         };
-        deliver("rl", delivered, false, &mut rl_settings, &mut widenings, &mut runs);
+        deliver("rl", delivered, None, &mut rl_settings, &mut widenings, &mut runs);
         settings.insert("rl".into(), rl_settings);
         progress(&format!("RL-LAC: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
     }
@@ -1082,11 +1090,10 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let mut top = choice.clone();
         top.candidates.truncate(5);
         let mut entry = serde_json::json!({"settings": best, "prior_factor": factor, "validation": top});
-        deliver("ukf", r.clone(), false, &mut entry, &mut widenings, &mut runs);
+        let mut learned = serde_json::json!({"builds_on": "ukf"});
+        deliver("ukf", r.clone(), Some(("ukf_learned", &mut learned)), &mut entry, &mut widenings, &mut runs);
         settings.insert("ukf".into(), entry);
-        let mut entry = serde_json::json!({"builds_on": "ukf"});
-        deliver("ukf_learned", r.clone(), true, &mut entry, &mut widenings, &mut runs);
-        settings.insert("ukf_learned".into(), entry);
+        settings.insert("ukf_learned".into(), learned);
     }
     if let Some((rule, cands, choice)) = &adaptive_best {
         let (best, factor, _) = ukf_best.clone().expect("chosen above");
@@ -1094,7 +1101,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         let r = raw(&cands[choice.index].1, choice);
         progress(&format!("adaptive UKF: {} discharges in {:.0} s", judged.len(), t0.elapsed().as_secs_f64()));
         let mut entry = serde_json::json!({"filter": best, "prior_factor": factor, "rule": rule, "validation": choice});
-        deliver("adaptive_ukf", r, false, &mut entry, &mut widenings, &mut runs);
+        deliver("adaptive_ukf", r, None, &mut entry, &mut widenings, &mut runs);
         settings.insert("adaptive_ukf".into(), entry);
     }
     // The references, run on the validation cycles too (their errors start the references' intervals).
