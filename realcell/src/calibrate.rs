@@ -829,22 +829,34 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             learned_entry["recentred"] = entry["recentred"].clone();
             learned_entry["blended"] = entry["blended"].clone();
             let without = MethodEntry::new(learned_key, score(&judged, &held.judged));
-            let (learned_runs, weights) = tune::learn_capacity(&held, &r, &validation, &judged);
-            learned_entry["learned_capacity"] = serde_json::json!({"weight": weights_json(&weights),
+            let (learned_runs, weights) = tune::learn_on_record(&held, &r, &validation, &judged);
+            let learner = format!(
+                "a learner on this calibrator's record: least squares refitted before each \
+                discharge on its signed errors where the scores take them in that share of the discharge over the \
+                last {} discharges that ended (validation cycles first; at least {} pairs), on the last error, the \
+                mean of the last five, the log of the rest before and how much warmer the discharge's loaded \
+                readings ran up to there (at each reading: so far) than the record's at the same time after the \
+                load-on; the moved prediction's weight per share (10 / 50 / \
+                90 %) is the delivered one's mean squared error over the sum of both over the last {} discharges it \
+                moved (none before {}; `weight`: its median over the judged discharges blended, and how many); \
+                `without`: the figures without it (before the intervals are widened, which leaves the values as \
+                they are)",
+                bcal_calib::record_learner::RECORD_WINDOW,
+                bcal_calib::record_learner::MIN_RECORD_PAIRS,
+                bcal_calib::blend::BLEND_WINDOW,
+                bcal_calib::blend::MIN_BLEND_PAIRS
+            );
+            learned_entry["learned_capacity"] = serde_json::json!({"weight": weights_json(&weights.capacity),
                 "without": {"capacity_rmse_ah": without.capacity_rmse_ah,
                     "capacity_rmse_ah_vs_data": without.capacity_rmse_ah_vs_data},
-                "what": format!("each reading's capacity (value and bounds), as delivered after the above, is blended \
-                    with the same moved by the error a learner on this calibrator's record expects: least squares \
-                    refitted before each discharge on the signed capacity errors (where the scores take the capacity \
-                    in that share, against the data's charge) of the last {} discharges that ended (validation cycles \
-                    first; at least {} pairs), on the last error, the mean of the last five and the log of the rest \
-                    before; the moved capacity's weight per share (10 / 50 / 90 %) is the delivered one's mean squared \
-                    error over the sum of both over the last {} discharges it moved (none before {}; `weight`: its \
-                    median over the judged discharges blended, and how many); `without`: the capacity figures \
-                    without it (before the intervals are widened, which leaves the values as they are); the end of \
-                    discharge is left as delivered",
-                    bcal_calib::record_learner::RECORD_WINDOW, bcal_calib::record_learner::MIN_RECORD_PAIRS,
-                    bcal_calib::blend::BLEND_WINDOW, bcal_calib::blend::MIN_BLEND_PAIRS)});
+                "what": format!("each reading's capacity (value and bounds), as delivered after the above, is \
+                    blended with the same moved by the error expected by {learner}; the errors are against the \
+                    data's charge, Ah")});
+            learned_entry["learned_eod"] = serde_json::json!({"weight": weights_json(&weights.eod),
+                "without": {"eod_error_pct": without.eod_error_pct},
+                "what": format!("each reading's predicted end of discharge (value and bounds), as delivered after \
+                    the above, is blended with the same moved by the error expected by {learner}; the errors are \
+                    in % of the discharge (the predicted one standing for it when moving)")});
             (learned_key, learned_entry, learned_runs)
         });
         let held_to_prior = serde_json::json!({

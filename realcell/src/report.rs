@@ -239,6 +239,13 @@ pub fn reading(r: &CalibrationReport) -> Vec<String> {
             l / u
         ));
     }
+    if let (Some(l), Some(u)) = (eod50("ukf_learned"), eod50("ukf")) {
+        out.push(format!(
+            "Joint UKF + learner on its record against the joint UKF, end of discharge at half the discharge: median \
+             {:.2} vs {:.2} %, p90 {:.2} vs {:.2} %.",
+            l.median, u.median, l.p90, u.p90
+        ));
+    }
     out
 }
 

@@ -328,63 +328,112 @@ pub fn deliver(own: &Runs, with: &Companions, validation: &[CellRecord], judged:
     }
 }
 
-/// The capacity of `delivered` blended with the same moved by what a learner on its record expects
-/// ([`bcal_calib::record_learner`]): per share of the discharge, before each discharge (validation cycles
-/// first) the learner fits the signed capacity errors where the scores take the capacity in that share (as
-/// [`gate_capacity`] judges it) over the discharges that ended before, with the rest before each, and moves
-/// the capacity (value and bounds) of this discharge's readings in that share by the error it expects. The
-/// moved and the delivered capacity are then blended ([`bcal_calib::blend`]) by their squared errors over
-/// the last discharges where the learner moved it: a learner that errs more gets little weight, before it
-/// has a record none. The end of discharge is left alone (there the learner loses on five of six NASA
-/// cells: docs/calibrator.md, "a learner on the record"). A reading's share is the one `shares`' predicted
-/// end puts it at. Returns the runs and, per share, the judged discharges' weights on the moved capacity.
-/// `bcal calibrate` delivers the joint UKF so learned as a method of its own (`ukf_learned`) beside it.
-pub fn learn_capacity(
+/// What [`learn_on_record`] learned, per share of the discharge ([`EOD_FRACTIONS_PCT`], by index): the
+/// judged discharges' weights on the moved capacity and on the moved end.
+pub struct LearnedWeights {
+    pub capacity: Weights,
+    pub eod: Weights,
+}
+
+/// `delivered`'s capacity and end of discharge, each blended with the same moved by what a learner on its
+/// record expects ([`bcal_calib::record_learner`]): per share of the discharge, before each discharge
+/// (validation cycles first) the learner fits the signed errors where the scores take the capacity in that
+/// share (as [`gate_capacity`] judges it, against the data's charge, Ah) and the end (at 10 / 50 / 90 %, in %
+/// of the discharge) over the discharges that ended before, with the rest before each and the mean
+/// temperature of its loaded readings up to there, and moves each reading's prediction (value and bounds) in
+/// that share by the error it expects from the rest before this discharge and its loaded readings' mean
+/// temperature so far (no look-ahead). The moved and the delivered prediction are then blended
+/// ([`bcal_calib::blend`]) by their squared errors over the last discharges where the learner moved it: a
+/// learner that errs more gets little weight, before it has a record none. The temperature carries what an
+/// isothermal model misses on a cold cell (B0055 at 4 C: the warmer a discharge runs, the more it delivers
+/// and the later it ends; docs/calibrator.md, "the temperature on the record"). A reading's share is the one
+/// `shares`' predicted end puts it at. `bcal calibrate` delivers the joint UKF so learned as a method of its
+/// own (`ukf_learned`) beside it.
+pub fn learn_on_record(
     delivered: &Runs,
     shares: &Runs,
     validation: &[CellRecord],
     judged: &[CellRecord],
-) -> (Runs, Weights) {
-    use bcal_calib::record_learner::{expected_error, Entry};
+) -> (Runs, LearnedWeights) {
+    use bcal_calib::record_learner::{fit, Entry, Learned, RECORD_WINDOW};
     let records: Vec<&CellRecord> = validation.iter().chain(judged).collect();
     let n_val = validation.len();
-    // Per share: each discharge's expected error (None: no record yet) and its weight on the moved capacity.
-    let mut expected: [Vec<Option<f64>>; EOD_FRACTIONS_PCT.len()] = Default::default();
-    let mut weights: [Vec<Option<f64>>; EOD_FRACTIONS_PCT.len()] = Default::default();
-    for b in 0..EOD_FRACTIONS_PCT.len() {
-        let at = capacity_scored_at(b);
-        let errors: Vec<f64> = capacity_signed_error_at(validation, &delivered.validation, at)
-            .into_iter()
-            .chain(capacity_signed_error_at(judged, &delivered.judged, at))
-            .collect();
-        let entries: Vec<Entry> =
-            errors.iter().zip(&records).map(|(&error, r)| Entry { error, rest_before_s: r.rest_before_s }).collect();
-        expected[b] = (0..records.len()).map(|k| expected_error(&entries[..k], records[k].rest_before_s)).collect();
-        // (moved, delivered) absolute errors where the learner moved the capacity.
-        let mut pairs: Vec<(f64, f64)> = Vec::new();
-        weights[b] = (0..records.len())
-            .map(|k| {
-                let w = expected[b][k].and(bcal_calib::blend::blend_weight(&pairs));
-                if let Some(x) = expected[b][k] {
-                    pairs.push(((errors[k] - x).abs(), errors[k].abs()));
-                }
-                w
-            })
-            .collect();
-    }
+    let heat: Vec<LoadedHeat> = records.iter().map(|r| LoadedHeat::of(r)).collect();
+    // The temperature input of discharge `j` at `tau_s` after its load-on, as the learner before discharge `k`
+    // sees it: its loaded readings' mean temperature so far less the mean of the same, at the same time after
+    // their load-on, over the discharges the learner's window holds. A cell warms through a discharge, so the
+    // mean so far alone would tell the time into the discharge more than how warm this discharge runs.
+    let anomaly = |k: usize, j: usize, tau_s: f64| -> Option<f64> {
+        let own = heat[j].at(tau_s)?;
+        let refs: Vec<f64> = (k.saturating_sub(RECORD_WINDOW + 1)..k).filter_map(|i| heat[i].at(tau_s)).collect();
+        (!refs.is_empty()).then(|| own - refs.iter().sum::<f64>() / refs.len() as f64)
+    };
+    // Per share, for the capacity and the end: each discharge's learner (None: no record yet) and its weight.
+    type PerShare = [Vec<Option<(Learned, f64)>>; EOD_FRACTIONS_PCT.len()];
+    type SignedErrors = dyn Fn(&[CellRecord], &[CycleRun], u32) -> Vec<f64>;
+    let learn = |errors_at: &SignedErrors, at: &dyn Fn(usize) -> u32| {
+        let mut out: PerShare = Default::default();
+        for (b, slot) in out.iter_mut().enumerate() {
+            let at = at(b);
+            let errors: Vec<f64> = errors_at(validation, &delivered.validation, at)
+                .into_iter()
+                .chain(errors_at(judged, &delivered.judged, at))
+                .collect();
+            // Where each discharge's error is taken, s after its load-on.
+            let taken_s: Vec<Option<f64>> = records
+                .iter()
+                .map(|r| r.reading_at_fraction(f64::from(at) / 100.0).map(|i| r.samples[i].t_s - r.load_on_s))
+                .collect();
+            let entry = |k: usize, j: usize| Entry {
+                error: errors[j],
+                rest_before_s: records[j].rest_before_s,
+                temperature_k: taken_s[j].and_then(|tau| anomaly(k, j, tau)),
+            };
+            // (moved, delivered) absolute errors where the learner moved the prediction.
+            let mut pairs: Vec<(f64, f64)> = Vec::new();
+            *slot = (0..records.len())
+                .map(|k| {
+                    let from = k.saturating_sub(RECORD_WINDOW + 1);
+                    let learned = fit(&(from..k).map(|j| entry(k, j)).collect::<Vec<_>>())?;
+                    let x = learned.expected(records[k].rest_before_s, entry(k, k).temperature_k);
+                    let weight = bcal_calib::blend::blend_weight(&pairs);
+                    if let Some(x) = x {
+                        pairs.push(((errors[k] - x).abs(), errors[k].abs()));
+                    }
+                    weight.map(|w| (learned, w))
+                })
+                .collect();
+        }
+        out
+    };
+    let capacity = learn(&capacity_signed_error_at, &capacity_scored_at);
+    let eod = learn(&eod_signed_error_pct_at, &|b| EOD_FRACTIONS_PCT[b]);
     let set = |records: &[CellRecord], runs: &[CycleRun], by: &[CycleRun], offset: usize| {
         by_share(
             records,
             runs,
             runs,
             by,
-            |k| weights.iter().any(|w| w[offset + k].is_some()),
+            |k| capacity.iter().chain(&eod).any(|per| per[offset + k].is_some()),
             |k, bin, _, so| {
+                let r = &records[k];
+                let t_k = anomaly(offset + k, offset + k, so.t_s - r.load_on_s);
                 let mut step = so.clone();
-                if let (Some(w), Some(x)) = (weights[bin][offset + k], expected[bin][offset + k]) {
-                    let mix = |v: Option<f64>| v.map(|v| bcal_calib::blend::blended(w, v - x, v));
-                    let c = so.capacity;
-                    step.capacity = Predicted { value: mix(c.value), lo: mix(c.lo), hi: mix(c.hi) };
+                if let Some((learned, w)) = &capacity[bin][offset + k] {
+                    if let Some(x) = learned.expected(r.rest_before_s, t_k) {
+                        let mix = |v: Option<f64>| v.map(|v| bcal_calib::blend::blended(*w, v - x, v));
+                        let c = so.capacity;
+                        step.capacity = Predicted { value: mix(c.value), lo: mix(c.lo), hi: mix(c.hi) };
+                    }
+                }
+                if let (Some((learned, w)), Some(v)) = (&eod[bin][offset + k], so.eod.value) {
+                    // An error in % of the discharge, the predicted one standing for it.
+                    if let Some(x) = learned.expected(r.rest_before_s, t_k) {
+                        let shift_s = x / 100.0 * (v - r.load_on_s).max(0.0);
+                        let mix = |e: Option<f64>| e.map(|e| bcal_calib::blend::blended(*w, e - shift_s, e));
+                        let e = so.eod;
+                        step.eod = Predicted { value: mix(e.value), lo: mix(e.lo), hi: mix(e.hi) };
+                    }
                 }
                 step
             },
@@ -394,8 +443,62 @@ pub fn learn_capacity(
         validation: set(validation, &delivered.validation, &shares.validation, 0),
         judged: set(judged, &delivered.judged, &shares.judged, n_val),
     };
-    let judged_weights = std::array::from_fn(|b| weights[b][n_val..].to_vec());
-    (runs, judged_weights)
+    let weights = |per: &PerShare| -> Weights {
+        std::array::from_fn(|b| per[b][n_val..].iter().map(|x| x.as_ref().map(|x| x.1)).collect())
+    };
+    (runs, LearnedWeights { capacity: weights(&capacity), eod: weights(&eod) })
+}
+
+/// A discharge's loaded readings' mean cell temperature so far: a BMS's running mean from the load-on.
+struct LoadedHeat {
+    /// (time of a loaded reading after the load-on, s; the mean temperature of the loaded readings up to it, K).
+    means: Vec<(f64, f64)>,
+}
+
+impl LoadedHeat {
+    fn of(r: &CellRecord) -> Self {
+        let (mut sum_k, mut n) = (0.0, 0usize);
+        let means = r
+            .samples
+            .iter()
+            .filter(|s| s.t_s >= r.load_on_s && s.current_a > crate::record::LOAD_THRESHOLD_A)
+            .filter(|s| s.temperature_k.is_finite())
+            .map(|s| {
+                sum_k += s.temperature_k;
+                n += 1;
+                (s.t_s - r.load_on_s, sum_k / n as f64)
+            })
+            .collect();
+        Self { means }
+    }
+
+    /// The mean at `tau_s` after the load-on (of the loaded readings at or before it; past the last, the
+    /// whole discharge's); None before the first.
+    fn at(&self, tau_s: f64) -> Option<f64> {
+        let k = self.means.partition_point(|(t, _)| *t <= tau_s + 1e-9);
+        (k > 0).then(|| self.means[k - 1].1)
+    }
+}
+
+/// Per discharge, the signed error of `runs`' end of discharge at `fraction_pct` of it, % of the discharge
+/// (predicted minus measured, as the scores take it): NaN where there is none to score, infinite where the
+/// prediction failed.
+fn eod_signed_error_pct_at(records: &[CellRecord], runs: &[CycleRun], fraction_pct: u32) -> Vec<f64> {
+    records
+        .iter()
+        .zip(runs)
+        .map(|(r, run)| {
+            let (Some(eod), Some(dur), Some(k)) =
+                (r.eod_s, r.discharge_s(), r.reading_at_fraction(f64::from(fraction_pct) / 100.0))
+            else {
+                return f64::NAN;
+            };
+            if run.steps.is_empty() {
+                return f64::NAN;
+            }
+            run.steps[k.min(run.steps.len() - 1)].eod.value.map_or(f64::INFINITY, |v| 100.0 * (v - eod) / dur.max(1.0))
+        })
+        .collect()
 }
 
 /// Per share of the discharge ([`EOD_FRACTIONS_PCT`], by index), the calibrator's weight in its blend with
@@ -921,7 +1024,7 @@ mod tests {
     /// A calibrator whose capacity errs by 0.02 Ah per e-fold of the rest before the discharge (rests of 2-8
     /// h in no order): once the learner on its record has seen enough discharges it moves the capacity onto
     /// the data's, its moved capacity takes the weight once it has beaten the delivered one on enough of
-    /// them, and the end of discharge is left as it was.
+    /// them, and the end of discharge, which it predicts exactly, is left as it was.
     #[test]
     fn the_capacity_learned_on_the_record_takes_off_what_follows_the_rest() {
         use crate::predict::Predicted;
@@ -940,7 +1043,8 @@ mod tests {
         let (validation, v) = build(1..21);
         let (judged, j) = build(21..41);
         let delivered = Runs { validation: v, judged: j };
-        let (runs, weights) = learn_capacity(&delivered, &delivered, &validation, &judged);
+        let (runs, weights) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        let weights = weights.capacity;
         // The learner expects from the 12th discharge (11 in its record), its blend weighs it from the 20th
         // (8 discharges moved): every judged one, near all of the weight.
         let min_pairs = bcal_calib::record_learner::MIN_RECORD_PAIRS + bcal_calib::blend::MIN_BLEND_PAIRS;
@@ -974,10 +1078,63 @@ mod tests {
                 .collect()
         };
         let delivered = Runs { validation: exact(v), judged: exact(j) };
-        let (runs, weights) = learn_capacity(&delivered, &delivered, &validation, &judged);
+        let (runs, weights) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        let weights = weights.capacity;
         assert!(weights.iter().flatten().all(Option::is_none), "{weights:?}");
         for (run, d) in runs.judged.iter().zip(&delivered.judged) {
             assert!(run.steps.iter().zip(&d.steps).all(|(s, sd)| s.capacity == sd.capacity && s.eod == sd.eod));
+        }
+    }
+
+    /// A cold cell's calibrator whose end of discharge errs by 1 % of the discharge per K its loaded readings
+    /// ran away from the record's mean (the warmer, the later the cell ends, which an isothermal model
+    /// misses; 12-16 C in no order), each discharge warming by 4 K from its load-on: the learner on its
+    /// record moves the end by what the temperature so far tells, at every reading, without look-ahead, onto
+    /// the measured one; the capacity, exact, is left alone.
+    #[test]
+    fn the_end_learned_on_the_record_takes_off_what_follows_the_temperature() {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 1.0), hi: Some(v + 1.0) };
+        // Each cycle's temperature at its load-on, K, 285-289 in no order (a multiplicative hash of the cycle).
+        let start_k = |c: u32| 285.0 + f64::from(c.wrapping_mul(2_654_435_761) % 1000) * 0.004;
+        let build = |cycles: std::ops::Range<u32>| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles
+                .map(|c| {
+                    let error_pct = start_k(c) - 286.0;
+                    let (mut r, run) = crate::record::test_discharge(c, 1.0, |_| at(100.0 + error_pct), at(1.0));
+                    for s in &mut r.samples {
+                        s.temperature_k = start_k(c) + 0.04 * s.t_s;
+                    }
+                    r.rest_before_s = Some(14_400.0);
+                    (r, run)
+                })
+                .unzip()
+        };
+        // 30 validation cycles: the blend's last 15 discharges then hold the learner's own record only.
+        let (validation, v) = build(1..31);
+        let (judged, j) = build(31..51);
+        let delivered = Runs { validation: v, judged: j };
+        let (runs, weights) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        assert!(weights.capacity.iter().flatten().all(Option::is_none), "{:?}", weights.capacity);
+        assert!(weights.eod[1].iter().all(|w| w.is_some_and(|w| w > 0.99)), "{:?}", weights.eod[1]);
+        for (k, (run, d)) in runs.judged.iter().zip(&delivered.judged).enumerate() {
+            let half = judged[k].reading_at_fraction(0.5).unwrap();
+            let (s, sd) = (&run.steps[half], &d.steps[half]);
+            let erred = sd.eod.value.unwrap() - 100.0;
+
+            // The error is in % of the discharge, moved by the predicted one: within 3 % of it.
+            let within = 0.03 * erred.abs() + 0.01;
+            assert!((s.eod.value.unwrap() - 100.0).abs() < within, "judged {k}: {:?} (erred {erred})", s.eod);
+            assert!((s.eod.hi.unwrap() - s.eod.value.unwrap() - 1.0).abs() < 1e-9, "judged {k}: the bounds move");
+            assert!(run.steps.iter().zip(&d.steps).all(|(s, sd)| s.capacity == sd.capacity), "judged {k}");
+            // At every share the input is how much warmer this discharge runs than the record's at the same
+            // time after the load-on (not the mean so far, which grows as the cell warms): the end is moved onto
+            // the measured one at a tenth, a third and 80 % as at half.
+            for f in [0.1, 0.3, 0.8] {
+                let i = judged[k].reading_at_fraction(f).unwrap();
+                let moved = run.steps[i].eod.value.unwrap() - d.steps[i].eod.value.unwrap();
+                assert!((moved + erred).abs() < within, "judged {k}: moved {moved} at {f} (erred {erred})");
+            }
         }
     }
 

@@ -294,6 +294,12 @@ fn stride_keeps_the_rest_before_each_kept_discharge() {
     let report = calibrate_nasa(&nasa, &dir.path().join("out"), &["--stride", "2"]);
     assert_eq!(report["cycles_judged"], serde_json::json!([7, 9, 11]));
     assert_eq!(report["methods"]["ukf"]["scores"]["after_long_rest"]["cycles"], serde_json::json!([9]));
+    // The learner on the filter's record is delivered beside it, with the figures it leaves without it: too
+    // few discharges here for it to move anything, so the same as the filter's.
+    let (learned, settings) = (&report["methods"]["ukf_learned"], &report["settings"]["ukf_learned"]);
+    assert_eq!(learned["eod_error_pct"], report["methods"]["ukf"]["eod_error_pct"]);
+    assert_eq!(settings["learned_eod"]["without"]["eod_error_pct"], learned["eod_error_pct"]);
+    assert_eq!(settings["learned_capacity"]["weight"]["50"]["blended"], serde_json::json!(0));
 }
 
 /// Records the reader could not read (a file the metadata names that is not on disk, an empty one: NASA's
