@@ -31,10 +31,15 @@ const RIDGE: f64 = 1e-3;
 /// about a cell sensor's resolution, so that a cell held at one temperature (its readings differing by the
 /// sensor's noise) gives an input near 0, not noise blown up to unit size.
 pub const MIN_TEMPERATURE_SPREAD_K: f64 = 0.1;
+/// The temperature input is held within this many spreads of the record's mean: a line fitted on the
+/// record is not carried far past what the record held (a sensor that shifts, a discharge far colder).
+pub const MAX_TEMPERATURE_INPUT: f64 = 3.0;
 
 /// One discharge of the record: its signed error (predicted minus measured), the rest before it, s (None
-/// where the schedule does not tell), and the mean cell temperature of its loaded readings up to where the
-/// error was taken, K (None without a temperature sensor).
+/// where the schedule does not tell), and its temperature input, K (in `bcal calibrate`, how much warmer its
+/// loaded readings ran up to where the error was taken than the discharges before it did at the same time
+/// after their load-on; None where there is nothing to compare with. A reader without a temperature column
+/// fills in the ambient, which gives 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Entry {
     pub error: f64,
@@ -67,7 +72,7 @@ impl Learned {
             self.last,
             self.mean5,
             rest_before_s.map_or(self.mean_log_rest, log_rest),
-            temperature_k.map_or(0.0, |t| (t - self.mean_k) / self.spread_k),
+            temperature_k.map_or(0.0, |t| standardized(t, self.mean_k, self.spread_k)),
         );
         let expected = self.coef.dot(&x) * self.scale;
         expected.is_finite().then_some(expected)
@@ -110,7 +115,7 @@ pub fn fit(record: &[Entry]) -> Option<Learned> {
             last,
             mean5,
             e.rest_before_s.map_or(mean_log_rest, log_rest),
-            e.temperature_k.filter(|t| t.is_finite()).map_or(0.0, |t| (t - mean_k) / spread_k),
+            e.temperature_k.filter(|t| t.is_finite()).map_or(0.0, |t| standardized(t, mean_k, spread_k)),
         )
     };
     let (mut a, mut b) = (Matrix5::<f64>::zeros(), Vector5::<f64>::zeros());
@@ -132,6 +137,17 @@ pub fn fit(record: &[Entry]) -> Option<Learned> {
 /// The error the learner on `record` expects of the next discharge ([`fit`], [`Learned::expected`]).
 pub fn expected_error(record: &[Entry], rest_before_s: Option<f64>, temperature_k: Option<f64>) -> Option<f64> {
     fit(record)?.expected(rest_before_s, temperature_k)
+}
+
+/// A temperature's input: in spreads from the record's mean, held within [`MAX_TEMPERATURE_INPUT`] (a
+/// non-finite one says nothing).
+fn standardized(t_k: f64, mean_k: f64, spread_k: f64) -> f64 {
+    let x = (t_k - mean_k) / spread_k;
+    if x.is_finite() {
+        x.clamp(-MAX_TEMPERATURE_INPUT, MAX_TEMPERATURE_INPUT)
+    } else {
+        0.0
+    }
 }
 
 /// The rest's input: its log, from a second up (a rest of 0 s is a schedule's glitch, not an input).
@@ -232,6 +248,12 @@ mod tests {
         let x = expected_error(&record, Some(14_000.0), Some(mean_k + 2.0)).unwrap();
         let truth = 0.005 - 0.02;
         assert!((x - truth).abs() < 0.05 * truth.abs(), "{x} against {truth}");
+        // A discharge far colder than any on the record (a sensor that shifted by 15 K) is expected as one
+        // at three spreads from the mean, not on the line carried fifteen kelvin out.
+        let spread_k = (temps.iter().map(|t| (t - mean_k).powi(2)).sum::<f64>() / temps.len() as f64).sqrt();
+        let far = expected_error(&record, Some(14_000.0), Some(mean_k - 15.0)).unwrap();
+        let edge = 0.005 + 0.01 * MAX_TEMPERATURE_INPUT * spread_k;
+        assert!((far - edge).abs() < 0.05 * edge, "{far} against {edge}");
         // Without the temperature the learner expects the record's mean error, about.
         let y = expected_error(&record, Some(14_000.0), None).unwrap();
         assert!((y - 0.005).abs() < 0.003, "{y}");

@@ -359,13 +359,17 @@ pub fn learn_on_record(
     let records: Vec<&CellRecord> = validation.iter().chain(judged).collect();
     let n_val = validation.len();
     let heat: Vec<LoadedHeat> = records.iter().map(|r| LoadedHeat::of(r)).collect();
-    // The temperature input of discharge `j` at `tau_s` after its load-on, as the learner before discharge `k`
-    // sees it: its loaded readings' mean temperature so far less the mean of the same, at the same time after
-    // their load-on, over the discharges the learner's window holds. A cell warms through a discharge, so the
-    // mean so far alone would tell the time into the discharge more than how warm this discharge runs.
-    let anomaly = |k: usize, j: usize, tau_s: f64| -> Option<f64> {
+    // The temperature input of discharge `j` at `tau_s` after its load-on: its loaded readings' mean
+    // temperature so far less the mean of the same, at the same time after their load-on, over the discharges
+    // before it in a learner's window run at the same ambient (a cell moved to another chamber, or a sensor
+    // that shifts, is not a warmer discharge). A cell warms through a discharge, so the mean so far alone
+    // would tell the time into the discharge more than how warm this discharge runs.
+    let anomaly = |j: usize, tau_s: f64| -> Option<f64> {
         let own = heat[j].at(tau_s)?;
-        let refs: Vec<f64> = (k.saturating_sub(RECORD_WINDOW + 1)..k).filter_map(|i| heat[i].at(tau_s)).collect();
+        let refs: Vec<f64> = (j.saturating_sub(RECORD_WINDOW + 1)..j)
+            .filter(|&i| (records[i].ambient_k - records[j].ambient_k).abs() <= SAME_AMBIENT_K)
+            .filter_map(|i| heat[i].at(tau_s))
+            .collect();
         (!refs.is_empty()).then(|| own - refs.iter().sum::<f64>() / refs.len() as f64)
     };
     // Per share, for the capacity and the end: each discharge's learner (None: no record yet) and its weight.
@@ -384,18 +388,19 @@ pub fn learn_on_record(
                 .iter()
                 .map(|r| r.reading_at_fraction(f64::from(at) / 100.0).map(|i| r.samples[i].t_s - r.load_on_s))
                 .collect();
-            let entry = |k: usize, j: usize| Entry {
-                error: errors[j],
-                rest_before_s: records[j].rest_before_s,
-                temperature_k: taken_s[j].and_then(|tau| anomaly(k, j, tau)),
-            };
+            let entries: Vec<Entry> = (0..records.len())
+                .map(|j| Entry {
+                    error: errors[j],
+                    rest_before_s: records[j].rest_before_s,
+                    temperature_k: taken_s[j].and_then(|tau| anomaly(j, tau)),
+                })
+                .collect();
             // (moved, delivered) absolute errors where the learner moved the prediction.
             let mut pairs: Vec<(f64, f64)> = Vec::new();
             *slot = (0..records.len())
                 .map(|k| {
-                    let from = k.saturating_sub(RECORD_WINDOW + 1);
-                    let learned = fit(&(from..k).map(|j| entry(k, j)).collect::<Vec<_>>())?;
-                    let x = learned.expected(records[k].rest_before_s, entry(k, k).temperature_k);
+                    let learned = fit(&entries[..k])?;
+                    let x = learned.expected(records[k].rest_before_s, entries[k].temperature_k);
                     let weight = bcal_calib::blend::blend_weight(&pairs);
                     if let Some(x) = x {
                         pairs.push(((errors[k] - x).abs(), errors[k].abs()));
@@ -417,7 +422,7 @@ pub fn learn_on_record(
             |k| capacity.iter().chain(&eod).any(|per| per[offset + k].is_some()),
             |k, bin, _, so| {
                 let r = &records[k];
-                let t_k = anomaly(offset + k, offset + k, so.t_s - r.load_on_s);
+                let t_k = anomaly(offset + k, so.t_s - r.load_on_s);
                 let mut step = so.clone();
                 if let Some((learned, w)) = &capacity[bin][offset + k] {
                     if let Some(x) = learned.expected(r.rest_before_s, t_k) {
@@ -448,6 +453,10 @@ pub fn learn_on_record(
     };
     (runs, LearnedWeights { capacity: weights(&capacity), eod: weights(&eod) })
 }
+
+/// Discharges whose ambients differ by no more than this, K, ran at the same ambient (NASA gives whole degrees;
+/// B0038-B0040 moved from 24 to 44 C, B0042-B0044 from 22 to 4 C, in the middle of their lives).
+const SAME_AMBIENT_K: f64 = 1.0;
 
 /// A discharge's loaded readings' mean cell temperature so far: a BMS's running mean from the load-on.
 struct LoadedHeat {
@@ -1116,14 +1125,16 @@ mod tests {
         let delivered = Runs { validation: v, judged: j };
         let (runs, weights) = learn_on_record(&delivered, &delivered, &validation, &judged);
         assert!(weights.capacity.iter().flatten().all(Option::is_none), "{:?}", weights.capacity);
-        assert!(weights.eod[1].iter().all(|w| w.is_some_and(|w| w > 0.99)), "{:?}", weights.eod[1]);
+        assert!(weights.eod[1].iter().all(|w| w.is_some_and(|w| w > 0.95)), "{:?}", weights.eod[1]);
         for (k, (run, d)) in runs.judged.iter().zip(&delivered.judged).enumerate() {
             let half = judged[k].reading_at_fraction(0.5).unwrap();
             let (s, sd) = (&run.steps[half], &d.steps[half]);
             let erred = sd.eod.value.unwrap() - 100.0;
 
-            // The error is in % of the discharge, moved by the predicted one: within 3 % of it.
-            let within = 0.03 * erred.abs() + 0.01;
+            // The error is in % of the discharge, moved by the predicted one: within 3 % of it, and 0.35 %
+            // besides, since each discharge is compared with the mean of the 31 before it, which wanders by
+            // about 0.2 K about the 287 K the errors are drawn around.
+            let within = 0.03 * erred.abs() + 0.35;
             assert!((s.eod.value.unwrap() - 100.0).abs() < within, "judged {k}: {:?} (erred {erred})", s.eod);
             assert!((s.eod.hi.unwrap() - s.eod.value.unwrap() - 1.0).abs() < 1e-9, "judged {k}: the bounds move");
             assert!(run.steps.iter().zip(&d.steps).all(|(s, sd)| s.capacity == sd.capacity), "judged {k}");
@@ -1136,6 +1147,18 @@ mod tests {
                 assert!((moved + erred).abs() < within, "judged {k}: moved {moved} at {f} (erred {erred})");
             }
         }
+        // The last judged discharge run in another chamber, 20 K warmer: no discharge before it ran at that
+        // ambient, so its temperature says nothing, and the end moves by what the record alone expects (about
+        // the mean error, 1 %), not by a line carried 20 K out.
+        let mut judged = judged;
+        let last = judged.len() - 1;
+        judged[last].ambient_k += 20.0;
+        judged[last].samples.iter_mut().for_each(|s| s.temperature_k += 20.0);
+        let (moved_runs, _) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        let half = judged[last].reading_at_fraction(0.5).unwrap();
+        let moved = moved_runs.judged[last].steps[half].eod.value.unwrap()
+            - delivered.judged[last].steps[half].eod.value.unwrap();
+        assert!((-2.0..0.0).contains(&moved), "moved {moved}");
     }
 
     /// The prior alone is judged against what it would replace, the method as delivered, blended with it:
