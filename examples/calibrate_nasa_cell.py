@@ -41,7 +41,7 @@ def main() -> None:
     p.add_argument("--data", type=pathlib.Path, default=DEFAULT_DATA)
     p.add_argument("--cell", default="B0005")
     p.add_argument("--cycle", type=int, default=100)
-    p.add_argument("--kind", default="ukf", help="ukf, adaptive_ukf, fit or uncalibrated")
+    p.add_argument("--kind", default="ukf", help="ukf, adaptive_ukf, ukf_learned, fit or uncalibrated")
     p.add_argument("--out", type=pathlib.Path, default=pathlib.Path("estimates.png"))
     a = p.parse_args()
 

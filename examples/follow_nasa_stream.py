@@ -39,6 +39,8 @@ VOLTAGE_SERVED: list = []
 BLEND_WEIGHTS: list = []
 # The previous discharge's fit's weight in each scored prediction at half a discharge blended with it.
 PREVIOUS_WEIGHTS: list = []
+# The learner on the record's weight in each scored prediction at half a discharge it moved (kind ukf_learned).
+LEARNED_WEIGHTS: list = []
 # The CLI's closing summary of the last stream followed (its stderr).
 LAST_SUMMARY: list = [""]
 
@@ -126,6 +128,8 @@ def eod_error_pct(rows: list, est: list, cutoff_v: float, fraction: float = 0.5)
         BLEND_WEIGHTS.append(est[k]["eod_prior_weight"])
     if 0.0 < (est[k].get("eod_previous_weight") or 0.0) < 1.0 and fraction == 0.5:
         PREVIOUS_WEIGHTS.append(est[k]["eod_previous_weight"])
+    if (est[k].get("eod_learned_weight") or 0.0) > 0.0 and fraction == 0.5:
+        LEARNED_WEIGHTS.append(est[k]["eod_learned_weight"])
     # Whether the interval held the end, and its width (hi - lo) in % of the time to the end.
     held = None if lo is None or hi is None else (lo <= eod <= hi, 100.0 * (hi - lo) / (eod - t_on))
     return (None if p is None else 100.0 * (p - eod) / (eod - t_on)), held
@@ -148,11 +152,11 @@ def summary(name: str, scores: list, others: dict) -> None:
           f" ({errors.count(None)} without a score){cover}")
     at = []
     for share, errs in sorted(others.items()):
-        e = [abs(x) for x in errs if x is not None]
+        e = sorted(abs(x) for x in errs if x is not None)
         if e:
-            at.append(f"{round(100 * share)} % {statistics.median(e):.2f}")
+            at.append(f"{round(100 * share)} % {statistics.median(e):.2f} / {e[round(0.9 * (len(e) - 1))]:.2f}")
     if at:
-        print(f"  median EOD error at the other shares: {', '.join(at)} %")
+        print(f"  median / p90 EOD error at the other shares: {', '.join(at)} %")
 
 
 def main() -> None:
@@ -206,7 +210,9 @@ def main() -> None:
           f"{len(BLEND_WEIGHTS)}, the prior's median weight "
           f"{statistics.median(BLEND_WEIGHTS) if BLEND_WEIGHTS else 0.0:.2f}; with the previous discharge's fit at "
           f"half of {len(PREVIOUS_WEIGHTS)}, its median weight "
-          f"{statistics.median(PREVIOUS_WEIGHTS) if PREVIOUS_WEIGHTS else 0.0:.2f})")
+          f"{statistics.median(PREVIOUS_WEIGHTS) if PREVIOUS_WEIGHTS else 0.0:.2f}; moved by the learner on the record at "
+          f"half of {len(LEARNED_WEIGHTS)}, its median weight "
+          f"{statistics.median(LEARNED_WEIGHTS) if LEARNED_WEIGHTS else 0.0:.2f})")
     if timing:
         print(f"  ({timing.group(0)}, as the CLI timed the one stream)")
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone, alone_at)

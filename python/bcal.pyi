@@ -18,7 +18,7 @@ VEOD_V: float
 """End-of-discharge voltage of the model, V (3.0, progpy's VEOD)."""
 
 PathLike = Union[str, "os.PathLike[str]"]
-Kind = Literal["ukf", "adaptive_ukf", "rl", "fit", "uncalibrated"]
+Kind = Literal["ukf", "adaptive_ukf", "ukf_learned", "rl", "fit", "uncalibrated"]
 FloatArray = npt.NDArray[np.float64]
 
 class SimState(TypedDict):
@@ -87,6 +87,13 @@ class Estimate(TypedDict):
     of the fit the last discharge measured, carried over as it is (recentred where that serves), by the same
     rule on the discharges that followed rests of up to a day; 0 after a longer rest (the fit carries no
     recovery), where the prior alone predicts, or before 8 such discharges have been followed."""
+    eod_learned_weight: float
+    """Kind "ukf_learned": the weight, in eod_s, of what the rules above deliver moved by the signed error the
+    learner on the stream's own record expects of it at this share (from its last errors, the rest before
+    this discharge and how warm its loaded readings run against the discharges before it that started at
+    its temperature; least squares on the last 30 discharges followed to the cut-off), blended with the
+    unmoved by the two's records over the last 15; 0 for other kinds and until 19 discharges have been
+    followed to the cut-off."""
     discharge: int
     """The discharge the reading belongs to, from 0: a new one after a charge or a gap of more than
     half an hour, started from what the last one told (the charge its end measured where it reached
@@ -151,8 +158,10 @@ class Calibrator:
     from what the last one told (the charge its end measured, else the estimate it ended with), and
     the end of discharge gets a 90 % interval learned from the discharges followed to their cut-off.
 
-    `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy; `policy` is
-    its .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior).
+    `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "ukf_learned" (the joint UKF with
+    its end of discharge moved by the learner on the stream's own record, as `bcal calibrate`'s
+    ukf_learned), "rl" (an RL policy; `policy` is its .bcalpol file), "fit" (the window fit, no
+    learning) or "uncalibrated" (the prior).
     `model`: the doctor's extended model (diagnosis.json, or its folder); its per-cycle values start at
     the last training fits and are refitted on every discharge followed to the cut-off. `config`: a bcal config TOML
     (`bcal cell-config` writes one per cell); its lifetime model (else the diagnosis's) moves what one

@@ -17,7 +17,9 @@
 //! [`crate::blend`] weighs any two and delivers that as a method of its own, `ukf_learned`. Pure arithmetic:
 //! nothing here reads or prints.
 
+use crate::widening::EOD_FRACTIONS_PCT;
 use nalgebra::{Matrix5, Vector5};
+use std::collections::VecDeque;
 
 /// Discharges the learner fits on: the last that ended with a scored error.
 pub const RECORD_WINDOW: usize = 30;
@@ -137,6 +139,160 @@ pub fn fit(record: &[Entry]) -> Option<Learned> {
 /// The error the learner on `record` expects of the next discharge ([`fit`], [`Learned::expected`]).
 pub fn expected_error(record: &[Entry], rest_before_s: Option<f64>, temperature_k: Option<f64>) -> Option<f64> {
     fit(record)?.expected(rest_before_s, temperature_k)
+}
+
+/// Discharges whose ambients differ by no more than this, K, ran at the same ambient (NASA gives whole degrees;
+/// B0038-B0040 moved from 24 to 44 C, B0042-B0044 from 22 to 4 C, in the middle of their lives). A stream,
+/// which knows no chamber, takes each discharge's load-on temperature for its ambient and compares those
+/// within [`crate::recentre::SAME_AMBIENT_K`].
+pub const SAME_AMBIENT_K: f64 = 1.0;
+
+/// A discharge's loaded readings' mean cell temperature so far: a BMS's running mean from the load-on.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LoadedHeat {
+    /// (time of a loaded reading after the load-on, s; the mean temperature of the loaded readings up to it, K).
+    means: Vec<(f64, f64)>,
+    sum_k: f64,
+}
+
+impl LoadedHeat {
+    /// Adds a loaded reading `tau_s` after the load-on (in time order) at `temperature_k`; a non-finite
+    /// temperature is no reading of it.
+    pub fn push(&mut self, tau_s: f64, temperature_k: f64) {
+        if temperature_k.is_finite() {
+            self.sum_k += temperature_k;
+            self.means.push((tau_s, self.sum_k / (self.means.len() + 1) as f64));
+        }
+    }
+
+    /// The mean at `tau_s` after the load-on (of the loaded readings at or before it; past the last, the
+    /// whole discharge's); None before the first.
+    pub fn at(&self, tau_s: f64) -> Option<f64> {
+        let k = self.means.partition_point(|(t, _)| *t <= tau_s + 1e-9);
+        (k > 0).then(|| self.means[k - 1].1)
+    }
+}
+
+/// The temperature input of a discharge at `tau_s` after its load-on: its loaded readings' mean temperature so
+/// far (`own`) less the mean of the same, at the same time after their load-on, over `refs` (the discharges
+/// before it in a learner's window run at the same ambient: a cell moved to another chamber, or a sensor that
+/// shifts, is not a warmer discharge). A cell warms through a discharge, so the mean so far alone would tell
+/// the time into the discharge more than how warm this discharge runs. None without a reference.
+pub fn warmth_k<'h>(own: &LoadedHeat, refs: impl IntoIterator<Item = &'h LoadedHeat>, tau_s: f64) -> Option<f64> {
+    let own = own.at(tau_s)?;
+    let (sum, n) = refs.into_iter().filter_map(|h| h.at(tau_s)).fold((0.0, 0usize), |(s, n), t| (s + t, n + 1));
+    (n > 0).then(|| own - sum / n as f64)
+}
+
+/// The learner on a live stream's record of its own ends of discharge ([`crate::stream`], the `ukf_learned`
+/// kind), as `bcal calibrate`'s `ukf_learned` learns on the joint UKF's record
+/// (`bcal_realcell::tune::learn_on_record`): per share of the discharge ([`EOD_FRACTIONS_PCT`]) the end the
+/// stream delivers is moved by the signed error (% of the discharge) the learner expects of it from the
+/// discharges followed to their cut-off before, the rest before this one and how warm it runs against the
+/// discharges before it that started at its temperature, and the moved and unmoved are blended by their
+/// records ([`crate::blend`]). The end only: a stream measures a discharge's capacity once it has ended, so
+/// it has none to move while the discharge runs.
+#[derive(Clone, Debug, Default)]
+pub struct EndRecord {
+    /// Per share, every discharge closed since the stream began: its entry (a NaN error where it was not
+    /// followed to its cut-off, as `bcal calibrate`'s record has one).
+    entries: [Vec<Entry>; EOD_FRACTIONS_PCT.len()],
+    /// The last [`RECORD_WINDOW`] + 1 closed discharges' running temperature and load-on temperature, K: the
+    /// references of the temperature input.
+    past: VecDeque<(LoadedHeat, f64)>,
+    /// The current discharge's running temperature and load-on temperature (None before its load came on) ...
+    heat: LoadedHeat,
+    start_k: Option<f64>,
+    /// ... and, once it has been followed to its cut-off, its signed error per share, % of the discharge, and
+    /// the time after its load-on the error was taken at, s.
+    scored: Option<[Option<(f64, f64)>; EOD_FRACTIONS_PCT.len()]>,
+    /// Per share, the learner fitted on the record (None: too short a record) ...
+    fitted: [Option<Learned>; EOD_FRACTIONS_PCT.len()],
+    /// ... the absolute errors, moved and unmoved, of the discharges closed since it was first fitted ...
+    pairs: [Vec<(f64, f64)>; EOD_FRACTIONS_PCT.len()],
+    /// ... and the moved end's weight learned from them (None: too few yet; the end is not moved).
+    weights: [Option<f64>; EOD_FRACTIONS_PCT.len()],
+}
+
+impl EndRecord {
+    /// The current discharge's load came on at a cell temperature of `temperature_k`.
+    pub fn load_on(&mut self, temperature_k: f64) {
+        self.heat = LoadedHeat::default();
+        self.start_k = Some(temperature_k);
+    }
+
+    /// A loaded reading of the current discharge, `tau_s` after its load-on.
+    pub fn push(&mut self, tau_s: f64, temperature_k: f64) {
+        if self.start_k.is_some() {
+            self.heat.push(tau_s, temperature_k);
+        }
+    }
+
+    /// The temperature input of the current discharge at `tau_s` after its load-on ([`warmth_k`]) against the
+    /// last discharges that started within [`crate::recentre::SAME_AMBIENT_K`] of it.
+    fn warmth(&self, tau_s: f64) -> Option<f64> {
+        self.warmth_of(&self.heat, self.start_k?, tau_s)
+    }
+
+    /// The same of a discharge's `heat` whose load came on at `start_k`.
+    fn warmth_of(&self, heat: &LoadedHeat, start_k: f64, tau_s: f64) -> Option<f64> {
+        let same = |k: f64| (k - start_k).abs() <= crate::recentre::SAME_AMBIENT_K;
+        warmth_k(heat, self.past.iter().filter(|(_, k)| same(*k)).map(|(h, _)| h), tau_s)
+    }
+
+    /// The end delivered at share index `b` of a discharge loaded at `load_on_s` and `tau_s` into it, after a
+    /// rest of `rest_before_s`, where the stream's rules give `eod_s`, and the moved end's weight in it; None
+    /// where the learner does not move it (too short a record, or too few discharges to weigh it by).
+    pub fn moved(
+        &self,
+        b: usize,
+        eod_s: f64,
+        load_on_s: f64,
+        tau_s: f64,
+        rest_before_s: Option<f64>,
+    ) -> Option<(f64, f64)> {
+        let (learned, w) = (self.fitted[b].as_ref()?, self.weights[b]?);
+        let x = learned.expected(rest_before_s, self.warmth(tau_s))?;
+        // An error in % of the discharge, the predicted one standing for it.
+        let shift_s = x / 100.0 * (eod_s - load_on_s).max(0.0);
+        Some((crate::blend::blended(w, eod_s - shift_s, eod_s), w))
+    }
+
+    /// The current discharge was followed to its cut-off: its signed error per share (predicted minus
+    /// measured, % of the discharge) of the end the rules gave, and the time after the load-on it was taken
+    /// at, s (None at a share where no prediction had been made by then).
+    pub fn score(&mut self, errors: [Option<(f64, f64)>; EOD_FRACTIONS_PCT.len()]) {
+        self.scored = Some(errors);
+    }
+
+    /// The current discharge is over (the rest before it `rest_before_s`): it joins the record where its load
+    /// came on, and the learner is fitted again; a discharge that `counted` not (a load too short, a piece
+    /// whose start is unseen) leaves the record as it was.
+    pub fn close(&mut self, counted: bool, rest_before_s: Option<f64>) {
+        let scored = self.scored.take();
+        let heat = std::mem::take(&mut self.heat);
+        let Some(start_k) = self.start_k.take().filter(|_| counted) else { return };
+        for b in 0..EOD_FRACTIONS_PCT.len() {
+            let at = scored.and_then(|s| s[b]);
+            let temperature_k = at.and_then(|(_, tau_s)| self.warmth_of(&heat, start_k, tau_s));
+            let error = at.map_or(f64::NAN, |(e, _)| e);
+            if let Some(x) = self.fitted[b].as_ref().and_then(|l| l.expected(rest_before_s, temperature_k)) {
+                self.pairs[b].push(((error - x).abs(), error.abs()));
+            }
+            self.entries[b].push(Entry { error, rest_before_s, temperature_k });
+            self.fitted[b] = fit(&self.entries[b]);
+            self.weights[b] = crate::blend::blend_weight(&self.pairs[b]);
+        }
+        if self.past.len() == RECORD_WINDOW + 1 {
+            self.past.pop_front();
+        }
+        self.past.push_back((heat, start_k));
+    }
+
+    /// Per share ([`EOD_FRACTIONS_PCT`]), the moved end's weight (None: not moved yet).
+    pub fn weights(&self) -> [Option<f64>; EOD_FRACTIONS_PCT.len()] {
+        self.weights
+    }
 }
 
 /// A temperature's input: in spreads from the record's mean, held within [`MAX_TEMPERATURE_INPUT`] (a
@@ -264,5 +420,56 @@ mod tests {
             expected_error(&flat, Some(14_000.0), Some(299.0)).unwrap(),
         );
         assert!((a - b).abs() < 1e-12, "{a} {b}");
+    }
+    /// A stream's record ([`EndRecord`]): 25 discharges whose load comes on at 24 C plus 2 u K (u in -1..1, in
+    /// no order) and which warm by 3 K over 3000 s, the rules' error at each share 0.2 - 1.5 u % of the
+    /// discharge. The next discharge, 1.6 K warmer than the record's mean, is moved by about the error the
+    /// line gives (0.2 - 1.2 = -1 %: 30 s later over 3000 s), times the moved end's weight; a discharge that
+    /// did not count (a load too short, a piece) leaves the record as it was; one whose load comes on 20 K
+    /// away (another chamber) is compared with none of them and takes the record's mean warmth.
+    #[test]
+    fn a_streams_record_moves_the_end_by_how_warm_the_discharge_runs() {
+        let u = |k: u64| ((k * 7) % 13) as f64 / 6.0 - 1.0;
+        let feed = |rec: &mut EndRecord, start_k: f64| {
+            rec.load_on(start_k);
+            for i in 0..=30 {
+                let tau_s = 100.0 * f64::from(i);
+                rec.push(tau_s, start_k + 3.0 * tau_s / 3000.0);
+            }
+        };
+        let rest = Some(14_400.0);
+        let mut rec = EndRecord::default();
+        for k in 0..25 {
+            feed(&mut rec, 297.0 + 2.0 * u(k));
+            let e = 0.2 - 1.5 * u(k);
+            rec.score([Some((e, 300.0)), Some((e, 1500.0)), Some((e, 2700.0))]);
+            rec.close(true, rest);
+        }
+        assert!(rec.weights().iter().all(|w| w.is_some_and(|w| w > 0.5)), "{:?}", rec.weights());
+        let mean_u = (0..25).map(u).sum::<f64>() / 25.0;
+        let next_k = 297.0 + 2.0 * (mean_u + 0.8);
+        // (load-on 1000 s, the rules' end at 4000 s, 1500 s in.)
+        let shift_of = |rec: &EndRecord| {
+            let (moved_s, w) = rec.moved(1, 4000.0, 1000.0, 1500.0, rest).expect("a learner with a weight");
+            (moved_s - 4000.0) / w
+        };
+        let mut warm = rec.clone();
+        feed(&mut warm, next_k);
+        let shift = shift_of(&warm);
+        assert!((shift - 30.0).abs() < 3.0, "moved by {shift} s, not 30");
+        // A load that did not count: the same record after it.
+        let mut skipped = rec.clone();
+        feed(&mut skipped, 299.0);
+        skipped.score([Some((5.0, 300.0)); 3]);
+        skipped.close(false, rest);
+        feed(&mut skipped, next_k);
+        assert_eq!(shift_of(&skipped), shift);
+        // Another chamber: no reference, so the record's mean warmth.
+        let mut other = rec.clone();
+        feed(&mut other, next_k + 20.0);
+        let at_mean = other.fitted[1].as_ref().unwrap().expected(rest, None).unwrap() / 100.0 * 3000.0;
+        let shift = shift_of(&other);
+        assert!((shift + at_mean).abs() < 1e-9, "{shift} against {at_mean}");
+        assert!(shift.abs() < 10.0, "{shift}");
     }
 }

@@ -72,8 +72,8 @@ pub struct CalibrateArgs {
     /// `rl:` given more than once: an ensemble of runs of one cell config trained from other seeds, each run's
     /// delivered policy, whose mean action corrects the filter),
     /// `ukf` (the joint UKF, its settings chosen on the last training cycles; with it `ukf_learned`, the same
-    /// filter with its capacity moved by a learner on its own record across the cell's discharges, reported
-    /// beside it), `adaptive_ukf` (that filter
+    /// filter with its capacity and end of discharge moved by a learner on its own record across the cell's
+    /// discharges, reported beside it; `ukf_learned` asks for the two as well), `adaptive_ukf` (that filter
     /// with its noise adapted by covariance matching, the rule chosen on the same cycles), `fit` (the doctor's
     /// offline least squares on the whole discharge: an oracle that sees the future). The references
     /// (uncalibrated, previous cycle, prior, parameter trend) always run. Over a cell's discharges the
@@ -81,7 +81,8 @@ pub struct CalibrateArgs {
     /// else the filter, and every streaming calibrator hands a share to its prior alone where the prior
     /// did; a discharge after a rest of more than a day goes to the filter (docs/realcell.md, "who serves
     /// each discharge").
-    /// Default `ukf,adaptive_ukf,fit`; with --follow one of ukf, adaptive_ukf, fit (the streaming window fit),
+    /// Default `ukf,adaptive_ukf,fit`; with --follow one of ukf, adaptive_ukf, ukf_learned (the joint UKF with
+    /// its end of discharge moved by the learner on the stream's own record), fit (the streaming window fit),
     /// uncalibrated or rl:FILE (default ukf).
     #[arg(long, value_delimiter = ',')]
     pub calibrator: Vec<String>,
@@ -400,11 +401,14 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     let (mut ukf, mut adaptive_ukf, mut fit) = (false, false, false);
     for c in &calibrators {
         match c.trim() {
-            "ukf" => ukf = true,
+            // The learner on the record runs on the filter's record: asking for either gives both.
+            "ukf" | "ukf_learned" | "ukf-learned" => ukf = true,
             "adaptive_ukf" | "adaptive-ukf" => adaptive_ukf = true,
             "fit" => fit = true,
             s if s.starts_with("rl:") => runs.push(&s.trim()[3..]),
-            other => bail!("unknown calibrator `{other}`: use rl:RUN, ukf, adaptive_ukf or fit (comma separated)"),
+            other => bail!(
+                "unknown calibrator `{other}`: use rl:RUN, ukf, ukf_learned, adaptive_ukf or fit (comma separated)"
+            ),
         }
     }
     // One run: each of its checkpoints is a candidate. Several: one ensemble of each run's delivered policy.

@@ -30,7 +30,7 @@ const POLL: Duration = Duration::from_millis(20);
 pub struct FollowArgs {
     /// `-` (standard input) or a file.
     pub source: String,
-    /// The calibrator: ukf, adaptive_ukf, fit, uncalibrated or rl:FILE.
+    /// The calibrator: ukf, adaptive_ukf, ukf_learned, fit, uncalibrated or rl:FILE.
     pub calibrator: String,
     pub model: Option<PathBuf>,
     pub config: Option<PathBuf>,
@@ -628,6 +628,11 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
         s.push_str(&format!(
             "; after rests of up to a day that blend is blended with the previous discharge's fit carried over, \
              its weight ({shown})"
+        ));
+    }
+    if let Some(shown) = per_share(stream.learned_weights()) {
+        s.push_str(&format!(
+            "; what those rules deliver is moved by the error the learner on the stream's record expects of it,              the moved end's weight by the two records over the last 15 discharges ({shown})"
         ));
     }
     if let Some(e) = last {

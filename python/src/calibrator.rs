@@ -32,7 +32,8 @@ self_cell::self_cell!(
 /// qMobile (C) and Ro (ohm) with their 90 % intervals, and the end of discharge predicted from the
 /// calibrated state. The same code as `bcal calibrate --follow`: the same readings give the same estimates.
 ///
-/// `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "rl" (an RL policy: `policy` is its
+/// `kind`: "ukf" (joint unscented Kalman filter), "adaptive_ukf", "ukf_learned" (the joint UKF with its end
+/// of discharge moved by the learner on the stream's own record), "rl" (an RL policy: `policy` is its
 /// .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior, never moved).
 /// `model`: the doctor's extended model (diagnosis.json of `bcal diagnose`, or its folder; its per-cycle
 /// parameters start at the median of the last five training cycles' fits and are refitted on every
@@ -88,12 +89,13 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
     d.set_item("eod_on_voltage_change", e.eod_on_voltage_change)?;
     d.set_item("eod_prior_weight", e.eod_prior_weight)?;
     d.set_item("eod_previous_weight", e.eod_previous_weight)?;
+    d.set_item("eod_learned_weight", e.eod_learned_weight)?;
     d.set_item("discharge", e.discharge)?;
     Ok(d)
 }
 
 /// The columns `run` returns, in order.
-const RUN_COLUMNS: [&str; 18] = [
+const RUN_COLUMNS: [&str; 19] = [
     "time_s",
     "q_mobile",
     "q_mobile_lo",
@@ -110,6 +112,7 @@ const RUN_COLUMNS: [&str; 18] = [
     "eod_on_voltage_change",
     "eod_prior_weight",
     "eod_previous_weight",
+    "eod_learned_weight",
     "discharge",
     "row",
 ];
@@ -175,7 +178,7 @@ impl Calibrator {
         Ok(Self { kind, stream: Mutex::new(owned) })
     }
 
-    /// The calibrator's kind ("ukf", "adaptive_ukf", "rl", "fit", "uncalibrated").
+    /// The calibrator's kind ("ukf", "adaptive_ukf", "ukf_learned", "rl", "fit", "uncalibrated").
     #[getter]
     fn kind(&self) -> &'static str {
         self.kind.name()
@@ -209,7 +212,10 @@ impl Calibrator {
     /// against the previous discharge's fit, else 0),
     /// `eod_previous_weight` (the previous discharge's fit's weight in eod_s: that blend blended in turn
     /// with the fit carried over, by the same rule on the discharges after rests of up to a day; 0 after a
-    /// longer rest or where the prior alone predicts) and `discharge` (from 0: a new one
+    /// longer rest or where the prior alone predicts), `eod_learned_weight` (kind `ukf_learned`: the weight of
+    /// the end moved by the error the learner on the stream's record expects, from its last errors, the rest
+    /// before and how warm the discharge runs; 0 for other kinds and until 19 discharges have been followed to
+    /// the cut-off) and `discharge` (from 0: a new one
     /// after a charge or a gap of more than half an hour, started from what the last one told: the charge its
     /// end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
@@ -306,6 +312,7 @@ impl Calibrator {
                     f64::from(u8::from(e.eod_on_voltage_change)),
                     e.eod_prior_weight,
                     e.eod_previous_weight,
+                    e.eod_learned_weight,
                     f64::from(e.discharge),
                     k as f64,
                 ];

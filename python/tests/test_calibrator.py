@@ -12,10 +12,10 @@ import pytest
 import bcal
 from conftest import generated_discharge, run_cli
 
-KINDS = ["ukf", "adaptive_ukf", "fit", "uncalibrated"]
+KINDS = ["ukf", "adaptive_ukf", "ukf_learned", "fit", "uncalibrated"]
 FIELDS = ["time_s", "q_mobile", "q_mobile_lo", "q_mobile_hi", "r_o", "r_o_lo", "r_o_hi", "eod_s", "eod_current_a",
           "eod_lo_s", "eod_hi_s", "eod_from_prior", "eod_recentred",
-          "eod_on_voltage_change", "eod_prior_weight", "eod_previous_weight", "discharge"]
+          "eod_on_voltage_change", "eod_prior_weight", "eod_previous_weight", "eod_learned_weight", "discharge"]
 
 
 def make(kind: str, **kw) -> bcal.Calibrator:
@@ -162,7 +162,7 @@ def test_a_bad_reading_is_a_value_error_with_the_cli_s_message_and_changes_nothi
 def test_unknown_kind_and_missing_policy_are_refused_as_the_cli_refuses_them(bcal_cli, tmp_path):
     with pytest.raises(ValueError) as e:
         make("kalman")
-    assert str(e.value) == "unknown calibrator `kalman`: use ukf, adaptive_ukf, rl (with a policy file), fit or uncalibrated"
+    assert str(e.value) == "unknown calibrator `kalman`: use ukf, adaptive_ukf, ukf_learned, rl (with a policy file), fit or uncalibrated"
     out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", "kalman", stdin="")
     assert out.returncode != 0 and str(e.value) in out.stderr, out.stderr
     with pytest.raises(ValueError, match="the rl calibrator needs a policy file"):

@@ -355,22 +355,17 @@ pub fn learn_on_record(
     validation: &[CellRecord],
     judged: &[CellRecord],
 ) -> (Runs, LearnedWeights) {
-    use bcal_calib::record_learner::{fit, Entry, Learned, RECORD_WINDOW};
+    use bcal_calib::record_learner::{fit, warmth_k, Entry, Learned, LoadedHeat, RECORD_WINDOW, SAME_AMBIENT_K};
     let records: Vec<&CellRecord> = validation.iter().chain(judged).collect();
     let n_val = validation.len();
-    let heat: Vec<LoadedHeat> = records.iter().map(|r| LoadedHeat::of(r)).collect();
-    // The temperature input of discharge `j` at `tau_s` after its load-on: its loaded readings' mean
-    // temperature so far less the mean of the same, at the same time after their load-on, over the discharges
-    // before it in a learner's window run at the same ambient (a cell moved to another chamber, or a sensor
-    // that shifts, is not a warmer discharge). A cell warms through a discharge, so the mean so far alone
-    // would tell the time into the discharge more than how warm this discharge runs.
+    let heat: Vec<LoadedHeat> = records.iter().map(|r| loaded_heat(r)).collect();
+    // The temperature input of discharge `j` at `tau_s` after its load-on ([`warmth_k`]), against the
+    // discharges before it in a learner's window run at the same ambient.
     let anomaly = |j: usize, tau_s: f64| -> Option<f64> {
-        let own = heat[j].at(tau_s)?;
-        let refs: Vec<f64> = (j.saturating_sub(RECORD_WINDOW + 1)..j)
+        let refs = (j.saturating_sub(RECORD_WINDOW + 1)..j)
             .filter(|&i| (records[i].ambient_k - records[j].ambient_k).abs() <= SAME_AMBIENT_K)
-            .filter_map(|i| heat[i].at(tau_s))
-            .collect();
-        (!refs.is_empty()).then(|| own - refs.iter().sum::<f64>() / refs.len() as f64)
+            .map(|i| &heat[i]);
+        warmth_k(&heat[j], refs, tau_s)
     };
     // Per share, for the capacity and the end: each discharge's learner (None: no record yet) and its weight.
     type PerShare = [Vec<Option<(Learned, f64)>>; EOD_FRACTIONS_PCT.len()];
@@ -454,39 +449,13 @@ pub fn learn_on_record(
     (runs, LearnedWeights { capacity: weights(&capacity), eod: weights(&eod) })
 }
 
-/// Discharges whose ambients differ by no more than this, K, ran at the same ambient (NASA gives whole degrees;
-/// B0038-B0040 moved from 24 to 44 C, B0042-B0044 from 22 to 4 C, in the middle of their lives).
-const SAME_AMBIENT_K: f64 = 1.0;
-
-/// A discharge's loaded readings' mean cell temperature so far: a BMS's running mean from the load-on.
-struct LoadedHeat {
-    /// (time of a loaded reading after the load-on, s; the mean temperature of the loaded readings up to it, K).
-    means: Vec<(f64, f64)>,
-}
-
-impl LoadedHeat {
-    fn of(r: &CellRecord) -> Self {
-        let (mut sum_k, mut n) = (0.0, 0usize);
-        let means = r
-            .samples
-            .iter()
-            .filter(|s| s.t_s >= r.load_on_s && s.current_a > crate::record::LOAD_THRESHOLD_A)
-            .filter(|s| s.temperature_k.is_finite())
-            .map(|s| {
-                sum_k += s.temperature_k;
-                n += 1;
-                (s.t_s - r.load_on_s, sum_k / n as f64)
-            })
-            .collect();
-        Self { means }
+/// A discharge's loaded readings' running mean temperature from its load-on.
+fn loaded_heat(r: &CellRecord) -> bcal_calib::record_learner::LoadedHeat {
+    let mut heat = bcal_calib::record_learner::LoadedHeat::default();
+    for s in r.samples.iter().filter(|s| s.t_s >= r.load_on_s && s.current_a > crate::record::LOAD_THRESHOLD_A) {
+        heat.push(s.t_s - r.load_on_s, s.temperature_k);
     }
-
-    /// The mean at `tau_s` after the load-on (of the loaded readings at or before it; past the last, the
-    /// whole discharge's); None before the first.
-    fn at(&self, tau_s: f64) -> Option<f64> {
-        let k = self.means.partition_point(|(t, _)| *t <= tau_s + 1e-9);
-        (k > 0).then(|| self.means[k - 1].1)
-    }
+    heat
 }
 
 /// Per discharge, the signed error of `runs`' end of discharge at `fraction_pct` of it, % of the discharge
