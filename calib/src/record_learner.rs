@@ -194,13 +194,16 @@ pub fn warmth_k<'h>(own: &LoadedHeat, refs: impl IntoIterator<Item = &'h LoadedH
 /// it has none to move while the discharge runs.
 #[derive(Clone, Debug, Default)]
 pub struct EndRecord {
-    /// Per share, every discharge closed since the stream began: its entry (a NaN error where it was not
+    /// Per share, every discharge that counted since the stream began: its entry (a NaN error where it was not
     /// followed to its cut-off, as `bcal calibrate`'s record has one).
     entries: [Vec<Entry>; EOD_FRACTIONS_PCT.len()],
-    /// The last [`RECORD_WINDOW`] + 1 closed discharges' running temperature and load-on temperature, K: the
-    /// references of the temperature input.
+    /// The last [`RECORD_WINDOW`] + 1 counted discharges with a temperature: their running temperature and
+    /// load-on temperature, K, the references of the temperature input.
     past: VecDeque<(LoadedHeat, f64)>,
-    /// The current discharge's running temperature and load-on temperature (None before its load came on) ...
+    /// Whether the current discharge's load has come on, its running temperature and the first temperature
+    /// read under its load, K (None: none read yet; readings without a temperature are not read as the
+    /// ambient a stream fills in, which would be a temperature the cell never had) ...
+    started: bool,
     heat: LoadedHeat,
     start_k: Option<f64>,
     /// ... and, once it has been followed to its cut-off, its signed error per share, % of the discharge, and
@@ -215,16 +218,19 @@ pub struct EndRecord {
 }
 
 impl EndRecord {
-    /// The current discharge's load came on at a cell temperature of `temperature_k`.
-    pub fn load_on(&mut self, temperature_k: f64) {
+    /// The current discharge's load came on.
+    pub fn load_on(&mut self) {
+        self.started = true;
         self.heat = LoadedHeat::default();
-        self.start_k = Some(temperature_k);
+        self.start_k = None;
     }
 
-    /// A loaded reading of the current discharge, `tau_s` after its load-on.
+    /// A loaded reading of the current discharge, `tau_s` after its load-on, at a cell temperature of
+    /// `temperature_k` (NaN: the reading gave none).
     pub fn push(&mut self, tau_s: f64, temperature_k: f64) {
-        if self.start_k.is_some() {
+        if self.started && temperature_k.is_finite() {
             self.heat.push(tau_s, temperature_k);
+            self.start_k.get_or_insert(temperature_k);
         }
     }
 
@@ -271,10 +277,13 @@ impl EndRecord {
     pub fn close(&mut self, counted: bool, rest_before_s: Option<f64>) {
         let scored = self.scored.take();
         let heat = std::mem::take(&mut self.heat);
-        let Some(start_k) = self.start_k.take().filter(|_| counted) else { return };
+        let start_k = self.start_k.take();
+        if !std::mem::take(&mut self.started) || !counted {
+            return;
+        }
         for b in 0..EOD_FRACTIONS_PCT.len() {
             let at = scored.and_then(|s| s[b]);
-            let temperature_k = at.and_then(|(_, tau_s)| self.warmth_of(&heat, start_k, tau_s));
+            let temperature_k = at.zip(start_k).and_then(|((_, tau_s), k)| self.warmth_of(&heat, k, tau_s));
             let error = at.map_or(f64::NAN, |(e, _)| e);
             if let Some(x) = self.fitted[b].as_ref().and_then(|l| l.expected(rest_before_s, temperature_k)) {
                 self.pairs[b].push(((error - x).abs(), error.abs()));
@@ -283,6 +292,7 @@ impl EndRecord {
             self.fitted[b] = fit(&self.entries[b]);
             self.weights[b] = crate::blend::blend_weight(&self.pairs[b]);
         }
+        let Some(start_k) = start_k else { return };
         if self.past.len() == RECORD_WINDOW + 1 {
             self.past.pop_front();
         }
@@ -431,7 +441,7 @@ mod tests {
     fn a_streams_record_moves_the_end_by_how_warm_the_discharge_runs() {
         let u = |k: u64| ((k * 7) % 13) as f64 / 6.0 - 1.0;
         let feed = |rec: &mut EndRecord, start_k: f64| {
-            rec.load_on(start_k);
+            rec.load_on();
             for i in 0..=30 {
                 let tau_s = 100.0 * f64::from(i);
                 rec.push(tau_s, start_k + 3.0 * tau_s / 3000.0);
@@ -471,5 +481,32 @@ mod tests {
         let shift = shift_of(&other);
         assert!((shift + at_mean).abs() < 1e-9, "{shift} against {at_mean}");
         assert!(shift.abs() < 10.0, "{shift}");
+        // A reading without a temperature is no reading of it (not the ambient a stream fills in): the warmth
+        // is that of the same discharge without it, its load-on temperature the first one read.
+        let (mut gap, mut without) = (rec.clone(), rec.clone());
+        gap.load_on();
+        without.load_on();
+        for i in 0..=30 {
+            let tau_s = 100.0 * f64::from(i);
+            let k = next_k + 3.0 * tau_s / 3000.0;
+            gap.push(tau_s, if i < 3 { f64::NAN } else { k });
+            if i >= 3 {
+                without.push(tau_s, k);
+            }
+        }
+        assert_eq!(gap.warmth(1500.0), without.warmth(1500.0));
+        assert!(gap.warmth(1500.0).is_some());
+        // A discharge whose readings give no temperature at all still joins the record (its error counts) but
+        // is no reference for the warmth of those after it.
+        let mut cold = rec.clone();
+        cold.load_on();
+        for i in 0..=30 {
+            cold.push(100.0 * f64::from(i), f64::NAN);
+        }
+        cold.score([Some((0.2, 300.0)); 3]);
+        cold.close(true, rest);
+        assert_eq!(cold.entries[1].len(), rec.entries[1].len() + 1);
+        assert_eq!(cold.entries[1].last().unwrap().temperature_k, None);
+        assert_eq!(cold.past, rec.past);
     }
 }

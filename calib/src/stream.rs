@@ -202,7 +202,7 @@ pub struct Estimate {
     /// cut-off before, the rest before this one and how warm it runs against them
     /// ([`crate::record_learner::EndRecord`]), and blended with the unmoved by the two's records; 0 where it
     /// does not move it (other kinds, or before 11 discharges have been followed to the cut-off and 8 more
-    /// weighed).
+    /// weighed). The flags and weights above tell how the rules gave the end before this move.
     pub eod_learned_weight: f64,
     /// The discharge the reading belongs to, from 0 (a new one after a charge or a long gap; the readings of
     /// a charge take the number of the discharge after it).
@@ -273,11 +273,11 @@ pub enum StreamError {
     #[error("a policy file is only read by the rl calibrator, not by {0}")]
     PolicyWithoutRl(&'static str),
     #[error(
-        "the policy {path} was trained on the {observation} observation; live calibration runs measured-only          policies (retrain with --preset measured)"
+        "the policy {path} was trained on the {observation} observation; live calibration runs measured-only policies (retrain with --preset measured)"
     )]
     PolicyTask { path: String, observation: String },
     #[error(
-        "the policy {path} was trained on the {trained} model, but this calibration runs the {model} model: train a          policy on it (bcal cell-config with the same --model, then bcal train --config)"
+        "the policy {path} was trained on the {trained} model, but this calibration runs the {model} model: train a policy on it (bcal cell-config with the same --model, then bcal train --config)"
     )]
     PolicyModel { path: String, trained: String, model: String },
 }
@@ -1027,9 +1027,10 @@ impl<'a> Stream<'a> {
         let counting = !self.joined_under_load && self.eod_track.ended_s.is_none();
         if let Some(rec) = self.end_record.as_mut().filter(|_| counting && loaded) {
             if self.eod_track.load_on_s.is_none() {
-                rec.load_on(s.temperature_k);
+                rec.load_on();
             }
-            rec.push(r.time_s - load_on_s, s.temperature_k);
+            // The reading's own temperature, not the ambient filled in for one without.
+            rec.push(r.time_s - load_on_s, r.temperature_c.map_or(f64::NAN, |c| c + KELVIN_0C));
         }
         let learned = match (&self.end_record, rules_s, bin) {
             (Some(rec), Some(e), Some(b)) if counting && (loaded || self.eod_track.load_on_s.is_some()) => {

@@ -632,7 +632,7 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
     }
     if let Some(shown) = per_share(stream.learned_weights()) {
         s.push_str(&format!(
-            "; what those rules deliver is moved by the error the learner on the stream's record expects of it,              the moved end's weight by the two records over the last 15 discharges ({shown})"
+            "; what those rules deliver is moved by the error the learner on the stream's record expects of it, the moved end's weight by the two records over the last 15 discharges ({shown})"
         ));
     }
     if let Some(e) = last {
