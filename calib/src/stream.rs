@@ -920,6 +920,10 @@ impl<'a> Stream<'a> {
         let after_gap = self.last_t_s.is_some_and(|p| r.time_s - p > NEW_DISCHARGE_GAP_S);
         let charged = !charging && self.charge_started_s.is_some_and(|t0| r.time_s - t0 >= MIN_CHARGE_S);
         let loaded = r.current_a > LOAD_THRESHOLD_A;
+        if self.last_t_s.is_none() && loaded && self.rebuild.is_some() {
+            // A stream that begins under load joins a discharge whose start it did not see.
+            self.joined_under_load = true;
+        }
         if (after_gap || charged) && self.rebuild.is_some() {
             self.new_discharge(r.time_s);
             // After lost readings a discharge seen first under load is a piece of one; after a charge it is
@@ -2512,5 +2516,24 @@ mod tests {
         // The next discharge: the life has counted one, the one the piece belonged to.
         stream.step(&Reading { time_s: readings[starts[1] - 1].time_s + 3.0 * 3600.0, ..readings[0] }).unwrap();
         assert_eq!((stream.discharges(), stream.discharged), (3, 1));
+    }
+
+    /// A stream that begins under load (a BMS's feed picked up in the middle of a discharge) joins a
+    /// discharge whose start it did not see: a piece, as after lost readings. It predicts, but its end is not
+    /// scored against the shares of a discharge it saw only the end of, measured or end-fitted.
+    #[test]
+    fn a_stream_that_begins_under_load_begins_with_a_piece() {
+        let (readings, starts, setup) = two_discharges();
+        let mid = starts[0] + (starts[1] - starts[0]) / 2;
+        let mut stream = fed(&setup, &readings[mid..starts[1]]);
+        assert_eq!(stream.discharges(), 1);
+        assert!(stream.eod_track.ended_s.is_some(), "the piece reached the cut-off");
+        assert!(stream.sources.iter().all(|s| s.scored.is_empty()), "a piece was scored");
+        assert_eq!((stream.capacity_ah, stream.end_fit), (None, None));
+        // The whole discharge after it is scored.
+        for r in &readings[starts[1]..] {
+            stream.step(r).unwrap();
+        }
+        assert!(stream.sources[SERVED].scored.len() == 1, "{}", stream.sources[SERVED].scored.len());
     }
 }
