@@ -5,7 +5,7 @@ end-of-discharge prediction at half its loaded time scored against the time the 
 the cut-off under load. Standard library only.
 
     python examples/follow_nasa_stream.py [--data ../shared/data/nasa-pcoe] [--cell B0005] [--cycles 41..80]
-        [--kind ukf] [--cutoff-v 3.0] [--model diagnosis.json] [--config cell.toml] [--bcal PATH]
+        [--history-from 1] [--kind ukf] [--cutoff-v 3.0] [--model diagnosis.json] [--config cell.toml] [--bcal PATH]
 
 Prints, per discharge, the prediction's error in % of the time from the load's start to the end of
 discharge (and whether the stream's 90 % interval held the end), and the median and 90th percentile of its
@@ -14,6 +14,9 @@ each discharge from what the last one told, with a prior width learned from the 
 each discharge alone from the calibrator's default prior (what `--follow` did with a stream per discharge),
 with the median error at 10 and 90 % of each discharge beside them: one share alone can flatter an estimate
 that drifts through every discharge the same way (B0055 alone: 1.34 % at half, 10-33 % elsewhere).
+`--history-from H` starts the stream at discharge H, before the scored ones (the cell's history a BMS would
+have followed: the learner on the record of `--kind ukf_learned` and the stream's prior width learn from it);
+those discharges are followed but not scored.
 """
 
 import argparse
@@ -164,6 +167,8 @@ def main() -> None:
     p.add_argument("--data", default=str(REPO.parent / "shared" / "data" / "nasa-pcoe"))
     p.add_argument("--cell", default="B0005")
     p.add_argument("--cycles", default="41..80", help="discharges A..B, 1-based in file order")
+    p.add_argument("--history-from", type=int, default=None,
+                   help="start the stream at discharge H (1-based, at most A): H..A-1 are followed, not scored")
     p.add_argument("--kind", default="ukf")
     p.add_argument("--cutoff-v", type=float, default=3.0)
     p.add_argument("--bcal", default=None, help="the bcal executable (default: this clone's build)")
@@ -176,17 +181,22 @@ def main() -> None:
         raise SystemExit(f"--cycles {a.cycles!r}: give A..B, e.g. 41..80") from None
     if not 1 <= first <= last:
         raise SystemExit(f"--cycles {a.cycles!r}: need 1 <= A <= B")
+    history = first if a.history_from is None else a.history_from
+    if not 1 <= history <= first:
+        raise SystemExit(f"--history-from {history}: need 1 <= H <= {first} (the first scored discharge)")
     bcal = a.bcal or find_bcal()
     if a.model and not pathlib.Path(a.model).is_file():
         raise SystemExit(f"--model {a.model}: no such file (bcal diagnose --out DIR writes DIR/diagnosis.json)")
     if a.config and not pathlib.Path(a.config).is_file():
         raise SystemExit(f"--config {a.config}: no such file (bcal cell-config --out FILE writes one)")
     extra = (["--model", a.model] if a.model else []) + (["--config", a.config] if a.config else [])
-    records = discharges(pathlib.Path(a.data), a.cell, first, last)
+    followed = discharges(pathlib.Path(a.data), a.cell, history, last)
+    records = followed[first - history:]
 
-    stream = follow(bcal, a.kind, [r for rows in records for r in rows], a.cutoff_v, extra)
+    stream = follow(bcal, a.kind, [r for rows in followed for r in rows], a.cutoff_v, extra)
     timing = re.search(r"parse \+ step \+ predict per reading: [^;\n]*", LAST_SUMMARY[0])
-    joined, alone, k = [], [], 0
+    # The history's estimates are not scored.
+    joined, alone, k = [], [], sum(len(rows) for rows in followed[:first - history])
     shares = (0.1, 0.9)
     joined_at, alone_at = {f: [] for f in shares}, {f: [] for f in shares}
     for n, rows in enumerate(records):
@@ -203,7 +213,8 @@ def main() -> None:
         print(f"discharge {first + n} (stream's #{part[-1].get('discharge', '-')}): EOD error at 50 % {fmt(joined[-1][0])} %"
               f"{held} as one stream, {fmt(alone[-1][0])} % alone")
     served = len(PRIOR_SERVED)
-    summary(f"{a.cell} {a.cycles}, {a.kind}, one stream", joined, joined_at)
+    since = f" from discharge {history}" if history < first else ""
+    summary(f"{a.cell} {a.cycles}, {a.kind}, one stream{since}", joined, joined_at)
     print(f"  (the prior alone predicted at half of {served} of the {len(records)} discharges, the calibrator's own "
           f"recentred on its bias at half of {len(RECENTRED_SERVED)}, moved on the voltage change against the "
           f"discharge before at half of {len(VOLTAGE_SERVED)}; blended with the prior alone at half of "
