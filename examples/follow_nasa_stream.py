@@ -16,7 +16,8 @@ with the median error at 10 and 90 % of each discharge beside them: one share al
 that drifts through every discharge the same way (B0055 alone: 1.34 % at half, 10-33 % elsewhere).
 `--history-from H` starts the stream at discharge H, before the scored ones (the cell's history a BMS would
 have followed: the learner on the record of `--kind ukf_learned` and the stream's prior width learn from it);
-those discharges are followed but not scored.
+those discharges are followed but not scored. The charge each discharge delivers as the stream predicted
+it at half (`delivered_ah`) is scored too, against the charge to the interpolated cut-off (RMSE, Ah).
 """
 
 import argparse
@@ -138,6 +139,30 @@ def eod_error_pct(rows: list, est: list, cutoff_v: float, fraction: float = 0.5)
     return (None if p is None else 100.0 * (p - eod) / (eod - t_on)), held
 
 
+def delivered_error_ah(rows: list, est: list, cutoff_v: float):
+    """The charge the discharge delivers as the stream predicted it at half its loaded time (`delivered_ah`)
+    less the charge it delivered (its readings' discharging current, trapezoids, from its first reading to
+    the interpolated cut-off crossing), Ah; None where it never reached the cut-off or nothing was predicted."""
+    loaded = [(k, r) for k, r in enumerate(rows) if -r[2] > 0.5]
+    below = next((n for n, (_, r) in enumerate(loaded) if r[1] < cutoff_v), None)
+    if not loaded or not below:
+        return None
+    t_on = loaded[0][1][0]
+    (k0, a), (k1, b) = loaded[below - 1], loaded[below]
+    if k1 != k0 + 1 or a[1] <= b[1]:
+        return None
+    eod = a[0] + (a[1] - cutoff_v) / (a[1] - b[1]) * (b[0] - a[0])
+    drawn = 0.0
+    for x, y in zip(rows[:k1], rows[1:k1 + 1]):
+        to = min(y[0], eod)
+        i_to = x[2] + (y[2] - x[2]) * (to - x[0]) / (y[0] - x[0])
+        drawn += 0.5 * (max(-x[2], 0.0) + max(-i_to, 0.0)) * (to - x[0])
+    mid = t_on + 0.5 * (eod - t_on)
+    k = min(range(len(rows)), key=lambda j: abs(rows[j][0] - mid))
+    p = est[k].get("delivered_ah")
+    return None if p is None else p - drawn / 3600.0
+
+
 def summary(name: str, scores: list, others: dict) -> None:
     """Half-way scores (`scores`) with their intervals, and the median error at the other shares (`others`:
     share -> errors), since one share alone can flatter an estimate that drifts through the discharge."""
@@ -197,6 +222,7 @@ def main() -> None:
     timing = re.search(r"parse \+ step \+ predict per reading: [^;\n]*", LAST_SUMMARY[0])
     # The history's estimates are not scored.
     joined, alone, k = [], [], sum(len(rows) for rows in followed[:first - history])
+    delivered = []
     shares = (0.1, 0.9)
     joined_at, alone_at = {f: [] for f in shares}, {f: [] for f in shares}
     for n, rows in enumerate(records):
@@ -204,6 +230,7 @@ def main() -> None:
         k += len(rows)
         own = follow(bcal, a.kind, rows, a.cutoff_v, extra)
         joined.append(eod_error_pct(rows, part, a.cutoff_v))
+        delivered.append(delivered_error_ah(rows, part, a.cutoff_v))
         alone.append(eod_error_pct(rows, own, a.cutoff_v))
         for f in shares:
             joined_at[f].append(eod_error_pct(rows, part, a.cutoff_v, f)[0])
@@ -224,6 +251,11 @@ def main() -> None:
           f"{statistics.median(PREVIOUS_WEIGHTS) if PREVIOUS_WEIGHTS else 0.0:.2f}; moved by the learner on the record at "
           f"half of {len(LEARNED_WEIGHTS)}, its median weight "
           f"{statistics.median(LEARNED_WEIGHTS) if LEARNED_WEIGHTS else 0.0:.2f})")
+    d = [e for e in delivered if e is not None]
+    if d:
+        rmse = (sum(e * e for e in d) / len(d)) ** 0.5
+        print(f"  charge delivered (delivered_ah) at half against the data's charge to the cut-off: RMSE {rmse:.4f} Ah, "
+              f"median |error| {statistics.median(abs(e) for e in d):.4f} Ah over {len(d)} discharges")
     if timing:
         print(f"  ({timing.group(0)}, as the CLI timed the one stream)")
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone, alone_at)

@@ -60,6 +60,14 @@ class Estimate(TypedDict):
     eod_hi_s: Optional[float]
     """The prediction's 90 % interval, absolute times, s: learned from how the stream's predictions fared
     on its last 10 discharges followed to the cut-off; None until 9 of them are scored."""
+    delivered_ah: Optional[float]
+    """The charge this discharge will have delivered at its end, Ah: what its readings drew so far plus
+    eod_current_a until eod_s (from a full cell, its capacity at that current as a cycler measures it). Once
+    the discharge has crossed its cut-off, the charge measured to the crossing. None before the load and in
+    a piece of a discharge whose start the stream did not see (after lost readings)."""
+    delivered_lo_ah: Optional[float]
+    delivered_hi_ah: Optional[float]
+    """delivered_ah at eod_lo_s and eod_hi_s (None once the cut-off is crossed)."""
     eod_from_prior: bool
     """Whether eod_s is the prior alone's prediction (the estimate the discharge started from, never moved
     by its readings): where the prior beat what it replaces (the calibrator's own, recentred where that

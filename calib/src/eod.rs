@@ -16,7 +16,7 @@ pub fn charge_to_ah(samples: &[Sample], end_s: f64) -> f64 {
         let (a, b) = (&w[0], &w[1]);
         let (i0, i1) = (a.current_a.max(0.0), b.current_a.max(0.0));
         if b.t_s <= end_s {
-            q_c += 0.5 * (i0 + i1) * (b.t_s - a.t_s);
+            q_c += drawn_between_c(a, b);
         } else {
             if a.t_s < end_s {
                 let f = (end_s - a.t_s) / (b.t_s - a.t_s);
@@ -26,6 +26,12 @@ pub fn charge_to_ah(samples: &[Sample], end_s: f64) -> f64 {
         }
     }
     q_c / 3600.0
+}
+
+/// The charge drawn from reading `a` to reading `b`, C: the discharging current (charging counts 0) by the
+/// trapezoid rule ([`charge_to_ah`]'s, and a live stream's charge drawn so far).
+pub fn drawn_between_c(a: &Sample, b: &Sample) -> f64 {
+    0.5 * (a.current_a.max(0.0) + b.current_a.max(0.0)) * (b.t_s - a.t_s)
 }
 
 /// How an end-of-discharge prediction runs: the future load (in the episode's absolute time), the cut-off,

@@ -170,6 +170,15 @@ pub struct Estimate {
     /// at the share of the discharge the prediction puts this reading at).
     pub eod_lo_s: Option<f64>,
     pub eod_hi_s: Option<f64>,
+    /// The charge this discharge will have delivered at its end, Ah: what its readings drew so far plus
+    /// `eod_current_a` until `eod_s` (from a full cell, its capacity at that current as a cycler measures
+    /// it), and the same at the interval's ends. Once the discharge has crossed its cut-off, the charge
+    /// it delivered to the crossing, measured (as `bcal calibrate`'s records measure it), without an
+    /// interval. None before the load, in a piece of a discharge whose start the stream did not see (after
+    /// lost readings) and in streams that keep no readings ([`Stream::new`]).
+    pub delivered_ah: Option<f64>,
+    pub delivered_lo_ah: Option<f64>,
+    pub delivered_hi_ah: Option<f64>,
     /// Whether the prediction is the prior alone's (the estimate the discharge started from, never moved by
     /// its readings): at a share of the discharge where the prior beat what it replaces (the calibrator's
     /// own, recentred where that serves) on at least 8 of the last 10 discharges followed to the cut-off and
@@ -471,8 +480,10 @@ pub struct Stream<'a> {
     previous_fit: Option<Degradation>,
     /// ... and the fit of the discharge under way, once it has reached its cut-off.
     voltage_fit: Option<Degradation>,
-    /// The current discharge's readings (streams made by [`Stream::of`]: for its end fit).
+    /// The current discharge's readings (streams made by [`Stream::of`]: for its end fit) ...
     samples: Vec<Sample>,
+    /// ... the charge they drew, C, and how many of them that sums (the estimate's `delivered_ah`).
+    drawn: (f64, usize),
     /// The current discharge's end fit: qMobile putting the model's end at the measured one, at the
     /// calibrator's Ro then ([`crate::end_fit`]).
     end_fit: Option<Degradation>,
@@ -814,6 +825,7 @@ impl<'a> Stream<'a> {
             voltage_change: None,
             voltage_changes: Vec::new(),
             samples: Vec::new(),
+            drawn: (0.0, 0),
             end_fit: None,
             refit: None,
             model_next: None,
@@ -1020,6 +1032,11 @@ impl<'a> Stream<'a> {
         };
         if self.rebuild.is_some() {
             self.samples.push(s);
+            let (drawn_c, upto) = &mut self.drawn;
+            for w in self.samples[upto.saturating_sub(1)..].windows(2) {
+                *drawn_c += crate::eod::drawn_between_c(&w[0], &w[1]);
+            }
+            *upto = self.samples.len();
         }
         // Who predicts: the prior alone at a share of the discharge where it has earned it, except after a
         // rest of more than a day (the record of ordinary rests does not speak for it; `bcal calibrate`'s rule).
@@ -1063,6 +1080,18 @@ impl<'a> Stream<'a> {
             }
             _ => (None, None),
         };
+        // The charge delivered at the end: drawn so far plus the assumed current to it (the end measured once
+        // it has been, the discharge's capacity as the stream measured it).
+        let (delivered_ah, delivered_lo_ah, delivered_hi_ah) = match (self.capacity_ah, eod_current_a) {
+            _ if self.rebuild.is_none() || self.joined_under_load => (None, None, None),
+            (Some(measured_ah), _) => (Some(measured_ah), None, None),
+            (None, Some(current_a)) => {
+                let drawn_ah = self.drawn.0 / 3600.0;
+                let at = |end_s: Option<f64>| end_s.map(|e| drawn_ah + current_a * (e - r.time_s).max(0.0) / 3600.0);
+                (at(eod_s), at(eod_lo_s), at(eod_hi_s))
+            }
+            (None, None) => (None, None, None),
+        };
         let d = self.cal.estimate();
         let iv = self.cal.interval();
         Ok(Estimate {
@@ -1077,6 +1106,9 @@ impl<'a> Stream<'a> {
             eod_current_a,
             eod_lo_s,
             eod_hi_s,
+            delivered_ah,
+            delivered_lo_ah,
+            delivered_hi_ah,
             eod_from_prior: from_prior,
             eod_recentred: !from_prior && delivered_s.is_some() && delivered_from == Twin::Recentred,
             eod_on_voltage_change: !from_prior && delivered_s.is_some() && delivered_from == Twin::OnVoltage,
@@ -1236,6 +1268,7 @@ impl<'a> Stream<'a> {
         self.capacity_ah = None;
         self.eod_track = EodTrack::default();
         self.samples.clear();
+        self.drawn = (0.0, 0);
         self.end_fit = None;
         self.voltage_fit = None;
         self.load = LoadMean::default();
@@ -2272,6 +2305,58 @@ mod tests {
             readings[..n_first].iter().chain(&readings[n_before..]).map(|r| plain.step(r).unwrap()).collect();
         assert_eq!(est[n_before].q_mobile, without[n_first].q_mobile, "carried from the discharge, not the charge");
         assert_ne!(est[n_before - 1].q_mobile, est[n_before].q_mobile, "the filter moved while charging");
+    }
+
+    /// The charge a discharge delivers: none before the load; while it runs, what it drew plus the assumed
+    /// current to the predicted end, near the charge it then delivers, and within the ends of its interval;
+    /// once it has crossed its cut-off, that charge measured, from the reading before the load to the
+    /// interpolated crossing (summed here apart from the stream).
+    #[test]
+    fn the_charge_delivered_is_predicted_while_the_discharge_runs_and_measured_once_it_ends() {
+        let (readings, starts) = cycler_life(12, |_, spec| spec);
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let cutoff_v = stream.spec.cutoff_v;
+        let est: Vec<Estimate> = readings.iter().map(|r| stream.step(r).unwrap()).collect();
+        let mut bracketed = 0;
+        for (k, w) in starts.windows(2).enumerate() {
+            let (r, e) = (&readings[w[0]..w[1]], &est[w[0]..w[1]]);
+            let on = r.iter().position(|x| x.current_a > LOAD_THRESHOLD_A).unwrap();
+            assert!(e[..on].iter().all(|x| x.delivered_ah.is_none()), "discharge {k}: before the load");
+            let below = r.iter().position(|x| x.current_a > LOAD_THRESHOLD_A && x.voltage_v < cutoff_v).unwrap();
+            let (a, b) = (&r[below - 1], &r[below]);
+            let end_s = a.time_s + (a.voltage_v - cutoff_v) / (a.voltage_v - b.voltage_v) * (b.time_s - a.time_s);
+            let trapezoid = |x: &Reading, y: &Reading, to_s: f64| {
+                let i_end = x.current_a + (y.current_a - x.current_a) * (to_s - x.time_s) / (y.time_s - x.time_s);
+                0.5 * (x.current_a.max(0.0) + i_end.max(0.0)) * (to_s - x.time_s)
+            };
+            let measured_c: f64 = r[..below].windows(2).map(|p| trapezoid(&p[0], &p[1], p[1].time_s)).sum::<f64>()
+                + trapezoid(a, b, end_s);
+            let measured_ah = measured_c / 3600.0;
+            for x in &e[below..] {
+                let got = x.delivered_ah.unwrap();
+                assert!((got - measured_ah).abs() < 1e-9 * measured_ah, "discharge {k}: {got} against {measured_ah}");
+                assert_eq!((x.delivered_lo_ah, x.delivered_hi_ah), (None, None));
+            }
+            // Half-way to the end: the prediction is near what it delivers, and is the charge drawn so far plus
+            // the current assumed to the predicted end.
+            let half =
+                (on..below).min_by_key(|&j| ((r[j].time_s - (r[on].time_s + end_s) / 2.0).abs() * 1e3) as i64).unwrap();
+            let x = &e[half];
+            let got = x.delivered_ah.unwrap();
+            assert!(
+                (got - measured_ah).abs() < 0.02 * measured_ah,
+                "discharge {k}: {got} at half, {measured_ah} delivered"
+            );
+            let drawn_c: f64 = r[..=half].windows(2).map(|p| trapezoid(&p[0], &p[1], p[1].time_s)).sum();
+            let expect = drawn_c / 3600.0 + x.eod_current_a.unwrap() * (x.eod_s.unwrap() - r[half].time_s) / 3600.0;
+            assert!((got - expect).abs() < 1e-9 * expect, "{got} against {expect}");
+            if let (Some(lo), Some(hi)) = (x.delivered_lo_ah, x.delivered_hi_ah) {
+                assert!(lo <= got && got <= hi, "discharge {k}: {lo} {got} {hi}");
+                bracketed += 1;
+            }
+        }
+        assert!(bracketed >= 2, "the last discharges have an interval: {bracketed}");
     }
 
     /// Two constant-current discharges of a cycler (a 30 s rest, then 2 A to the cut-off, read every 10-20 s),

@@ -84,6 +84,9 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
     d.set_item("eod_current_a", e.eod_current_a)?;
     d.set_item("eod_lo_s", e.eod_lo_s)?;
     d.set_item("eod_hi_s", e.eod_hi_s)?;
+    d.set_item("delivered_ah", e.delivered_ah)?;
+    d.set_item("delivered_lo_ah", e.delivered_lo_ah)?;
+    d.set_item("delivered_hi_ah", e.delivered_hi_ah)?;
     d.set_item("eod_from_prior", e.eod_from_prior)?;
     d.set_item("eod_recentred", e.eod_recentred)?;
     d.set_item("eod_on_voltage_change", e.eod_on_voltage_change)?;
@@ -95,7 +98,7 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
 }
 
 /// The columns `run` returns, in order.
-const RUN_COLUMNS: [&str; 19] = [
+const RUN_COLUMNS: [&str; 22] = [
     "time_s",
     "q_mobile",
     "q_mobile_lo",
@@ -107,6 +110,9 @@ const RUN_COLUMNS: [&str; 19] = [
     "eod_current_a",
     "eod_lo_s",
     "eod_hi_s",
+    "delivered_ah",
+    "delivered_lo_ah",
+    "delivered_hi_ah",
     "eod_from_prior",
     "eod_recentred",
     "eod_on_voltage_change",
@@ -201,7 +207,10 @@ impl Calibrator {
     /// a dict of `time_s`, `q_mobile` (C), `q_mobile_lo`, `q_mobile_hi` (its 90 % interval), `r_o` (ohm),
     /// `r_o_lo`, `r_o_hi`, `eod_s` (predicted end of discharge, absolute time, s, at `eod_current_a`: the
     /// mean discharge current so far), `eod_lo_s`, `eod_hi_s` (its 90 % interval, learned from the
-    /// stream's own discharges followed to the cut-off: from the ninth on), `eod_from_prior` (the prediction
+    /// stream's own discharges followed to the cut-off: from the ninth on), `delivered_ah` (the charge the
+    /// discharge will have delivered at its end, Ah: drawn so far plus `eod_current_a` until `eod_s`; from a
+    /// full cell, its capacity as a cycler measures it; once the cut-off is crossed, the charge measured to
+    /// it), `delivered_lo_ah`, `delivered_hi_ah` (the same at the interval's ends), `eod_from_prior` (the prediction
     /// is the prior alone's, where it beat the calibrator's, recentred where that serves, on 8 of the last 10
     /// discharges), `eod_recentred` (the calibrator's own moved by its median error over the last 10, where
     /// that beat it on 8 of them), `eod_on_voltage_change` (the calibrator's own moved by the error its last
@@ -307,6 +316,9 @@ impl Calibrator {
                     opt(e.eod_current_a),
                     opt(e.eod_lo_s),
                     opt(e.eod_hi_s),
+                    opt(e.delivered_ah),
+                    opt(e.delivered_lo_ah),
+                    opt(e.delivered_hi_ah),
                     f64::from(u8::from(e.eod_from_prior)),
                     f64::from(u8::from(e.eod_recentred)),
                     f64::from(u8::from(e.eod_on_voltage_change)),
