@@ -29,7 +29,10 @@ pub const DEFAULT_CUTOFF_V: f64 = 2.5;
 /// The cut-off the records themselves show, V, when nobody gives one: a cycler stops a discharge at its
 /// cut-off under load, so records that end still loaded end just below it. It is read when at least two
 /// records (and a quarter of them) end under load, within 100 mV of each other at the 10th and 90th
-/// percentiles, below 3.6 V: the highest such end voltage (every one of them then counts as complete).
+/// percentiles, below 3.6 V: the highest such end voltage rounded up to the next 10 mV (every one of them
+/// then counts as complete). Cyclers are set to round cut-offs and log the first reading past them, a few
+/// mV below at 10 s sampling: the highest end of a few training records alone lies below the cut-off by
+/// the least of those overshoots, and a later discharge that stopped closer to it would read as cut short.
 /// None otherwise (the caller's default decides and says so).
 pub fn infer_cutoff_v(ds: &[Discharge], load_threshold_a: f64) -> Option<f64> {
     let mut ends: Vec<f64> = ds
@@ -43,7 +46,8 @@ pub fn infer_cutoff_v(ds: &[Discharge], load_threshold_a: f64) -> Option<f64> {
     let lo = bcal_common::stats::quantile(&mut ends, 0.1)?;
     let hi = bcal_common::stats::quantile(&mut ends, 0.9)?;
     let top = bcal_common::stats::quantile(&mut ends, 1.0)?;
-    (hi - lo <= 0.1 && top < 3.6).then_some(top)
+    // The guard keeps a round end (2.7 V, 270.00000000000006 in hundredths) from rising a step.
+    (hi - lo <= 0.1 && top < 3.6).then(|| (top * 100.0 - 1e-6).ceil() / 100.0)
 }
 
 /// A discharge starts partly discharged when the mean voltage of its rest before the load lies more than

@@ -217,9 +217,20 @@ fn discharges_that_stop_at_the_cutoff_without_a_rest_are_complete_and_diagnosed(
     assert!(err.contains("above the default cut-off 2.5 V (none given): truncated"), "{err}");
     assert_eq!(DEFAULT_CUTOFF_V, 2.5);
     // The records themselves show the cut-off (`bcal diagnose` and `bcal calibrate` read it when nobody
-    // gives one): they all end under load just below 2.75 V, and with it they are complete again.
+    // gives one): they all end under load just below 2.75 V, the round cut-off they show, and with it they
+    // are complete again.
     let read = bcal_doctor::record::infer_cutoff_v(&records, 0.05).expect("the records show their cut-off");
-    assert!(read <= cutoff_v && read > cutoff_v - 0.05, "{read}");
+    assert_eq!(read, cutoff_v);
+    // The two that stopped furthest below it show it too, and the third, which stopped closer to it, is
+    // complete under what they show (the higher end of the two, unrounded, would call it cut short).
+    let mut by_end: Vec<&bcal_doctor::Discharge> = records.iter().collect();
+    by_end.sort_by(|a, b| a.voltage_v.last().unwrap().total_cmp(b.voltage_v.last().unwrap()));
+    let (low, closest) = ([by_end[0].clone(), by_end[1].clone()], by_end[2]);
+    assert!(closest.voltage_v.last() > low[1].voltage_v.last(), "three ends, not all equal");
+    let from_low = bcal_doctor::record::infer_cutoff_v(&low, 0.05);
+    assert_eq!(from_low, Some(cutoff_v));
+    let w = closest.windows_with_cutoff(0.05, 2.9, from_low).unwrap();
+    assert!(w.ended_at_cutoff && !w.truncated, "{w:?}");
     cfg.cutoff_v = Some(read);
     assert_eq!(diagnose(&cfg, &records[..2], &records[2..]).unwrap().ended_at_cutoff_count, 3);
     // Records that end at rest (a relaxation logged after the cut-off) show none.
