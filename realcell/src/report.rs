@@ -23,7 +23,9 @@ pub const TARGET_EOD_PCT: [f64; 2] = [1.0, 2.0];
 #[derive(Clone, Debug, Serialize)]
 pub struct MethodEntry {
     pub name: String,
-    /// Capacity RMSE against the metadata's stated capacity, Ah, by fraction of the discharge seen.
+    /// Capacity RMSE against the metadata's stated capacity, Ah, by fraction of the discharge seen (a
+    /// fraction without any scored prediction, as in data that states no capacity, is left out: no score,
+    /// not a perfect one).
     pub capacity_rmse_ah: BTreeMap<String, f64>,
     /// The same against the charge the data shows down to the cut-off.
     pub capacity_rmse_ah_vs_data: BTreeMap<String, f64>,
@@ -39,7 +41,9 @@ pub struct MethodEntry {
 impl MethodEntry {
     pub fn new(key: &str, s: MethodScore) -> Self {
         let name = METHODS.iter().find(|m| m.0 == key).map_or(key, |m| m.1).to_string();
-        let by = |m: &BTreeMap<String, crate::score::Errors>| m.iter().map(|(k, e)| (k.clone(), e.rmse)).collect();
+        let by = |m: &BTreeMap<String, crate::score::Errors>| {
+            m.iter().filter(|(_, e)| e.n > 0).map(|(k, e)| (k.clone(), e.rmse)).collect()
+        };
         let cov: Vec<f64> = s.coverage_90_pct.values().flatten().copied().collect();
         Self {
             name,
@@ -193,10 +197,20 @@ pub fn reading(r: &CalibrationReport) -> Vec<String> {
     // a calibrator answers for.
     let stated_elsewhere = r.records.stated_capacity.as_ref().filter(|sc| sc.differs_from_cutoff(r.cutoff_v));
     let eod50 = |k: &str| r.methods.get(k).and_then(|m| m.eod_error_pct.get("50").copied());
+    let met = |x: f64| if x <= TARGET_CAPACITY_RMSE_AH { "met" } else { "missed" };
     for (key, name) in METHODS {
+        // Data that states no capacity: the data's charge is the only reference.
+        if let (None, Some(d)) = (cap50(key), cap50_data(key)) {
+            let trend = cap50_data("trend").unwrap_or(f64::NAN);
+            out.push(format!(
+                "{name}: capacity RMSE {d:.3} Ah from the first half of each discharge against the data's charge to \
+                 the cut-off, the data stating no capacity (target {TARGET_CAPACITY_RMSE_AH} Ah: {}; trend fit {}).",
+                met(d),
+                if d < trend { "beaten" } else { "not beaten" }
+            ));
+        }
         if let Some(c) = cap50(key) {
             let trend = cap50("trend").unwrap_or(f64::NAN);
-            let met = |x: f64| if x <= TARGET_CAPACITY_RMSE_AH { "met" } else { "missed" };
             let data = match (stated_elsewhere, cap50_data(key)) {
                 (Some(sc), Some(d)) => format!(
                     "; against the data's charge to the cut-off {d:.3} Ah, target {} there (the stated capacity is the \

@@ -321,3 +321,36 @@ fn records_not_read_are_named_in_the_report() {
     let md = std::fs::read_to_string(out.join("calibration.md")).unwrap();
     assert!(md.contains("- not read: 00011.csv"), "{md}");
 }
+
+/// Data that states no capacity (a generic CSV) has no capacity score against one: none in the report, not
+/// an RMSE of 0 that reads as a target met; the data's charge is the reference the reading states.
+#[test]
+fn data_that_states_no_capacity_is_scored_against_its_own_charge_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = write_cycles(dir.path());
+    let out = dir.path().join("out");
+    let cut = CUTOFF_V.to_string();
+    let (ok, err) = calibrate(&[
+        "--data",
+        csv.to_str().unwrap(),
+        "--train-cycles",
+        "1..4",
+        "--cutoff-v",
+        &cut,
+        "--calibrator",
+        "ukf",
+        "--quick",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap();
+    let ukf = &report["methods"]["ukf"];
+    assert_eq!(ukf["capacity_rmse_ah"], serde_json::json!({}), "{ukf}");
+    let data_ah = ukf["capacity_rmse_ah_vs_data"]["50"].as_f64().unwrap();
+    assert!(data_ah > 0.0 && data_ah < 0.1, "{data_ah}");
+    let md = std::fs::read_to_string(out.join("calibration.md")).unwrap();
+    assert!(!md.contains("capacity RMSE 0.000"), "{md}");
+    assert!(md.contains("against the data's charge to the cut-off, the data stating no capacity"), "{md}");
+}
