@@ -67,9 +67,7 @@ pub const PREDICT_DT_S: f64 = 1.0;
 pub const PREDICT_MAX_S: f64 = 40_000.0;
 /// The voltages a Li-ion cell can read, V: outside them the column is in another unit or broken.
 pub const CELL_VOLTAGE_RANGE_V: [f64; 2] = [0.5, 5.0];
-/// The temperatures a working Li-ion cell reads, deg C: outside them the column is in kelvin or broken (a
-/// kelvin column read as Celsius would run the model 273 K hot).
-pub const CELL_TEMPERATURE_RANGE_C: [f64; 2] = [-60.0, 120.0];
+pub use bcal_common::measured::CELL_TEMPERATURE_RANGE_C;
 /// A gap without readings longer than this starts a new discharge, s (half an hour: a sampled stream
 /// never pauses that long within a discharge, and a cell that rested or was charged unseen that long is
 /// no longer in the state the model carried).

@@ -33,6 +33,11 @@ pub enum DoctorError {
     )]
     VoltageOutOfRange { path: PathBuf, median_v: f64 },
     #[error(
+        "{path}: cell temperature median {median_c:.1} deg C is outside where a Li-ion cell works (-60 to 120 deg C); \
+         a column in kelvin must say so (temperature_k, or `Temperature / K`)"
+    )]
+    TemperatureOutOfRange { path: PathBuf, median_c: f64 },
+    #[error(
         "{path}: no sample carries a discharge current above {threshold_a} A; the generic CSV expects \
          current_a POSITIVE while discharging (NASA files use negative and are read through metadata.csv); \
          or let the reader decide the sign (--current-sign auto)"

@@ -41,7 +41,7 @@ pub const MIN_SAMPLES: usize = 10;
 /// Ambient temperature assumed for a generic CSV without a temperature column, deg C.
 pub const DEFAULT_AMBIENT_C: f64 = 25.0;
 
-use bcal_common::measured::LOADED_A;
+use bcal_common::measured::{CELL_TEMPERATURE_RANGE_C, LOADED_A};
 pub use bcal_common::measured::{MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH};
 
 /// Least evidence the sign decision needs, V of voltage change (see [`SignEvidence`]).
@@ -1377,7 +1377,8 @@ fn empty(cell: &str, cycle: u32, path: &Path, ambient_k: f64, with_temperature: 
     }
 }
 
-/// Whole-record checks: enough samples, voltage in volts.
+/// Whole-record checks: enough samples, voltage in volts, a cell temperature in degrees Celsius (a kelvin
+/// column read as Celsius would run the model 273 K too warm and still fit, to a wrong cause).
 fn validate(d: Discharge) -> Result<Discharge, DoctorError> {
     if d.len() < MIN_SAMPLES {
         return Err(DoctorError::TooFewSamples { path: d.source.clone(), rows: d.len(), min: MIN_SAMPLES });
@@ -1390,6 +1391,13 @@ fn validate(d: Discharge) -> Result<Discharge, DoctorError> {
     }
     if !(0.5..=5.0).contains(&median_v) {
         return Err(DoctorError::VoltageOutOfRange { path: d.source.clone(), median_v });
+    }
+    let mut t_c: Vec<f64> =
+        d.temperature_k.iter().flatten().filter(|t| t.is_finite()).map(|t| t - CELSIUS_TO_KELVIN).collect();
+    if let Some(median_c) = bcal_common::stats::quantile(&mut t_c, 0.5) {
+        if !(CELL_TEMPERATURE_RANGE_C[0]..=CELL_TEMPERATURE_RANGE_C[1]).contains(&median_c) {
+            return Err(DoctorError::TemperatureOutOfRange { path: d.source.clone(), median_c });
+        }
     }
     Ok(d)
 }

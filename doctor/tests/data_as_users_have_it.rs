@@ -398,6 +398,31 @@ fn milliamperes_and_milliseconds_are_converted_when_named_and_refused_with_a_hin
     );
     let msg = read_csv(&path, &ReadOptions::default()).unwrap_err().to_string();
     assert!(msg.contains("ka.csv") && msg.contains("`kA`") && msg.contains("A or mA"), "{msg}");
+    // Kelvin under a Celsius name: refused, naming the file and the name to give (it ran the model 273 K hot,
+    // and the doctor fitted it to a wrong cause). Named as kelvin, it reads as the Celsius column does.
+    let header = "time_s,voltage_v,current_a,temperature_c";
+    let path =
+        write(dir.path(), "k.csv", &csv_of(header, &c.log, |s| format!("{},{},{},{}", s.0, s.1, s.2, s.3 + 273.15)));
+    let err = read_csv(&path, &ReadOptions::default()).unwrap_err();
+    assert!(matches!(err, DoctorError::TemperatureOutOfRange { .. }), "{err}");
+    assert!(err.to_string().contains("k.csv") && err.to_string().contains("temperature_k"), "{err}");
+    let (celsius, _) = read_csv(
+        &write(dir.path(), "c.csv", &csv_of(header, &c.log, |s| format!("{},{},{},{}", s.0, s.1, s.2, s.3))),
+        &ReadOptions::default(),
+    )
+    .unwrap();
+    let kelvin_header = "time_s,voltage_v,current_a,temperature_k";
+    let (kelvin, _) = read_csv(
+        &write(
+            dir.path(),
+            "kk.csv",
+            &csv_of(kelvin_header, &c.log, |s| format!("{},{},{},{}", s.0, s.1, s.2, s.3 + 273.15)),
+        ),
+        &ReadOptions::default(),
+    )
+    .unwrap();
+    let (a, b) = (celsius[0].temperature_k.as_ref().unwrap(), kelvin[0].temperature_k.as_ref().unwrap());
+    assert!(a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9), "kelvin named as kelvin reads as Celsius does");
 }
 
 #[test]
