@@ -28,7 +28,11 @@ use serde::Serialize;
 use std::collections::BTreeMap;
 
 /// The rest before each record, s: the time from the end of the record of the cycle before (when present
-/// and both start times are known) to this record's start. Records with an unknown rest are absent.
+/// and both start times are known) to this record's start. Records with an unknown rest are absent. The
+/// cycle before is one step of the data's own numbering back, the step its consecutive records take most
+/// (1 for NASA's discharges; 2 for a log that numbers charges and discharges alike and keeps only the
+/// discharges, 1, 3, 5, ..., which lost every rest while the step was taken to be 1): a record after one
+/// that was not read (a missing file) has no known rest, whatever the step.
 pub fn rests_before(records: &[&Discharge], starts: &[RecordStart]) -> BTreeMap<u32, f64> {
     let start_of: BTreeMap<u32, f64> = starts.iter().map(|s| (s.cycle, s.start_s)).collect();
     let end_of: BTreeMap<u32, f64> = records
@@ -39,10 +43,16 @@ pub fn rests_before(records: &[&Discharge], starts: &[RecordStart]) -> BTreeMap<
             Some((d.cycle, s + span))
         })
         .collect();
+    let mut cycles: Vec<u32> = records.iter().map(|d| d.cycle).collect();
+    cycles.sort_unstable();
+    cycles.dedup();
+    let mut steps: Vec<u32> = cycles.windows(2).map(|w| w[1] - w[0]).collect();
+    steps.sort_unstable();
+    let step = steps.get(steps.len().saturating_sub(1) / 2).copied().unwrap_or(1);
     let mut out = BTreeMap::new();
     for d in records {
         let (Some(start), Some(prev_end)) =
-            (start_of.get(&d.cycle), d.cycle.checked_sub(1).and_then(|c| end_of.get(&c)))
+            (start_of.get(&d.cycle), d.cycle.checked_sub(step).and_then(|c| end_of.get(&c)))
         else {
             continue;
         };
@@ -280,5 +290,12 @@ mod tests {
         assert_eq!(r.get(&2), Some(&4000.0));
         // The first record and one after a missing cycle have no known rest.
         assert!(!r.contains_key(&1) && !r.contains_key(&4));
+        // A log that numbers charges and discharges alike keeps the discharges 1, 3, 5, 9 (7 not read): the
+        // rest before each is from the end of the discharge two numbers back, none after the missing one.
+        let (a, b, c, e) = (d(1), d(3), d(5), d(9));
+        let starts = [1, 3, 5, 9].map(|cycle| RecordStart { cycle, start_s: 5000.0 * f64::from(cycle) });
+        let r = rests_before(&[&a, &b, &c, &e], &starts);
+        assert_eq!((r.get(&3), r.get(&5)), (Some(&9000.0), Some(&9000.0)));
+        assert!(!r.contains_key(&1) && !r.contains_key(&9), "{r:?}");
     }
 }
