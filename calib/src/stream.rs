@@ -68,10 +68,7 @@ pub const PREDICT_MAX_S: f64 = 40_000.0;
 /// The voltages a Li-ion cell can read, V: outside them the column is in another unit or broken.
 pub const CELL_VOLTAGE_RANGE_V: [f64; 2] = [0.5, 5.0];
 pub use bcal_common::measured::CELL_TEMPERATURE_RANGE_C;
-/// A gap without readings longer than this starts a new discharge, s (half an hour: a sampled stream
-/// never pauses that long within a discharge, and a cell that rested or was charged unseen that long is
-/// no longer in the state the model carried).
-pub const NEW_DISCHARGE_GAP_S: f64 = 1800.0;
+pub use bcal_common::measured::NEW_DISCHARGE_GAP_S;
 /// A charge lasts at least this long, s: a shorter negative current (a regenerative pulse, a noisy reading
 /// at rest) is not a charge and does not end the discharge it falls in. Measured from the first charging
 /// reading to the first reading after it, so a charge read once an hour still counts.

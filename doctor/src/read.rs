@@ -41,7 +41,7 @@ pub const MIN_SAMPLES: usize = 10;
 /// Ambient temperature assumed for a generic CSV without a temperature column, deg C.
 pub const DEFAULT_AMBIENT_C: f64 = 25.0;
 
-use bcal_common::measured::{CELL_TEMPERATURE_RANGE_C, LOADED_A};
+use bcal_common::measured::{CELL_TEMPERATURE_RANGE_C, LOADED_A, NEW_DISCHARGE_GAP_S};
 pub use bcal_common::measured::{MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH};
 
 /// Least evidence the sign decision needs, V of voltage change (see [`SignEvidence`]).
@@ -120,6 +120,11 @@ pub struct ReadOptions {
     /// A charging run at least this long splits a file into discharge records, s; shorter ones (a
     /// regenerative pulse) stay inside their record. Default 120.
     pub min_charge_split_s: f64,
+    /// In a file without a cycle column, a gap in the readings longer than this, s, after which the cell
+    /// reads at rest, also splits records (discharges logged without the charges between them); one after
+    /// which it is still loaded (readings lost within a discharge) is kept and bridged. Default
+    /// [`NEW_DISCHARGE_GAP_S`], as a live stream splits.
+    pub min_gap_split_s: f64,
     /// Rest kept before a record's first load, s (a long file may rest for hours). Default 1800.
     pub max_rest_before_s: f64,
     /// Relaxation kept after a record's last load, s. Default 3600.
@@ -135,6 +140,7 @@ impl Default for ReadOptions {
             step_threshold_a: 0.2,
             gap_factor: 10.0,
             min_charge_split_s: 120.0,
+            min_gap_split_s: NEW_DISCHARGE_GAP_S,
             max_rest_before_s: 1800.0,
             max_rest_after_s: 3600.0,
         }
@@ -717,7 +723,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     for (cycle, rows) in &groups {
         let t: Vec<f64> = rows.iter().map(|r| r.time_s).collect();
         let i: Vec<f64> = rows.iter().map(|r| flip * r.current_a).collect();
-        let mut segments = discharge_segments(&t, &i, opts);
+        let mut segments = discharge_segments(&t, &i, opts, !with_cycle);
         if segments.is_empty() {
             if with_cycle {
                 report.notes.push(format!("{}, cycle {cycle}: no discharge, skipped", path.display()));
@@ -1125,10 +1131,10 @@ fn cell_name(path: &Path) -> String {
 }
 
 /// The discharge records of one group of samples (time order, current positive while discharging): the
-/// stretches between charging runs of at least `min_charge_split_s` that hold a discharging sample, each
-/// trimmed to `max_rest_before_s` of rest before its first discharging sample and `max_rest_after_s` after
-/// its last.
-fn discharge_segments(t: &[f64], i: &[f64], opts: &ReadOptions) -> Vec<Range<usize>> {
+/// stretches between charging runs of at least `min_charge_split_s` (and, with `split_gaps`, gaps of more
+/// than `min_gap_split_s` after which the cell reads at rest) that hold a discharging sample, each trimmed
+/// to `max_rest_before_s` of rest before its first discharging sample and `max_rest_after_s` after its last.
+fn discharge_segments(t: &[f64], i: &[f64], opts: &ReadOptions, split_gaps: bool) -> Vec<Range<usize>> {
     let n = t.len();
     let charging = |k: usize| i[k] < -opts.load_threshold_a;
     // Boundaries at long charging runs: the stretches are the ranges between them.
@@ -1153,8 +1159,15 @@ fn discharge_segments(t: &[f64], i: &[f64], opts: &ReadOptions) -> Vec<Range<usi
         }
     }
     stretches.push(start..n);
+    let loaded = |k: usize| i[k] > opts.load_threshold_a;
+    let gap_after = |k: usize| split_gaps && t[k] - t[k - 1] > opts.min_gap_split_s && !loaded(k);
     stretches
         .into_iter()
+        .flat_map(|s| {
+            let cuts: Vec<usize> = (s.start + 1..s.end).filter(|&k| gap_after(k)).collect();
+            let bounds: Vec<usize> = std::iter::once(s.start).chain(cuts).chain(std::iter::once(s.end)).collect();
+            bounds.windows(2).map(|w| w[0]..w[1]).collect::<Vec<_>>()
+        })
         .filter_map(|s| {
             let first = s.clone().find(|&k| i[k] > opts.load_threshold_a)?;
             let last = s.clone().rev().find(|&k| i[k] > opts.load_threshold_a)?;
@@ -1601,12 +1614,43 @@ mod tests {
         i.extend([0.0; 5]);
         i.extend([2.0; 10]);
         let t: Vec<f64> = (0..i.len()).map(|k| 10.0 * k as f64).collect();
-        assert_eq!(discharge_segments(&t, &i, &opts), vec![0..32, 62..77]);
+        assert_eq!(discharge_segments(&t, &i, &opts, false), vec![0..32, 62..77]);
         // Rest limits trim each side.
         let short = ReadOptions { max_rest_before_s: 20.0, max_rest_after_s: 10.0, ..opts };
-        assert_eq!(discharge_segments(&t, &i, &short), vec![3..28, 65..77]);
+        assert_eq!(discharge_segments(&t, &i, &short, false), vec![3..28, 65..77]);
         // No discharge, no record.
-        assert!(discharge_segments(&t[..5], &i[..5], &opts).is_empty());
+        assert!(discharge_segments(&t[..5], &i[..5], &opts, false).is_empty());
+    }
+
+    /// Discharges logged without the charges between them (a log of discharges at their clock times): a gap
+    /// of hours after which the cell rests splits them, where the cycle column does not; one after which the
+    /// cell is still loaded (readings lost within a discharge), or a short one, does not.
+    #[test]
+    fn a_long_gap_ending_at_rest_splits_records_without_a_cycle_column() {
+        let opts = ReadOptions::default();
+        // 10 s samples. Rest, discharge, relaxation; 3 h unseen; rest, discharge with 2 h of readings lost
+        // under load, relaxation; 1 h unseen; rest, discharge, relaxation.
+        let (mut t, mut i): (Vec<f64>, Vec<f64>) = (Vec::new(), Vec::new());
+        // Each run starts `after_s` after the last sample.
+        let run = |t: &mut Vec<f64>, i: &mut Vec<f64>, after_s: f64, currents: &[f64]| {
+            let t0 = t.last().map_or(0.0, |l| l + after_s);
+            for (k, c) in currents.iter().enumerate() {
+                t.push(t0 + 10.0 * k as f64);
+                i.push(*c);
+            }
+        };
+        let whole = [[0.0; 3].as_slice(), &[2.0; 10], &[0.0; 3]].concat();
+        run(&mut t, &mut i, 0.0, &whole);
+        run(&mut t, &mut i, 3.0 * 3600.0, &[[0.0; 3].as_slice(), &[2.0; 5]].concat());
+        run(&mut t, &mut i, 2.0 * 3600.0, &[[2.0; 5].as_slice(), &[0.0; 3]].concat());
+        run(&mut t, &mut i, 3600.0, &whole);
+        let segments = discharge_segments(&t, &i, &opts, true);
+        assert_eq!(segments, vec![0..16, 16..32, 32..48]);
+        // Gaps shorter than the split's: one record.
+        let long = ReadOptions { min_gap_split_s: 4.0 * 3600.0, ..opts };
+        assert_eq!(discharge_segments(&t, &i, &long, true), vec![0..48]);
+        // With a cycle column the records are the user's: no split.
+        assert_eq!(discharge_segments(&t, &i, &opts, false), vec![0..48]);
     }
 
     #[test]

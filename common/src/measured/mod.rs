@@ -25,6 +25,10 @@ pub const MAX_CELL_CURRENT_A: f64 = 100.0;
 /// The temperatures a working Li-ion cell reads, deg C: outside them the column is in kelvin or broken (a
 /// kelvin column read as Celsius would run the model 273 K hot), by the readers and by a live stream alike.
 pub const CELL_TEMPERATURE_RANGE_C: [f64; 2] = [-60.0, 120.0];
+/// A gap without readings longer than this starts a new discharge, s (half an hour: a sampled stream
+/// never pauses that long within a discharge, and a cell that rested or was charged unseen that long is
+/// no longer in the state the model carried), in a live stream and in a log read without a cycle column.
+pub const NEW_DISCHARGE_GAP_S: f64 = 1800.0;
 /// Largest charge one discharge plausibly draws, Ah: a larger one is refused as time in milliseconds (which
 /// multiplies the charge by 1000), by the readers and by a live stream alike.
 pub const MAX_RECORD_CHARGE_AH: f64 = 500.0;
