@@ -84,6 +84,12 @@ pub const MIN_DISCHARGE_S: f64 = 60.0;
 /// later reading refused as not increasing.
 pub const MAX_GAP_S: f64 = 365.0 * 86_400.0;
 
+/// Readings in a row on a clock that went back by more than [`NEW_DISCHARGE_GAP_S`] after which the stream
+/// takes it as the readings' clock (the ones before stay refused): a clock glitch that jumped ahead and
+/// was corrected, or a clock set back, would otherwise have every later reading refused until it caught up
+/// with the glitch.
+pub const CLOCK_BACK_READINGS: usize = 3;
+
 /// One reading as a user gives it, in the CLI's and the Python package's names and units.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -387,7 +393,14 @@ pub struct Stream<'a> {
     cal: Box<dyn Calibrator + Send + 'a>,
     spec: TrackerSpec,
     ambient_k: f64,
+    /// The last reading's time on the stream's clock, s: the readings' own plus `clock_offset_s` ...
     last_t_s: Option<f64>,
+    /// ... which moves each time their clock went back and stayed there ([`CLOCK_BACK_READINGS`]) ...
+    clock_offset_s: f64,
+    /// ... the readings' own times of the refused ones in a row of such a clock so far ...
+    behind: Vec<f64>,
+    /// ... and how many times it moved.
+    clock_changes: u32,
     loaded_n: u64,
     /// The current this discharge's predictions assume (the loaded mean, or the mean over time where the
     /// load alternates: [`LoadMean`]).
@@ -779,6 +792,9 @@ impl<'a> Stream<'a> {
             spec: spec.clone(),
             ambient_k,
             last_t_s: None,
+            clock_offset_s: 0.0,
+            behind: Vec::new(),
+            clock_changes: 0,
             loaded_n: 0,
             load: LoadMean::default(),
             readings: 0,
@@ -879,6 +895,66 @@ impl<'a> Stream<'a> {
 
     /// Checks `r`, steps the calibrator and answers; a refused reading changes nothing.
     pub fn step(&mut self, r: &Reading) -> Result<Estimate, ReadingError> {
+        let off = self.clock_offset_s;
+        let user = |e: ReadingError| match e {
+            ReadingError::TimeNotIncreasing { time_s, previous_s } => {
+                ReadingError::TimeNotIncreasing { time_s: time_s - off, previous_s: previous_s - off }
+            }
+            ReadingError::TimeJump { time_s, previous_s } => {
+                ReadingError::TimeJump { time_s: time_s - off, previous_s: previous_s - off }
+            }
+            ReadingError::LoadTooLong { time_s, loaded_s, drawn_ah } => {
+                ReadingError::LoadTooLong { time_s: time_s - off, loaded_s, drawn_ah }
+            }
+            e => e,
+        };
+        let result = match self.step_on_clock(&Reading { time_s: r.time_s + off, ..*r }) {
+            Err(ReadingError::TimeNotIncreasing { .. }) if self.clock_went_back(r.time_s) => {
+                // A clock that went back and stays there: its readings continue the stream after the last one.
+                let interval_s = r.time_s - self.behind[self.behind.len() - 2];
+                self.clock_offset_s = self.last_t_s.unwrap_or(r.time_s) + interval_s - r.time_s;
+                self.behind.clear();
+                self.clock_changes += 1;
+                self.step_on_clock(&Reading { time_s: r.time_s + self.clock_offset_s, ..*r })
+            }
+            other => other,
+        };
+        let off = self.clock_offset_s;
+        match result {
+            Ok(e) => {
+                self.behind.clear();
+                let at = |t: Option<f64>| t.map(|t| t - off);
+                Ok(Estimate {
+                    time_s: r.time_s,
+                    eod_s: at(e.eod_s),
+                    eod_lo_s: at(e.eod_lo_s),
+                    eod_hi_s: at(e.eod_hi_s),
+                    ..e
+                })
+            }
+            Err(e) => Err(user(e)),
+        }
+    }
+
+    /// Whether `time_s` (the reading's own clock), refused as not later than the last reading, is the
+    /// [`CLOCK_BACK_READINGS`]-th in a row, in time order among themselves, of a clock that went back by more
+    /// than [`NEW_DISCHARGE_GAP_S`]: one that went back by less (a resent stretch of readings, a clock
+    /// corrected by seconds) is not taken, and those readings stay refused.
+    fn clock_went_back(&mut self, time_s: f64) -> bool {
+        let Some(last_s) = self.last_t_s else { return false };
+        if last_s - (time_s + self.clock_offset_s) <= NEW_DISCHARGE_GAP_S {
+            self.behind.clear();
+            return false;
+        }
+        if self.behind.last().is_some_and(|p| time_s <= *p) {
+            self.behind.clear();
+        }
+        self.behind.push(time_s);
+        self.behind.len() >= CLOCK_BACK_READINGS
+    }
+
+    /// [`Self::step`] on the stream's own clock (the readings' plus [`Self::clock_offset_s`]).
+    fn step_on_clock(&mut self, r: &Reading) -> Result<Estimate, ReadingError> {
         for (field, value) in [("time_s", r.time_s), ("voltage_v", r.voltage_v), ("current_a", r.current_a)]
             .into_iter()
             .chain(r.temperature_c.map(|c| ("temperature_c", c)))
@@ -975,7 +1051,7 @@ impl<'a> Stream<'a> {
             self.load_off_s = Some(r.time_s);
         }
         let eod_current_a = self.load.current_a();
-        let eod_method_s = eod_current_a.and_then(|i| self.predict_eod_s(i));
+        let eod_method_s = eod_current_a.and_then(|i| self.predict_from(self.cal.as_ref(), i));
         let eod_prior_s = eod_current_a.and_then(|i| self.prior_cal.as_deref().and_then(|p| self.predict_from(p, i)));
         let eod_previous_s =
             eod_current_a.and_then(|i| self.previous_cal.as_deref().and_then(|p| self.predict_from(p, i)));
@@ -1425,7 +1501,12 @@ impl<'a> Stream<'a> {
     /// doctor's Arrhenius factors when the model has them). None before the first reading, or when the model
     /// does not reach the cut-off within [`PREDICT_MAX_S`].
     pub fn predict_eod_s(&self, current_a: f64) -> Option<f64> {
-        self.predict_from(self.cal.as_ref(), current_a)
+        self.predict_from(self.cal.as_ref(), current_a).map(|t| t - self.clock_offset_s)
+    }
+
+    /// How many times the readings' clock went back and the stream took the new one ([`CLOCK_BACK_READINGS`]).
+    pub fn clock_changes(&self) -> u32 {
+        self.clock_changes
     }
 
     /// [`Self::predict_eod_s`] from the state and estimate of `cal`.
@@ -2608,6 +2689,46 @@ mod tests {
         // The next discharge: the life has counted one, the one the piece belonged to.
         stream.step(&Reading { time_s: readings[starts[1] - 1].time_s + 3.0 * 3600.0, ..readings[0] }).unwrap();
         assert_eq!((stream.discharges(), stream.discharged), (3, 1));
+    }
+
+    /// A clock glitch: one reading a day ahead in the middle of a discharge, then the readings' own clock
+    /// again. The three after it are a day behind the stream: the first two are refused, the third starts
+    /// the readings' clock on the stream's (the rest of that discharge a piece after a day's gap), and
+    /// everything after is taken, with times and predicted ends on the readings' clock. A stretch resent
+    /// minutes behind stays refused.
+    #[test]
+    fn a_clock_that_went_back_and_stays_there_is_taken_after_three_readings() {
+        let (readings, starts, setup) = two_discharges();
+        let glitch_at = starts[0] + (starts[1] - starts[0]) / 2;
+        let mut stream = fed(&setup, &readings[..glitch_at]);
+        let ahead = Reading { time_s: readings[glitch_at].time_s + 86_400.0, ..readings[glitch_at] };
+        stream.step(&ahead).unwrap();
+        let results: Vec<Result<Estimate, ReadingError>> =
+            readings[glitch_at + 1..].iter().map(|r| stream.step(r)).collect();
+        for (k, res) in results.iter().enumerate().take(CLOCK_BACK_READINGS - 1) {
+            assert!(matches!(res, Err(ReadingError::TimeNotIncreasing { .. })), "reading {k}: {res:?}");
+        }
+        let taken: Vec<&Estimate> = results[CLOCK_BACK_READINGS - 1..].iter().map(|r| r.as_ref().unwrap()).collect();
+        assert_eq!(stream.clock_changes(), 1);
+        for (e, r) in taken.iter().zip(&readings[glitch_at + CLOCK_BACK_READINGS..]) {
+            assert_eq!(e.time_s, r.time_s, "on the readings' clock");
+        }
+        // The second discharge is whole: predicted at half within 5 % of its duration, on the readings' clock.
+        let second = &readings[starts[1]..];
+        let on = second.iter().find(|r| r.current_a > LOAD_THRESHOLD_A).unwrap().time_s;
+        let cutoff_v = stream.spec.cutoff_v;
+        let end = second.iter().find(|r| r.current_a > LOAD_THRESHOLD_A && r.voltage_v < cutoff_v).unwrap().time_s;
+        let k = second.iter().position(|r| r.time_s >= on + 0.5 * (end - on)).unwrap();
+        let e = taken[taken.len() - second.len() + k];
+        let eod = e.eod_s.unwrap();
+        assert!((eod - end).abs() < 0.05 * (end - on), "predicted {eod}, crossed at {end}");
+        // Readings resent ten minutes behind are refused, however many.
+        let last = *readings.last().unwrap();
+        for j in 0..5 {
+            let resent = Reading { time_s: last.time_s - 600.0 + f64::from(j), ..last };
+            assert!(matches!(stream.step(&resent), Err(ReadingError::TimeNotIncreasing { .. })));
+        }
+        assert_eq!(stream.clock_changes(), 1);
     }
 
     /// A stream that begins under load (a BMS's feed picked up in the middle of a discharge) joins a

@@ -635,6 +635,14 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
             "; what those rules deliver is moved by the error the learner on the stream's record expects of it, the moved end's weight by the two records over the last 15 discharges ({shown})"
         ));
     }
+    if stream.clock_changes() > 0 {
+        s.push_str(&format!(
+            "; the readings' clock went back by more than half an hour and stayed there {} time(s): the stream took \
+             it after {} readings in a row on it (the ones before were refused)",
+            stream.clock_changes(),
+            bcal_calib::stream::CLOCK_BACK_READINGS
+        ));
+    }
     if let Some(e) = last {
         s.push_str(&format!(
             "; last estimate at {} s: q_mobile {:.1} C, r_o {:.5} ohm, EOD {}{}",

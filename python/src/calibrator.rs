@@ -229,7 +229,8 @@ impl Calibrator {
     /// end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
     /// A reading that is not finite, not a cell's voltage or not later than the last raises ValueError and
-    /// leaves the calibrator as it was.
+    /// leaves the calibrator as it was (except that a third in a row more than half an hour behind, a clock
+    /// that went back and stays there, is taken on the readings' new clock).
     #[pyo3(signature = (time_s, voltage_v, current_a, temperature_c=None))]
     fn step<'py>(
         &self,
