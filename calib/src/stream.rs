@@ -895,8 +895,8 @@ impl<'a> Stream<'a> {
 
     /// Checks `r`, steps the calibrator and answers; a refused reading changes nothing.
     pub fn step(&mut self, r: &Reading) -> Result<Estimate, ReadingError> {
-        let off = self.clock_offset_s;
-        let user = |e: ReadingError| match e {
+        // An error's times on the readings' clock, as the attempt that failed read them (`off`).
+        let user = |e: ReadingError, off: f64| match e {
             ReadingError::TimeNotIncreasing { time_s, previous_s } => {
                 ReadingError::TimeNotIncreasing { time_s: time_s - off, previous_s: previous_s - off }
             }
@@ -908,14 +908,26 @@ impl<'a> Stream<'a> {
             }
             e => e,
         };
+        let off = self.clock_offset_s;
         let result = match self.step_on_clock(&Reading { time_s: r.time_s + off, ..*r }) {
             Err(ReadingError::TimeNotIncreasing { .. }) if self.clock_went_back(r.time_s) => {
                 // A clock that went back and stays there: its readings continue the stream after the last one.
+                // The load's run so far is the glitch's as much as the cell's: it starts again here. All of it
+                // is kept only if the reading is taken on the new clock (a refused reading changes nothing).
                 let interval_s = r.time_s - self.behind[self.behind.len() - 2];
-                self.clock_offset_s = self.last_t_s.unwrap_or(r.time_s) + interval_s - r.time_s;
-                self.behind.clear();
-                self.clock_changes += 1;
-                self.step_on_clock(&Reading { time_s: r.time_s + self.clock_offset_s, ..*r })
+                let new_off = self.last_t_s.unwrap_or(r.time_s) + interval_s - r.time_s;
+                let run = std::mem::take(&mut self.loaded_run);
+                match self.step_on_clock(&Reading { time_s: r.time_s + new_off, ..*r }) {
+                    Ok(e) => {
+                        self.clock_offset_s = new_off;
+                        self.clock_changes += 1;
+                        Ok(e)
+                    }
+                    Err(e) => {
+                        self.loaded_run = run;
+                        return Err(user(e, new_off));
+                    }
+                }
             }
             other => other,
         };
@@ -932,7 +944,7 @@ impl<'a> Stream<'a> {
                     ..e
                 })
             }
-            Err(e) => Err(user(e)),
+            Err(e) => Err(user(e, off)),
         }
     }
 
@@ -1254,10 +1266,11 @@ impl<'a> Stream<'a> {
                 [sd(0), sd(1)]
             });
         }
-        // The discharge's loaded readings, to the cut-off, for the voltage change of the next (a piece's
-        // start is unseen: its times since the load came on are not the discharge's), and its fit.
-        if discharged {
-            self.previous_loaded = if piece { None } else { self.loaded_readings() };
+        // The discharge's loaded readings, to the cut-off, for the voltage change of the next, and its fit;
+        // after a piece, the last whole discharge's (a piece's start is unseen: its times since the load came
+        // on are not the discharge's).
+        if discharged && !piece {
+            self.previous_loaded = self.loaded_readings();
             self.previous_fit = self.voltage_fit.take();
         }
         // A piece joined under load is the rest of a discharge the life has counted already.

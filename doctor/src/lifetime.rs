@@ -231,6 +231,7 @@ pub fn assess(
     recs.sort_by_key(|d| d.cycle);
     recs.dedup_by_key(|d| d.cycle);
     let start_of: BTreeMap<u32, f64> = starts.iter().map(|s| (s.cycle, s.start_s)).collect();
+    let step = crate::read::numbering_step(starts);
     let fits: BTreeMap<u32, (f64, f64)> = diag
         .map(|d| {
             d.base
@@ -264,7 +265,7 @@ pub fn assess(
         };
         let start_s = start_of.get(&d.cycle).copied();
         let rest_before_s = match (prev_end, start_s) {
-            (Some((c, end_s)), Some(s)) if c + 1 == d.cycle => Some(s - end_s),
+            (Some((c, end_s)), Some(s)) if c + step == d.cycle => Some(s - end_s),
             _ => None,
         };
         if rest_before_s.is_some_and(|r| r < -60.0) {

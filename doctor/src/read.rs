@@ -199,6 +199,18 @@ pub struct RecordStart {
     pub start_s: f64,
 }
 
+/// The step of a cell's record numbering, the one its consecutive records read take most (1 for NASA's
+/// discharges; 2 for a log that numbers charges and discharges alike and keeps only the discharges, 1, 3,
+/// 5, ...): the record before another is one step back (none where that one was not read).
+pub fn numbering_step(starts: &[RecordStart]) -> u32 {
+    let mut cycles: Vec<u32> = starts.iter().map(|s| s.cycle).collect();
+    cycles.sort_unstable();
+    cycles.dedup();
+    let mut steps: Vec<u32> = cycles.windows(2).map(|w| w[1] - w[0]).collect();
+    steps.sort_unstable();
+    steps.get(steps.len().saturating_sub(1) / 2).copied().unwrap_or(1)
+}
+
 /// Parses NASA's `start_time`, a MATLAB date vector printed by numpy (`[2008. 4. 2. 15. 25. 41.593]` or
 /// `[2.0080e+03 4.0000e+00 ...]`), into seconds since 1970-01-01 read as UTC. `None` unless it holds six
 /// finite numbers forming a calendar date and time.
@@ -1132,7 +1144,8 @@ fn cell_name(path: &Path) -> String {
 
 /// The discharge records of one group of samples (time order, current positive while discharging): the
 /// stretches between charging runs of at least `min_charge_split_s` (and, with `split_gaps`, gaps of more
-/// than `min_gap_split_s` after which the cell reads at rest) that hold a discharging sample, each trimmed
+/// than `min_gap_split_s`, and `gap_factor` usual intervals, after which the cell reads at rest) that hold
+/// a discharging sample, each trimmed
 /// to `max_rest_before_s` of rest before its first discharging sample and `max_rest_after_s` after its last.
 fn discharge_segments(t: &[f64], i: &[f64], opts: &ReadOptions, split_gaps: bool) -> Vec<Range<usize>> {
     let n = t.len();
@@ -1160,7 +1173,14 @@ fn discharge_segments(t: &[f64], i: &[f64], opts: &ReadOptions, split_gaps: bool
     }
     stretches.push(start..n);
     let loaded = |k: usize| i[k] > opts.load_threshold_a;
-    let gap_after = |k: usize| split_gaps && t[k] - t[k - 1] > opts.min_gap_split_s && !loaded(k);
+    // A gap is also `gap_factor` of the group's usual interval (time in milliseconds read as seconds makes
+    // every interval longer than `min_gap_split_s`, and is refused later with its own hint).
+    let mut dts: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+    let usual_s = bcal_common::stats::quantile(&mut dts, 0.5).unwrap_or(0.0);
+    let gap_after = |k: usize| {
+        let dt = t[k] - t[k - 1];
+        split_gaps && dt > opts.min_gap_split_s && dt > opts.gap_factor * usual_s && !loaded(k)
+    };
     stretches
         .into_iter()
         .flat_map(|s| {

@@ -31,8 +31,8 @@ use std::collections::BTreeMap;
 /// and both start times are known) to this record's start. Records with an unknown rest are absent. The
 /// cycle before is one step of the data's own numbering back, the step its consecutive records take most
 /// (1 for NASA's discharges; 2 for a log that numbers charges and discharges alike and keeps only the
-/// discharges, 1, 3, 5, ..., which lost every rest while the step was taken to be 1): a record after one
-/// that was not read (a missing file) has no known rest, whatever the step.
+/// discharges, 1, 3, 5, ..., which lost every rest while the step was taken to be 1), over every record
+/// read (`starts`): a record after one that was not read (a missing file) has no known rest.
 pub fn rests_before(records: &[&Discharge], starts: &[RecordStart]) -> BTreeMap<u32, f64> {
     let start_of: BTreeMap<u32, f64> = starts.iter().map(|s| (s.cycle, s.start_s)).collect();
     let end_of: BTreeMap<u32, f64> = records
@@ -43,12 +43,9 @@ pub fn rests_before(records: &[&Discharge], starts: &[RecordStart]) -> BTreeMap<
             Some((d.cycle, s + span))
         })
         .collect();
-    let mut cycles: Vec<u32> = records.iter().map(|d| d.cycle).collect();
-    cycles.sort_unstable();
-    cycles.dedup();
-    let mut steps: Vec<u32> = cycles.windows(2).map(|w| w[1] - w[0]).collect();
-    steps.sort_unstable();
-    let step = steps.get(steps.len().saturating_sub(1) / 2).copied().unwrap_or(1);
+    // The step of every record read (`starts`), not of the ones passed: a subset that left some out would
+    // take a longer step, and a rest spanning a discharge.
+    let step = bcal_doctor::read::numbering_step(starts);
     let mut out = BTreeMap::new();
     for d in records {
         let (Some(start), Some(prev_end)) =
