@@ -266,23 +266,14 @@ fn write_nasa(dir: &Path) -> PathBuf {
 /// `bcal calibrate` of the joint UKF on the NASA folder `nasa` (B0049, trained on 1..6, `--quick`) with
 /// `extra` flags, into `out`: its `calibration.json`.
 fn calibrate_nasa(nasa: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
+    calibrate_ukf(&["--data", nasa.to_str().unwrap(), "--cell", "B0049", "--train-cycles", "1..6"], out, extra)
+}
+
+/// `bcal calibrate` of the joint UKF, quick, at [`CUTOFF_V`], on `data` (its flags), into `out`: the report.
+fn calibrate_ukf(data: &[&str], out: &Path, extra: &[&str]) -> serde_json::Value {
     let cut = CUTOFF_V.to_string();
-    let common = [
-        "--data",
-        nasa.to_str().unwrap(),
-        "--cell",
-        "B0049",
-        "--train-cycles",
-        "1..6",
-        "--cutoff-v",
-        &cut,
-        "--calibrator",
-        "ukf",
-        "--quick",
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    let (ok, err) = calibrate(&[&common[..], extra].concat());
+    let common = ["--cutoff-v", &cut, "--calibrator", "ukf", "--quick", "--out", out.to_str().unwrap()];
+    let (ok, err) = calibrate(&[data, &common[..], extra].concat());
     assert!(ok, "{err}");
     serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap()
 }
@@ -329,23 +320,7 @@ fn data_that_states_no_capacity_is_scored_against_its_own_charge_only() {
     let dir = tempfile::tempdir().unwrap();
     let csv = write_cycles(dir.path());
     let out = dir.path().join("out");
-    let cut = CUTOFF_V.to_string();
-    let (ok, err) = calibrate(&[
-        "--data",
-        csv.to_str().unwrap(),
-        "--train-cycles",
-        "1..4",
-        "--cutoff-v",
-        &cut,
-        "--calibrator",
-        "ukf",
-        "--quick",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(ok, "{err}");
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap();
+    let report = calibrate_ukf(&["--data", csv.to_str().unwrap(), "--train-cycles", "1..4"], &out, &[]);
     let ukf = &report["methods"]["ukf"];
     assert_eq!(ukf["capacity_rmse_ah"], serde_json::json!({}), "{ukf}");
     let data_ah = ukf["capacity_rmse_ah_vs_data"]["50"].as_f64().unwrap();
