@@ -1236,7 +1236,7 @@ impl<'a> Stream<'a> {
         }
         // A piece joined under load hands nothing on: its calibrator started from a loaded reading of a
         // discharge whose start it did not see, so its estimate reads the unseen charge into qMobile (a stream
-        // picked up mid-discharge ended at a range's edge and put the next whole discharge's end 12-25 % off).
+        // picked up mid-discharge ended at a range's edge and put the next whole discharge's end far off).
         // The next discharge starts from what the last whole one told, else the setting's prior.
         if (!discharged || piece) && self.carried.is_none() {
             // Nothing has discharged yet (a stream that began on a charge, at rest or under load): the next
