@@ -99,26 +99,34 @@ def follow(bcal: str, kind: str, rows: list, cutoff_v: float, extra: list) -> li
     return [json.loads(line) for line in p.stdout.splitlines()]
 
 
+def crossing(rows: list, cutoff_v: float):
+    """The load-on time and the end of discharge: the crossing interpolated between the last loaded reading
+    above the cut-off and the first below, as the stream and `bcal calibrate` score it (the first reading
+    below lies up to a sample interval, 10-20 s here, past it), that first reading's row, and whether the
+    end is interpolated between two neighbouring rows; None when the discharge never reaches the cut-off
+    under load."""
+    loaded = [(k, r) for k, r in enumerate(rows) if -r[2] > 0.5]
+    below = next((n for n, (_, r) in enumerate(loaded) if r[1] < cutoff_v), None)
+    if below is None:
+        return None
+    t_on = loaded[0][1][0]
+    k1, (t1, v1) = loaded[below][0], loaded[below][1][:2]
+    if below > 0:
+        k0, (t0, v0) = loaded[below - 1][0], loaded[below - 1][1][:2]
+        if v0 > v1:
+            return t_on, t0 + (v0 - cutoff_v) / (v0 - v1) * (t1 - t0), k1, k1 == k0 + 1
+    return t_on, t1, k1, False
+
+
 def eod_error_pct(rows: list, est: list, cutoff_v: float, fraction: float = 0.5):
     """The prediction at `fraction` (half by default) of the loaded time to the end of discharge, in % of that
     time (None when the discharge never reaches the cut-off under load or no prediction was made), and
     whether its 90 % interval holds the measured end (None without an interval: an older bcal, or before the
     stream has scored nine discharges). Only the half-way prediction counts toward the prior's share."""
-    loaded = [(k, r) for k, r in enumerate(rows) if -r[2] > 0.5]
-    if not loaded:
+    c = crossing(rows, cutoff_v)
+    if c is None:
         return None, None
-    t_on = loaded[0][1][0]
-    # The end: the crossing interpolated between the last loaded reading above the cut-off and the first
-    # below, as the stream and `bcal calibrate` score it (the first reading below lies up to a sample
-    # interval, 10-20 s here, past it).
-    below = next((n for n, (_, r) in enumerate(loaded) if r[1] < cutoff_v), None)
-    if below is None:
-        return None, None
-    (t1, v1), eod = loaded[below][1][:2], loaded[below][1][0]
-    if below > 0:
-        t0, v0 = loaded[below - 1][1][:2]
-        if v0 > v1:
-            eod = t0 + (v0 - cutoff_v) / (v0 - v1) * (t1 - t0)
+    t_on, eod = c[:2]
     mid = t_on + fraction * (eod - t_on)
     k = min(range(len(rows)), key=lambda j: abs(rows[j][0] - mid))
     p, lo, hi = est[k]["eod_s"], est[k].get("eod_lo_s"), est[k].get("eod_hi_s")
@@ -143,15 +151,10 @@ def delivered_error_ah(rows: list, est: list, cutoff_v: float):
     """The charge the discharge delivers as the stream predicted it at half its loaded time (`delivered_ah`)
     less the charge it delivered (its readings' discharging current, trapezoids, from its first reading to
     the interpolated cut-off crossing), Ah; None where it never reached the cut-off or nothing was predicted."""
-    loaded = [(k, r) for k, r in enumerate(rows) if -r[2] > 0.5]
-    below = next((n for n, (_, r) in enumerate(loaded) if r[1] < cutoff_v), None)
-    if not loaded or not below:
+    c = crossing(rows, cutoff_v)
+    if c is None or not c[3]:
         return None
-    t_on = loaded[0][1][0]
-    (k0, a), (k1, b) = loaded[below - 1], loaded[below]
-    if k1 != k0 + 1 or a[1] <= b[1]:
-        return None
-    eod = a[0] + (a[1] - cutoff_v) / (a[1] - b[1]) * (b[0] - a[0])
+    t_on, eod, k1, _ = c
     drawn = 0.0
     for x, y in zip(rows[:k1], rows[1:k1 + 1]):
         to = min(y[0], eod)
