@@ -52,10 +52,15 @@ class Estimate(TypedDict):
     r_o_lo: Optional[float]
     r_o_hi: Optional[float]
     eod_s: Optional[float]
-    """Predicted end of discharge, absolute time, s, at eod_current_a."""
+    """Predicted end of discharge, absolute time, s, at eod_current_a (or eod_power_w)."""
     eod_current_a: Optional[float]
     """Mean discharge current of the loaded readings so far, A; where the load switches about as often as it
-    is sampled (a square wave read once per half-period), the mean current over time since the load came on."""
+    is sampled (a square wave read once per half-period), the mean current over time since the load came on;
+    under a load held at constant power (eod_power_w), the mean current the model draws at that power from
+    now to eod_s (it rises as the voltage falls)."""
+    eod_power_w: Optional[float]
+    """The power the prediction assumes, W, where the load has been held at constant power (the loaded
+    readings' power varied, sd over mean, less than half as much as their current); None under a current."""
     eod_lo_s: Optional[float]
     eod_hi_s: Optional[float]
     """The prediction's 90 % interval, absolute times, s: learned from how the stream's predictions fared

@@ -51,22 +51,51 @@ pub struct EodQuery<'a> {
 /// two (NASA B0005: 3.0 V to 2.7 V in 47 s of a 3160 s discharge). None when neither happens within
 /// `max_s` or the model fails.
 pub fn predict_eod_s(model: &BatteryModel, x: &ModelState, d: &Degradation, t_now_s: f64, q: &EodQuery) -> Option<f64> {
+    predict_eod(model, x, d, t_now_s, q).map(|p| p.eod_s)
+}
+
+/// A predicted end of discharge: its time, s, and the charge the model drew from the prediction's start to
+/// it, C (under a power load the current rises as the voltage falls).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EodPrediction {
+    pub eod_s: f64,
+    pub drawn_c: f64,
+}
+
+impl EodPrediction {
+    /// The mean current from `t_now_s` to the end, A (the load's own current under a constant one; None
+    /// when the end is now).
+    pub fn mean_current_a(&self, t_now_s: f64) -> Option<f64> {
+        (self.eod_s > t_now_s).then(|| self.drawn_c / (self.eod_s - t_now_s))
+    }
+}
+
+/// [`predict_eod_s`] with the charge drawn on the way.
+pub fn predict_eod(
+    model: &BatteryModel,
+    x: &ModelState,
+    d: &Degradation,
+    t_now_s: f64,
+    q: &EodQuery,
+) -> Option<EodPrediction> {
     let (profile, cutoff_v, dt_s) = (q.profile, q.cutoff_v, q.dt_s);
     let mut x = *x;
     let mut t = t_now_s;
+    let mut drawn_c = 0.0;
     while t - t_now_s <= q.max_s {
         let v = model.voltage_v(&x, d);
         if !v.is_finite() {
             return None;
         }
         if v < cutoff_v || model.surface_empty(&x, d) {
-            return Some(t);
+            return Some(EodPrediction { eod_s: t, drawn_c });
         }
         let i = match profile.at(t) {
             Load::CurrentA(a) => a,
             Load::PowerW(w) => w / v,
         };
         x = model.step_current(&x, i, dt_s, d);
+        drawn_c += i * dt_s;
         t += dt_s;
     }
     None
@@ -96,6 +125,17 @@ mod tests {
         let q = EodQuery { profile: &spec.profile, cutoff_v: 3.0, dt_s: 1.0, max_s: 1e5 };
         let eod = predict_eod_s(&model, &x0, &spec.truth, 0.0, &q).unwrap();
         assert_eq!(Some(eod), ep.eod_s);
+        // The charge on the way is the simulated cell's: the current it drew step by step to its end.
+        let mut drawn_c = 0.0;
+        model
+            .simulate_until_eod(&x0, &spec.truth, &spec.profile, 1.0, 100_000, |r| {
+                if r.t_s < eod {
+                    drawn_c += r.current_a;
+                }
+            })
+            .unwrap();
+        let p = predict_eod(&model, &x0, &spec.truth, 0.0, &q).unwrap();
+        assert!((p.drawn_c - drawn_c).abs() < 1e-9 * drawn_c.max(1.0), "{} against {drawn_c}", p.drawn_c);
         let mut unc = Uncalibrated::new(&TrackerSpec::default());
         for s in &ep.samples {
             unc.step(s);

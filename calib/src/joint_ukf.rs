@@ -191,7 +191,7 @@ impl JointUkf {
     /// The starting distribution from the first (rest) reading: the unscented transform of the starting
     /// mole fraction and the two parameters through the rest state.
     fn start(&mut self, s: &Sample) {
-        self.load.push(s.t_s, s.current_a);
+        self.load.push(s.t_s, s.current_a, s.voltage_v);
         if self.spec.use_measured_temperature {
             self.t_k = s.temperature_k;
         }
@@ -300,7 +300,7 @@ impl JointUkf {
         // A load that alternates as often as it is sampled runs each reading's load over the interval before
         // it (`interval_drive`): no switch of unknown time there.
         let alternating = self.load.alternating();
-        self.load.push(s.t_s, s.current_a);
+        self.load.push(s.t_s, s.current_a, s.voltage_v);
         let parts = interval_drive(&prev, s, self.spec.max_substep_s, alternating);
         // After a switch of unknown time the predicted voltage is off by up to dI Ro, by how much depends on
         // when it came: that uncertainty joins the measurement noise.

@@ -43,7 +43,7 @@ pub mod window;
 pub use adaptive::{AdaptiveRule, AdaptiveUkf, CovarianceMatching};
 pub use bcal_common::measured::LoadMean;
 pub use correction::{Correction, CorrectionCalibrator};
-pub use eod::{predict_eod_s, EodQuery};
+pub use eod::{predict_eod, predict_eod_s, EodPrediction, EodQuery};
 pub use joint_ukf::{JointUkf, JointUkfSettings};
 pub use tracker::Tracker;
 pub use tracker_based::{tracker_state, RlCalibrator, Uncalibrated, WindowFitCalibrator};

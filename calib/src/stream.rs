@@ -45,7 +45,7 @@ use crate::recentre::{Previous, Start, VoltageChange};
 use crate::record_learner::EndRecord;
 use crate::tracker_based::{RlCalibrator, Uncalibrated, WindowFitCalibrator};
 use crate::widening::{share_bin, Adapt, Outcome, Widening, EOD_FRACTIONS_PCT, MIN_OUTCOMES, WINDOW};
-use crate::{predict_eod_s, Calibrator, EodQuery};
+use crate::{predict_eod, Calibrator, EodPrediction, EodQuery};
 use bcal_common::battery::{Degradation, Load, LoadProfile};
 use bcal_common::lifetime::{Carry, Condition, LifeTracker};
 use bcal_common::math::idx;
@@ -162,10 +162,17 @@ pub struct Estimate {
     pub r_o: f64,
     pub r_o_lo: Option<f64>,
     pub r_o_hi: Option<f64>,
-    /// Predicted end of discharge (absolute time, s) at `eod_current_a` down to the spec's cut-off.
+    /// Predicted end of discharge (absolute time, s) at `eod_current_a` (or `eod_power_w`) down to the
+    /// spec's cut-off.
     pub eod_s: Option<f64>,
-    /// The current the prediction assumes: the mean of the loaded readings so far, A.
+    /// The current the prediction assumes, A: the mean of the loaded readings so far (over time where the
+    /// load alternates); under a load held at constant power, the mean current the model draws at
+    /// `eod_power_w` from now to its end.
     pub eod_current_a: Option<f64>,
+    /// The power the prediction assumes, W, where the load has been held at constant power (its loaded
+    /// readings' power varied less than half as much as their current: [`LoadMean::power_held`]); None
+    /// under a current.
+    pub eod_power_w: Option<f64>,
     /// The prediction's 90 % interval (absolute times, s), learned from how the stream's own predictions
     /// fared on the discharges it followed to their cut-off (None until [`MIN_OUTCOMES`] of them are scored
     /// at the share of the discharge the prediction puts this reading at).
@@ -1052,7 +1059,7 @@ impl<'a> Stream<'a> {
         }
         self.last_t_s = Some(r.time_s);
         self.readings += 1;
-        self.load.push(r.time_s, r.current_a);
+        self.load.push(r.time_s, r.current_a, r.voltage_v);
         if r.current_a > LOAD_THRESHOLD_A {
             self.loaded_n += 1;
             if self.eod_track.ended_s.is_none() {
@@ -1062,11 +1069,25 @@ impl<'a> Stream<'a> {
         } else if self.loaded_n > 0 && self.load_off_s.is_none() {
             self.load_off_s = Some(r.time_s);
         }
-        let eod_current_a = self.load.current_a();
-        let eod_method_s = eod_current_a.and_then(|i| self.predict_from(self.cal.as_ref(), i));
-        let eod_prior_s = eod_current_a.and_then(|i| self.prior_cal.as_deref().and_then(|p| self.predict_from(p, i)));
-        let eod_previous_s =
-            eod_current_a.and_then(|i| self.previous_cal.as_deref().and_then(|p| self.predict_from(p, i)));
+        let eod_load = self.load.load();
+        let method = eod_load.and_then(|l| self.predict_from(self.cal.as_ref(), l));
+        let prior_run = eod_load.and_then(|l| self.prior_cal.as_deref().and_then(|p| self.predict_from(p, l)));
+        let previous_run = eod_load.and_then(|l| self.previous_cal.as_deref().and_then(|p| self.predict_from(p, l)));
+        let (eod_method_s, eod_prior_s, eod_previous_s) =
+            (method.map(|p| p.eod_s), prior_run.map(|p| p.eod_s), previous_run.map(|p| p.eod_s));
+        // The current assumed to the end: the load's, or under a power held constant the mean current the
+        // model's run draws (it rises as the voltage falls), else the power at the present voltage.
+        let eod_power_w = match eod_load {
+            Some(Load::PowerW(w)) => Some(w),
+            _ => None,
+        };
+        let eod_current_a = match eod_load {
+            Some(Load::CurrentA(a)) => Some(a),
+            Some(Load::PowerW(w)) => {
+                method.or(prior_run).or(previous_run).and_then(|p| p.mean_current_a(r.time_s)).or(Some(w / r.voltage_v))
+            }
+            None => None,
+        };
         // The load-on: the first loaded reading of the discharge (this one, when it is).
         let load_on_s =
             self.eod_track.load_on_s.or((r.current_a > LOAD_THRESHOLD_A).then_some(r.time_s)).unwrap_or(r.time_s);
@@ -1187,6 +1208,7 @@ impl<'a> Stream<'a> {
             r_o_hi: iv.map(|iv| iv.r_o_ohm[1]),
             eod_s,
             eod_current_a,
+            eod_power_w,
             eod_lo_s,
             eod_hi_s,
             delivered_ah,
@@ -1514,7 +1536,7 @@ impl<'a> Stream<'a> {
     /// doctor's Arrhenius factors when the model has them). None before the first reading, or when the model
     /// does not reach the cut-off within [`PREDICT_MAX_S`].
     pub fn predict_eod_s(&self, current_a: f64) -> Option<f64> {
-        self.predict_from(self.cal.as_ref(), current_a).map(|t| t - self.clock_offset_s)
+        self.predict_from(self.cal.as_ref(), Load::CurrentA(current_a)).map(|p| p.eod_s - self.clock_offset_s)
     }
 
     /// How many times the readings' clock went back and the stream took the new one ([`CLOCK_BACK_READINGS`]).
@@ -1522,8 +1544,9 @@ impl<'a> Stream<'a> {
         self.clock_changes
     }
 
-    /// [`Self::predict_eod_s`] from the state and estimate of `cal`.
-    fn predict_from(&self, cal: &(dyn Calibrator + Send + 'a), current_a: f64) -> Option<f64> {
+    /// [`Self::predict_eod_s`] from the state and estimate of `cal`, under `load` (a current or a power), with
+    /// the charge drawn on the way.
+    fn predict_from(&self, cal: &(dyn Calibrator + Send + 'a), load: Load) -> Option<EodPrediction> {
         let (x, t_now_s) = (cal.state()?, self.last_t_s?);
         let d = cal.estimate();
         let t_k = x[idx::T_B];
@@ -1531,9 +1554,9 @@ impl<'a> Stream<'a> {
         let (model, ro_factor) = ext.model_at(t_k, ext.reference_k.unwrap_or(t_k)).ok()?;
         // The calibrated state already holds Ro's temperature factor in its ohmic lag; the dynamics apply it.
         let dynamics = Degradation { r_o_ohm: d.r_o_ohm * ro_factor, ..d };
-        let profile = LoadProfile::Constant(Load::CurrentA(current_a));
+        let profile = LoadProfile::Constant(load);
         let q = EodQuery { profile: &profile, cutoff_v: self.spec.cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
-        predict_eod_s(&model, &x, &dynamics, t_now_s, &q)
+        predict_eod(&model, &x, &dynamics, t_now_s, &q)
     }
 }
 
@@ -2458,6 +2481,60 @@ mod tests {
             }
         }
         assert!(bracketed >= 2, "the last discharges have an interval: {bracketed}");
+    }
+
+    /// A full cell discharged at constant power (7.5 W after the rest, about 1.9 A at 4.0 V and 2.5 A at
+    /// 3.0 V): from a tenth of each discharge on the stream assumes the loaded readings' mean power, and at
+    /// half its end is within 2 % of the discharge's length of the truth on every discharge and a third or
+    /// less of the error at the mean current so far (which puts it 5-6 % late), and its charge within 1.5 %
+    /// of what the discharge delivers. The current it states is the mean the model draws to its end, above
+    /// the mean so far.
+    #[test]
+    fn a_load_held_at_constant_power_is_predicted_at_its_power() {
+        let (readings, starts) = cycler_life(6, |_, spec| EpisodeSpec {
+            kind: LoadKind::ConstantPower,
+            profile: LoadProfile::Piecewise(vec![(0.0, Load::PowerW(0.0)), (30.0, Load::PowerW(7.5))]),
+            soc0: 1.0,
+            ..spec
+        });
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let cutoff_v = stream.spec.cutoff_v;
+        for (k, w) in starts.windows(2).enumerate() {
+            let r = &readings[w[0]..w[1]];
+            let on = r.iter().position(|x| x.current_a > LOAD_THRESHOLD_A).unwrap();
+            let below = r.iter().position(|x| x.current_a > LOAD_THRESHOLD_A && x.voltage_v < cutoff_v).unwrap();
+            let end_s = r[below].time_s;
+            let length_s = end_s - r[on].time_s;
+            let (tenth, half) = (r[on].time_s + 0.1 * length_s, r[on].time_s + 0.5 * length_s);
+            let (mut mean_a, mut at_half) = (LoadMean::default(), None);
+            for x in &r[..below] {
+                let e = stream.step(x).unwrap();
+                mean_a.push(x.time_s, x.current_a, x.voltage_v);
+                if x.time_s >= tenth {
+                    let w = e.eod_power_w.unwrap_or_else(|| panic!("discharge {k} at {}: {e:?}", x.time_s));
+                    assert!((w - 7.5).abs() < 0.05, "discharge {k}: {w} W");
+                }
+                if x.time_s >= half && x.time_s - half < 20.0 {
+                    let at_power = (e.eod_s.unwrap() - end_s).abs();
+                    let so_far_a = mean_a.loaded_mean_a().unwrap();
+                    let at_current = (stream.predict_eod_s(so_far_a).unwrap() - end_s).abs();
+                    assert!(
+                        at_power < 0.02 * length_s && 3.0 * at_power < at_current,
+                        "discharge {k}: {at_power:.0} s off at power, {at_current:.0} s at the mean current so far"
+                    );
+                    assert!(e.eod_current_a.unwrap() > so_far_a, "{e:?}");
+                    at_half = e.delivered_ah;
+                }
+            }
+            // Past the crossing the stream states the charge measured to it (checked apart from it elsewhere).
+            let measured_ah = stream.step(&r[below]).unwrap().delivered_ah.unwrap();
+            let predicted_ah = at_half.unwrap();
+            assert!((predicted_ah - measured_ah).abs() < 0.015 * measured_ah, "{predicted_ah} against {measured_ah}");
+            for x in &r[below + 1..] {
+                stream.step(x).unwrap();
+            }
+        }
     }
 
     /// Two constant-current discharges of a cycler (a 30 s rest, then 2 A to the cut-off, read every 10-20 s),

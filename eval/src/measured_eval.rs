@@ -25,15 +25,15 @@ use bcal_calib::{
 };
 use bcal_calib::{AdaptiveUkf, CorrectionCalibrator};
 use bcal_common::battery::Degradation;
-use bcal_common::battery::{Load, LoadProfile};
+use bcal_common::battery::LoadProfile;
 use bcal_common::dataset::Split;
 use bcal_common::math::ModelState;
-use bcal_common::measured::cellmodel::REST_CURRENT_A;
 use bcal_common::measured::env::Design;
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{episode_set, Episode, ScenarioConfig};
 use bcal_common::measured::tracker::TrackerSpec;
+use bcal_common::measured::LoadMean;
 use bcal_common::nrmse::Param;
 use bcal_common::policy::PolicyNet;
 use bcal_common::stats::median;
@@ -147,8 +147,9 @@ pub enum MeasuredEvalError {
 pub struct Trace {
     pub estimates: Vec<Degradation>,
     pub intervals: Vec<Option<Interval>>,
-    /// Predicted end of discharge at each of [`EOD_FRACTIONS`] at the mean measured current so far, as a
-    /// BMS (and `bcal calibrate` on real cells) predicts it (None: the prediction failed).
+    /// Predicted end of discharge at each of [`EOD_FRACTIONS`] under the load so far ([`LoadMean::load`]: the
+    /// mean measured current, or the mean power where the load has been held at power), as a BMS (and
+    /// `bcal calibrate` on real cells) predicts it (None: the prediction failed).
     pub eod_pred_s: [Option<f64>; 3],
     /// The same under the cell's true future load (an oracle of the load, not of the cell: it isolates the
     /// calibration's share of the error).
@@ -156,8 +157,8 @@ pub struct Trace {
 }
 
 /// Runs a calibrator along an episode, predicting the end of discharge at the set fractions on the
-/// calibrators' model `ext` (its Arrhenius factors, if any, at the cell's temperature then), at the mean
-/// current so far and under the true future load.
+/// calibrators' model `ext` (its Arrhenius factors, if any, at the cell's temperature then), under the load
+/// so far and under the true future load.
 fn run_episode(cal: &mut dyn Calibrator, e: &Episode, ext: &ModelExtension, cutoff_v: f64) -> Trace {
     let ref_k = ext.reference_k.or(e.samples.first().map(|s| s.temperature_k)).unwrap_or(ext.params().tb0_k);
     let n = e.samples.len();
@@ -171,15 +172,14 @@ fn run_episode(cal: &mut dyn Calibrator, e: &Episode, ext: &ModelExtension, cuto
         eod_pred_s: [None; 3],
         eod_oracle_load_s: [None; 3],
     };
-    let (mut loaded_sum_a, mut loaded_n) = (0.0, 0u32);
+    // The load so far as a real cell's predictions assume it (`LoadMean`): the mean current of the loaded
+    // readings, over time where the load alternates, or their mean power where it has been held at power.
+    let mut load = LoadMean::default();
     for s in &e.samples {
         cal.step(s);
         out.estimates.push(cal.estimate());
         out.intervals.push(cal.interval());
-        if s.current_a >= REST_CURRENT_A {
-            loaded_sum_a += s.current_a;
-            loaded_n += 1;
-        }
+        load.push(s.t_s, s.current_a, s.voltage_v);
         while next < at.len() && s.t_s >= at[next] {
             if let Some(x) = cal.state() {
                 let (model, ro_factor) =
@@ -188,8 +188,8 @@ fn run_episode(cal: &mut dyn Calibrator, e: &Episode, ext: &ModelExtension, cuto
                 let max_s = 4.0 * (end + 100.0);
                 let oracle = EodQuery { profile: &e.spec.profile, cutoff_v, dt_s: 1.0, max_s };
                 out.eod_oracle_load_s[next] = predict_eod_s(&model, &x, &d, s.t_s, &oracle);
-                if loaded_n > 0 {
-                    let mean = LoadProfile::Constant(Load::CurrentA(loaded_sum_a / f64::from(loaded_n)));
+                if let Some(assumed) = load.load() {
+                    let mean = LoadProfile::Constant(assumed);
                     let q = EodQuery { profile: &mean, cutoff_v, dt_s: 1.0, max_s };
                     out.eod_pred_s[next] = predict_eod_s(&model, &x, &d, s.t_s, &q);
                 }
@@ -248,8 +248,8 @@ pub struct MethodScores {
     pub all_cells: Breakdown,
     /// By sampling regime ("1s", "10-20s"): 1 s cells hold most readings, so the pooled figure is theirs.
     pub by_sampling: BTreeMap<String, Breakdown>,
-    /// End-of-discharge prediction made at 10 / 50 / 90 % of each discharge at the mean measured current
-    /// so far (as on real cells): absolute error, s, and the predictions that failed.
+    /// End-of-discharge prediction made at 10 / 50 / 90 % of each discharge under the load so far
+    /// (as on real cells: [`LoadMean::load`]): absolute error, s, and the predictions that failed.
     pub eod: BTreeMap<String, EodSummary>,
     /// The same under the cell's true future load (labelled oracle: the load is known, the cell is not).
     pub eod_oracle_load: BTreeMap<String, EodSummary>,

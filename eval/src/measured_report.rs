@@ -60,7 +60,7 @@ fn method_table(s: &mut String, methods: &std::collections::BTreeMap<String, Met
     let _ = writeln!(s);
 }
 
-/// The end-of-discharge table of one set of predictions (`which`: at the mean current so far, or under the
+/// The end-of-discharge table of one set of predictions (`which`: under the load so far, or under the
 /// oracle load).
 fn eod_table(
     s: &mut String,
@@ -176,8 +176,8 @@ pub fn render_markdown(r: &MeasuredReport) -> String {
     let _ = writeln!(
         s,
         "Made at 10 / 50 / 90 % of each discharge (load on to cut-off) from the calibrated state and parameters, \
-         running the calibrator's model to the cut-off. As a BMS (and `bcal calibrate` on real cells) predicts: at \
-         the mean measured current so far. Absolute error in s (mean, median), mean in % of the discharge, and the \
+         running the calibrator's model to the cut-off. As a BMS (and `bcal calibrate` on real cells) predicts: under \
+         the load so far (its mean measured current, or its mean power where the load has been held at power). Absolute error in s (mean, median), mean in % of the discharge, and the \
          predictions that failed (the model never reached the cut-off), which the errors leave out.\n"
     );
     eod_table(&mut s, &r.methods, |m| &m.eod);
@@ -280,7 +280,7 @@ pub fn reading(r: &MeasuredReport) -> Vec<String> {
         for fr in ["10", "50"] {
             if let (Some(a), Some(b)) = (rl.eod.get(fr), ukf.eod.get(fr)) {
                 out.push(format!(
-                    "End of discharge at {fr} % (mean current so far): RL-LAC MAE {:.1} s ({} failed), joint UKF {:.1} s ({} failed): {}.",
+                    "End of discharge at {fr} % (load so far): RL-LAC MAE {:.1} s ({} failed), joint UKF {:.1} s ({} failed): {}.",
                     a.mae_s,
                     a.failures,
                     b.mae_s,

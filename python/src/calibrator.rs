@@ -82,6 +82,7 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
     d.set_item("r_o_hi", e.r_o_hi)?;
     d.set_item("eod_s", e.eod_s)?;
     d.set_item("eod_current_a", e.eod_current_a)?;
+    d.set_item("eod_power_w", e.eod_power_w)?;
     d.set_item("eod_lo_s", e.eod_lo_s)?;
     d.set_item("eod_hi_s", e.eod_hi_s)?;
     d.set_item("delivered_ah", e.delivered_ah)?;
@@ -98,7 +99,7 @@ fn estimate_dict<'py>(py: Python<'py>, e: &Estimate) -> PyResult<Bound<'py, PyDi
 }
 
 /// The columns `run` returns, in order.
-const RUN_COLUMNS: [&str; 22] = [
+const RUN_COLUMNS: [&str; 23] = [
     "time_s",
     "q_mobile",
     "q_mobile_lo",
@@ -108,6 +109,7 @@ const RUN_COLUMNS: [&str; 22] = [
     "r_o_hi",
     "eod_s",
     "eod_current_a",
+    "eod_power_w",
     "eod_lo_s",
     "eod_hi_s",
     "delivered_ah",
@@ -206,7 +208,8 @@ impl Calibrator {
     /// Takes the next reading (time order; current positive while discharging) and returns the estimate:
     /// a dict of `time_s`, `q_mobile` (C), `q_mobile_lo`, `q_mobile_hi` (its 90 % interval), `r_o` (ohm),
     /// `r_o_lo`, `r_o_hi`, `eod_s` (predicted end of discharge, absolute time, s, at `eod_current_a`: the
-    /// mean discharge current so far), `eod_lo_s`, `eod_hi_s` (its 90 % interval, learned from the
+    /// mean discharge current so far; under a load held at constant power, at `eod_power_w`, the mean power
+    /// so far, and `eod_current_a` is the mean current the model then draws to the end), `eod_lo_s`, `eod_hi_s` (its 90 % interval, learned from the
     /// stream's own discharges followed to the cut-off: from the ninth on), `delivered_ah` (the charge the
     /// discharge will have delivered at its end, Ah: drawn so far plus `eod_current_a` until `eod_s`; from a
     /// full cell, its capacity as a cycler measures it; once the cut-off is crossed, the charge measured to
@@ -315,6 +318,7 @@ impl Calibrator {
                     opt(e.r_o_hi),
                     opt(e.eod_s),
                     opt(e.eod_current_a),
+                    opt(e.eod_power_w),
                     opt(e.eod_lo_s),
                     opt(e.eod_hi_s),
                     opt(e.delivered_ah),

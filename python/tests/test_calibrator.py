@@ -14,8 +14,8 @@ from conftest import generated_discharge, run_cli
 
 KINDS = ["ukf", "adaptive_ukf", "ukf_learned", "fit", "uncalibrated"]
 FIELDS = ["time_s", "q_mobile", "q_mobile_lo", "q_mobile_hi", "r_o", "r_o_lo", "r_o_hi", "eod_s", "eod_current_a",
-          "eod_lo_s", "eod_hi_s", "delivered_ah", "delivered_lo_ah", "delivered_hi_ah", "eod_from_prior", "eod_recentred",
-          "eod_on_voltage_change", "eod_prior_weight", "eod_previous_weight", "eod_learned_weight", "discharge"]
+          "eod_power_w", "eod_lo_s", "eod_hi_s", "delivered_ah", "delivered_lo_ah", "delivered_hi_ah", "eod_from_prior",
+          "eod_recentred", "eod_on_voltage_change", "eod_prior_weight", "eod_previous_weight", "eod_learned_weight", "discharge"]
 
 
 def make(kind: str, **kw) -> bcal.Calibrator:

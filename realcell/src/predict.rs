@@ -1,11 +1,12 @@
-//! What a calibrated model predicts for the cell: when the voltage will reach the cut-off at the
-//! discharge's current (from the calibrated state now), and the capacity, the charge a full cell delivers
-//! at that current down to the cut-off. Each with a 90 % interval from the parameters' interval: the
+//! What a calibrated model predicts for the cell: when the voltage will reach the cut-off under the
+//! discharge's load (its current, or its power where it is held at constant power: `bcal_calib::LoadMean`)
+//! from the calibrated state now, and the capacity, the charge a full cell delivers under that load down to
+//! the cut-off. Each with a 90 % interval from the parameters' interval: the
 //! earliest end under (least qMobile, most Ro), the latest under (most qMobile, least Ro), since the end
 //! comes sooner with less capacity and more resistance.
 
 use bcal_calib::Interval;
-use bcal_calib::{predict_eod_s, EodQuery};
+use bcal_calib::{predict_eod, predict_eod_s, EodQuery};
 use bcal_common::battery::{BatteryModel, Degradation, Load, LoadProfile};
 use bcal_common::math::{idx, ModelState};
 use bcal_common::measured::extension::ModelExtension;
@@ -75,7 +76,7 @@ impl Predictor {
         Degradation { r_o_ohm: d.r_o_ohm * self.ro_factor, ..*d }
     }
 
-    /// The predicted end of discharge (absolute time, s) from `state(d)` at `t_now_s` at `current_a`, with
+    /// The predicted end of discharge (absolute time, s) from `state(d)` at `t_now_s` under `load`, with
     /// the interval's corners. `state` rebuilds the calibrated state under any parameters.
     pub fn eod(
         &self,
@@ -83,11 +84,11 @@ impl Predictor {
         d: &Degradation,
         iv: Option<&Interval>,
         t_now_s: f64,
-        current_a: f64,
+        load: Load,
         cutoff_v: f64,
     ) -> Predicted {
-        let value = self.eod_at(state, d, t_now_s, current_a, cutoff_v);
-        Predicted { value, ..self.eod_bounds(state, iv, t_now_s, current_a, cutoff_v) }
+        let value = self.eod_at(state, d, t_now_s, load, cutoff_v);
+        Predicted { value, ..self.eod_bounds(state, iv, t_now_s, load, cutoff_v) }
     }
 
     fn eod_at(
@@ -95,10 +96,10 @@ impl Predictor {
         state: &dyn Fn(&Degradation) -> Option<ModelState>,
         d: &Degradation,
         t_now_s: f64,
-        current_a: f64,
+        load: Load,
         cutoff_v: f64,
     ) -> Option<f64> {
-        let profile = LoadProfile::Constant(Load::CurrentA(current_a));
+        let profile = LoadProfile::Constant(load);
         let q = EodQuery { profile: &profile, cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
         state(d).and_then(|x| predict_eod_s(&self.model, &x, &self.dynamics(d), t_now_s, &q))
     }
@@ -109,10 +110,10 @@ impl Predictor {
         state: &dyn Fn(&Degradation) -> Option<ModelState>,
         iv: Option<&Interval>,
         t_now_s: f64,
-        current_a: f64,
+        load: Load,
         cutoff_v: f64,
     ) -> Predicted {
-        let at = |p: &Degradation| self.eod_at(state, p, t_now_s, current_a, cutoff_v);
+        let at = |p: &Degradation| self.eod_at(state, p, t_now_s, load, cutoff_v);
         let (lo, hi) = match iv.map(corners) {
             Some((early, late)) => (at(&early), at(&late)),
             None => (None, None),
@@ -120,32 +121,26 @@ impl Predictor {
         ordered(lo, hi)
     }
 
-    /// The capacity a full cell at rest at `t_k` delivers at `current_a` down to `cutoff_v` under `d`, Ah.
-    pub fn capacity_ah(&self, d: &Degradation, current_a: f64, cutoff_v: f64, t_k: f64) -> Option<f64> {
+    /// The capacity a full cell at rest at `t_k` delivers under `load` down to `cutoff_v` under `d`, Ah.
+    pub fn capacity_ah(&self, d: &Degradation, load: Load, cutoff_v: f64, t_k: f64) -> Option<f64> {
         let x0 = rest_state(&self.model, d, self.model.params.xn_max, t_k);
-        let profile = LoadProfile::Constant(Load::CurrentA(current_a));
+        let profile = LoadProfile::Constant(load);
         let q = EodQuery { profile: &profile, cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
-        predict_eod_s(&self.model, &x0, &self.dynamics(d), 0.0, &q).map(|t| t * current_a / 3600.0)
-    }
-
-    /// The capacity with the interval's corners (least capacity: least qMobile, most Ro).
-    pub fn capacity(
-        &self,
-        d: &Degradation,
-        iv: Option<&Interval>,
-        current_a: f64,
-        cutoff_v: f64,
-        t_k: f64,
-    ) -> Predicted {
-        Predicted {
-            value: self.capacity_ah(d, current_a, cutoff_v, t_k),
-            ..self.capacity_bounds(iv, current_a, cutoff_v, t_k)
+        match load {
+            // Time times current, exactly (a sum of the same steps can differ in its last bits).
+            Load::CurrentA(a) => predict_eod_s(&self.model, &x0, &self.dynamics(d), 0.0, &q).map(|t| t * a / 3600.0),
+            Load::PowerW(_) => predict_eod(&self.model, &x0, &self.dynamics(d), 0.0, &q).map(|p| p.drawn_c / 3600.0),
         }
     }
 
+    /// The capacity with the interval's corners (least capacity: least qMobile, most Ro).
+    pub fn capacity(&self, d: &Degradation, iv: Option<&Interval>, load: Load, cutoff_v: f64, t_k: f64) -> Predicted {
+        Predicted { value: self.capacity_ah(d, load, cutoff_v, t_k), ..self.capacity_bounds(iv, load, cutoff_v, t_k) }
+    }
+
     /// Only the interval of [`Predictor::capacity`] (value None).
-    pub fn capacity_bounds(&self, iv: Option<&Interval>, current_a: f64, cutoff_v: f64, t_k: f64) -> Predicted {
-        let at = |p: &Degradation| self.capacity_ah(p, current_a, cutoff_v, t_k);
+    pub fn capacity_bounds(&self, iv: Option<&Interval>, load: Load, cutoff_v: f64, t_k: f64) -> Predicted {
+        let at = |p: &Degradation| self.capacity_ah(p, load, cutoff_v, t_k);
         let (lo, hi) = match iv.map(corners) {
             Some((small, large)) => (at(&small), at(&large)),
             None => (None, None),
@@ -163,21 +158,23 @@ pub fn temperature_of(x: Option<&ModelState>, ambient_k: f64) -> f64 {
 mod tests {
     use super::*;
 
+    const A2: Load = Load::CurrentA(2.0);
+
     #[test]
     fn capacity_falls_with_qmobile_and_with_resistance_and_the_interval_brackets_it() {
         let m = BatteryModel::default();
         let p = Predictor::base(m.clone());
         let d = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.15 };
-        let c = p.capacity_ah(&d, 2.0, 3.0, 298.15).unwrap();
+        let c = p.capacity_ah(&d, A2, 3.0, 298.15).unwrap();
         assert!(c > 1.0 && c < 6000.0 / 3600.0, "{c}");
-        assert!(p.capacity_ah(&Degradation { q_mobile_c: 5000.0, ..d }, 2.0, 3.0, 298.15).unwrap() < c);
-        assert!(p.capacity_ah(&Degradation { r_o_ohm: 0.25, ..d }, 2.0, 3.0, 298.15).unwrap() < c);
+        assert!(p.capacity_ah(&Degradation { q_mobile_c: 5000.0, ..d }, A2, 3.0, 298.15).unwrap() < c);
+        assert!(p.capacity_ah(&Degradation { r_o_ohm: 0.25, ..d }, A2, 3.0, 298.15).unwrap() < c);
         let iv = Interval { q_mobile_c: [5800.0, 6200.0], r_o_ohm: [0.14, 0.16] };
-        let cap = p.capacity(&d, Some(&iv), 2.0, 3.0, 298.15);
+        let cap = p.capacity(&d, Some(&iv), A2, 3.0, 298.15);
         assert!(cap.lo.unwrap() < cap.value.unwrap() && cap.value.unwrap() < cap.hi.unwrap(), "{cap:?}");
         // A constant-current discharge from full lasts capacity / current.
         let x0 = |q: &Degradation| Some(rest_state(&m, q, m.params.xn_max, 298.15));
-        let e = p.eod(&x0, &d, Some(&iv), 0.0, 2.0, 3.0);
+        let e = p.eod(&x0, &d, Some(&iv), 0.0, A2, 3.0);
         assert!((e.value.unwrap() * 2.0 / 3600.0 - c).abs() < 2.0 * 2.0 / 3600.0);
         assert!(e.lo.unwrap() < e.value.unwrap() && e.value.unwrap() < e.hi.unwrap());
         // A warm cell with Arrhenius resistance: less resistance, more capacity at the same current.
@@ -190,8 +187,8 @@ mod tests {
         let warm = Predictor::at(&ext, 310.0);
         assert!(warm.ro_factor < 1.0);
         assert!(
-            warm.capacity_ah(&Degradation { r_o_ohm: 0.25, ..d }, 2.0, 3.0, 298.15).unwrap()
-                > p.capacity_ah(&Degradation { r_o_ohm: 0.25, ..d }, 2.0, 3.0, 298.15).unwrap()
+            warm.capacity_ah(&Degradation { r_o_ohm: 0.25, ..d }, A2, 3.0, 298.15).unwrap()
+                > p.capacity_ah(&Degradation { r_o_ohm: 0.25, ..d }, A2, 3.0, 298.15).unwrap()
         );
     }
 }

@@ -5,6 +5,7 @@
 //! discharge before it happens.
 
 use bcal_calib::eod::charge_to_ah;
+use bcal_common::battery::Load;
 use bcal_common::measured::scenario::{Request, Sample};
 use bcal_doctor::Discharge;
 use serde::Serialize;
@@ -26,7 +27,8 @@ pub struct CellRecord {
     /// When the voltage reached the cut-off under load, s (interpolated between the readings around the
     /// crossing); `None` when the record never reaches it (cut short).
     pub eod_s: Option<f64>,
-    /// Mean current under load, A (the test current of capacity predictions).
+    /// Mean current under load, A (over time where the load alternates; [`CellRecord::load`] is the load
+    /// predictions assume, a power where it was held at power).
     pub current_a: f64,
     /// Charge drawn from the load-on to the cut-off, Ah (the capacity the data itself shows).
     pub data_capacity_ah: Option<f64>,
@@ -42,7 +44,23 @@ pub struct CellRecord {
     pub partial_start: bool,
 }
 
+/// The discharge's load as its predictions assume it at its end (`bcal_calib::LoadMean`): the mean current
+/// of its loaded readings, or over time where the load alternates, or their mean power where it was held at
+/// power.
+fn load_mean(samples: &[Sample]) -> bcal_calib::LoadMean {
+    let mut load = bcal_calib::LoadMean::default();
+    for s in samples {
+        load.push(s.t_s, s.current_a, s.voltage_v);
+    }
+    load
+}
+
 impl CellRecord {
+    /// The load its predictions assume at its end ([`load_mean`]; a current of 0 A with no loaded reading).
+    pub fn load(&self) -> Load {
+        load_mean(&self.samples).load().unwrap_or(Load::CurrentA(0.0))
+    }
+
     /// Duration of the discharge from the load-on to the cut-off, s.
     pub fn discharge_s(&self) -> Option<f64> {
         self.eod_s.map(|e| e - self.load_on_s)
@@ -123,13 +141,7 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
             request: Request::Unknown,
         })
         .collect();
-    // The discharge's current as its predictions assume it at its end (`bcal_calib::LoadMean`): the mean of
-    // its loaded readings, or over time where the load alternates.
-    let mut load = bcal_calib::LoadMean::default();
-    for s in &samples {
-        load.push(s.t_s, s.current_a);
-    }
-    let current_a = load.current_a().unwrap_or(0.0);
+    let current_a = load_mean(&samples).current_a().unwrap_or(0.0);
     // The charge drawn up to the interpolated cut-off, not to the first reading below it (which can lie a
     // sample interval, 10-20 s on a NASA cycler, past it).
     let data_capacity_ah = cut.zip(eod_s).map(|(k, eod)| charge_to_ah(&samples[on.saturating_sub(1)..=k], eod));

@@ -15,7 +15,7 @@ use crate::record::CellRecord;
 use bcal_calib::joint_ukf::{JointUkf, JointUkfSettings};
 use bcal_calib::Interval;
 use bcal_calib::{AdaptiveRule, AdaptiveUkf, Calibrator, CorrectionCalibrator, RlCalibrator, Uncalibrated};
-use bcal_common::battery::Degradation;
+use bcal_common::battery::{Degradation, Load};
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::tracker::TrackerSpec;
@@ -221,18 +221,20 @@ pub fn run_cycle_with(
         .iter()
         .map(|_| CycleRun { cycle: record.cycle, steps: Vec::with_capacity(record.samples.len()) })
         .collect();
-    // The current the predictions assume: the mean of the loaded readings so far, or over time where the
-    // load alternates (no look-ahead; `bcal_calib::LoadMean`).
+    // The load the predictions assume: the mean current of the loaded readings so far, or over time where
+    // the load alternates, or their mean power where it has been held at power (no look-ahead;
+    // `bcal_calib::LoadMean`).
     let mut load = bcal_calib::LoadMean::default();
     for (k, s) in record.samples.iter().enumerate() {
         c.step(s);
-        load.push(s.t_s, s.current_a);
-        let current_a = load.current_a();
+        load.push(s.t_s, s.current_a, s.voltage_v);
+        let assumed = load.load();
         let d = c.estimate();
         let iv = c.interval();
-        let predict_here = only.is_none_or(|o| o.binary_search(&k).is_ok()) && current_a.is_some();
-        let current_a = current_a.unwrap_or(0.0);
-        // The knee is charge: at this discharge's current it takes knee / current seconds.
+        let predict_here = only.is_none_or(|o| o.binary_search(&k).is_ok()) && assumed.is_some();
+        let assumed = assumed.unwrap_or(Load::CurrentA(0.0));
+        let current_a = load.current_a().unwrap_or(0.0);
+        // The knee is charge: at this discharge's current so far it takes knee / current seconds.
         let cap_shift = knee.capacity_c / 3600.0;
         let knee_s = if current_a > 0.0 { knee.eod_c / current_a } else { 0.0 };
         let state = |p: &Degradation| c.state_under(p);
@@ -242,8 +244,8 @@ pub fn run_cycle_with(
         // The central predictions do not depend on the scale: computed once.
         let (eod_mid, cap_mid) = match &now {
             Some(p) => (
-                p.eod(&state, &d, None, s.t_s, current_a, cutoff_v).value,
-                at_ambient.capacity(&d, None, current_a, cutoff_v, record.ambient_k).value,
+                p.eod(&state, &d, None, s.t_s, assumed, cutoff_v).value,
+                at_ambient.capacity(&d, None, assumed, cutoff_v, record.ambient_k).value,
             ),
             None => (None, None),
         };
@@ -251,9 +253,9 @@ pub fn run_cycle_with(
             let iv = iv.map(|iv| scale_interval(&iv, &d, scale));
             let (mut eod, mut capacity) = (Predicted::default(), Predicted::default());
             if let Some(p) = &now {
-                eod = p.eod_bounds(&state, iv.as_ref(), s.t_s, current_a, cutoff_v);
+                eod = p.eod_bounds(&state, iv.as_ref(), s.t_s, assumed, cutoff_v);
                 eod.value = eod_mid;
-                capacity = at_ambient.capacity_bounds(iv.as_ref(), current_a, cutoff_v, record.ambient_k);
+                capacity = at_ambient.capacity_bounds(iv.as_ref(), assumed, cutoff_v, record.ambient_k);
                 capacity.value = cap_mid;
             }
             run.steps.push(Step {
@@ -385,15 +387,21 @@ fn knee_from(
     let xn0 = start(m, t_k)?;
     let dyn_d = Degradation { r_o_ohm: d.r_o_ohm * p.ro_factor, ..*d };
     let x0 = bcal_common::measured::scenario::rest_state(m, d, xn0, t_k);
-    let profile = bcal_common::battery::LoadProfile::Constant(bcal_common::battery::Load::CurrentA(r.current_a));
+    // Under the load the record's predictions assume at its end: its current, or its power where it was
+    // held at power (the knee's charge then at the model's mean current to its end).
+    let profile = bcal_common::battery::LoadProfile::Constant(r.load());
     let q = bcal_calib::EodQuery {
         profile: &profile,
         cutoff_v,
         dt_s: predict::PREDICT_DT_S,
         max_s: predict::PREDICT_MAX_S,
     };
-    let model_eod = bcal_calib::predict_eod_s(m, &x0, &dyn_d, r.load_on_s, &q)?;
-    Some((eod - model_eod) * r.current_a)
+    let model = bcal_calib::predict_eod(m, &x0, &dyn_d, r.load_on_s, &q)?;
+    let current_a = match r.load() {
+        Load::CurrentA(a) => a,
+        Load::PowerW(_) => model.mean_current_a(r.load_on_s)?,
+    };
+    Some((eod - model.eod_s) * current_a)
 }
 
 /// The knees a discharge runs with, C: each the median over the last [`KNEE_WINDOW`] discharges before it

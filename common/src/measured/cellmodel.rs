@@ -263,7 +263,7 @@ impl CellModel {
         let total = (next.t_s - prev.t_s).max(0.0);
         let mut done = 0.0;
         let alternating = self.load.alternating();
-        self.load.push(next.t_s, next.current_a);
+        self.load.push(next.t_s, next.current_a, next.voltage_v);
         for (dt, kind) in interval_drive(prev, next, self.max_substep_s, alternating) {
             if dt <= 0.0 {
                 continue;

@@ -5,8 +5,16 @@
 //! draws 2 A on average; predicted at 4 A its end comes at half the time. At the mean over time the model
 //! runs the charge the cell really draws, and the end it then predicts late (the square wave's peaks reach
 //! the cut-off first) is what the knee and the recentring measured on the discharges before take off.
+//!
+//! A load held at constant power (a cycler in CP mode, a motor or converter behind the cell) draws more
+//! current as the voltage falls: about a third more at a 3.0 V cut-off than at 4.0 V. Its mean current so
+//! far is what it drew while the voltage was high, and predicted at it the end comes late by most of that
+//! rise. Where the loaded readings' power has held steadier than their current (a coefficient of
+//! variation under half the current's), the prediction runs at their mean power instead; a cycler in CC mode
+//! holds its current and its power falls with the voltage, so nothing changes for it.
 
 use super::{LOADED_A, MIN_ALTERNATING_LOADED, STEP_A};
+use crate::battery::Load;
 
 /// The rule of an alternating load, for a stream and a whole record alike: at least
 /// [`MIN_ALTERNATING_LOADED`] loaded readings, more than half of which followed a load step.
@@ -14,11 +22,39 @@ pub fn alternates(loaded: usize, followed_a_step: usize) -> bool {
     loaded >= MIN_ALTERNATING_LOADED as usize && 2 * followed_a_step > loaded
 }
 
-/// The running means of one discharge's current.
+/// The load is taken as held at constant power where the loaded readings' power varies (sd over mean) less
+/// than this share of their current's variation.
+pub const POWER_HELD_RATIO: f64 = 0.5;
+
+/// Running mean and sum of squared deviations (Welford's update: the spread of a few mA on 2 A is not lost
+/// to cancellation).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Spread {
+    mean: f64,
+    m2: f64,
+}
+
+impl Spread {
+    fn push(&mut self, n: u32, x: f64) {
+        let d = x - self.mean;
+        self.mean += d / f64::from(n);
+        self.m2 += d * (x - self.mean);
+    }
+
+    /// Standard deviation over mean (the population's), with `n` values taken.
+    fn variation(&self, n: u32) -> f64 {
+        (self.m2 / f64::from(n)).sqrt() / self.mean.abs()
+    }
+}
+
+/// The running means of one discharge's current and power.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct LoadMean {
     loaded_sum_a: f64,
     loaded_n: u32,
+    /// The loaded readings' current, A, and power, W.
+    current: Spread,
+    power: Spread,
     /// Loaded readings whose current stepped from the reading before.
     switched_n: u32,
     /// The first loaded reading, s.
@@ -29,8 +65,8 @@ pub struct LoadMean {
 }
 
 impl LoadMean {
-    /// Takes a reading: its time, s, and current, A (positive while discharging).
-    pub fn push(&mut self, t_s: f64, current_a: f64) {
+    /// Takes a reading: its time, s, current, A (positive while discharging), and terminal voltage, V.
+    pub fn push(&mut self, t_s: f64, current_a: f64, voltage_v: f64) {
         let loaded = current_a > LOADED_A;
         if let Some((t0_s, i0_a)) = self.last {
             if self.on_s.is_some() {
@@ -43,6 +79,8 @@ impl LoadMean {
         if loaded {
             self.loaded_sum_a += current_a;
             self.loaded_n += 1;
+            self.current.push(self.loaded_n, current_a);
+            self.power.push(self.loaded_n, current_a * voltage_v);
             self.on_s.get_or_insert(t_s);
         }
         self.last = Some((t_s, current_a));
@@ -65,6 +103,25 @@ impl LoadMean {
         }
     }
 
+    /// Whether the load has been held at constant power: at least [`MIN_ALTERNATING_LOADED`] loaded readings,
+    /// not alternating, whose power varied less than [`POWER_HELD_RATIO`] times their current did.
+    pub fn power_held(&self) -> bool {
+        let n = self.loaded_n;
+        n >= MIN_ALTERNATING_LOADED
+            && !self.alternating()
+            && self.power.variation(n) < POWER_HELD_RATIO * self.current.variation(n)
+    }
+
+    /// The load to assume for the rest of the discharge: the loaded readings' mean power where the load has
+    /// been held at power ([`LoadMean::power_held`]), else [`LoadMean::current_a`]. None before the first
+    /// loaded reading.
+    pub fn load(&self) -> Option<Load> {
+        if self.power_held() {
+            return Some(Load::PowerW(self.power.mean));
+        }
+        self.current_a().map(Load::CurrentA)
+    }
+
     /// The mean over the loaded readings alone, A (None before the first).
     pub fn loaded_mean_a(&self) -> Option<f64> {
         (self.loaded_n > 0).then(|| self.loaded_sum_a / f64::from(self.loaded_n))
@@ -82,15 +139,16 @@ mod tests {
         let mut cc = LoadMean::default();
         for k in 0..400 {
             let i = if k < 3 { 0.0 } else { 2.0 + 0.01 * f64::from(k % 3) };
-            cc.push(f64::from(k) * 9.7, i);
+            cc.push(f64::from(k) * 9.7, i, 4.0 - 0.002 * f64::from(k));
         }
-        assert!(!cc.alternating());
+        assert!(!cc.alternating() && !cc.power_held());
         assert_eq!(cc.current_a(), cc.loaded_mean_a());
+        assert_eq!(cc.load(), cc.current_a().map(Load::CurrentA));
         // 4 A at half duty: the readings alternate 0 / 4 A every 10.4 s.
         let mut sq = LoadMean::default();
         for k in 0..400 {
             let i = if k < 3 || k % 2 == 0 { 0.001 } else { 4.02 };
-            sq.push(f64::from(k) * 10.4, i);
+            sq.push(f64::from(k) * 10.4, i, 3.9);
             if k == 12 {
                 assert!(!sq.alternating(), "5 loaded readings are too few to call it");
                 assert!((sq.current_a().unwrap() - 4.02).abs() < 1e-9);
@@ -99,5 +157,50 @@ mod tests {
         assert!(sq.alternating());
         assert!((sq.current_a().unwrap() - 2.01).abs() < 0.02, "{:?}", sq.current_a());
         assert!((sq.loaded_mean_a().unwrap() - 4.02).abs() < 1e-9);
+        assert!(!sq.power_held(), "an alternating load is taken at its mean current over time");
+    }
+
+    /// Readings of a cell whose voltage falls from 4.0 to 3.2 V at 1 s, with 3 mV and 10 mA of sensor noise
+    /// (a fixed pseudo-random sequence), under a load held at `power_w` or at `current_a`.
+    fn falling(n: u32, held: Load) -> LoadMean {
+        let mut m = LoadMean::default();
+        let mut u = 0x9e37_79b9_u32;
+        let mut noise = move || {
+            u ^= u << 13;
+            u ^= u >> 17;
+            u ^= u << 5;
+            f64::from(u) / f64::from(u32::MAX) - 0.5
+        };
+        m.push(0.0, 0.0, 4.1);
+        for k in 1..=n {
+            let v = 4.0 - 0.8 * f64::from(k) / 3000.0;
+            let i = match held {
+                Load::PowerW(w) => w / v,
+                Load::CurrentA(a) => a,
+            };
+            m.push(f64::from(k), i + 0.02 * noise(), v + 0.006 * noise());
+        }
+        m
+    }
+
+    /// A load held at constant power is assumed at its mean power once its current has been seen to rise
+    /// more than its power varies, and a constant current stays a current however far its power falls; before
+    /// [`MIN_ALTERNATING_LOADED`] loaded readings, and in the first seconds while the voltage has moved less
+    /// than the noise, it is a current.
+    #[test]
+    fn a_load_held_at_constant_power_is_assumed_at_its_mean_power() {
+        let cp = falling(3000, Load::PowerW(8.0));
+        assert!(cp.power_held());
+        match cp.load() {
+            Some(Load::PowerW(w)) => assert!((w - 8.0).abs() < 0.01, "{w}"),
+            other => panic!("{other:?}"),
+        }
+        let cc = falling(3000, Load::CurrentA(2.0));
+        assert!(!cc.power_held());
+        assert_eq!(cc.load(), cc.current_a().map(Load::CurrentA));
+        assert!(!falling(5, Load::PowerW(8.0)).power_held());
+        // 300 readings in (a tenth of the discharge) the current has risen 2 % against 0.3 % of noise.
+        assert!(falling(300, Load::PowerW(8.0)).power_held());
+        assert!(!falling(300, Load::CurrentA(2.0)).power_held());
     }
 }
