@@ -2519,6 +2519,10 @@ mod tests {
                     let at_power = (e.eod_s.unwrap() - end_s).abs();
                     let so_far_a = mean_a.loaded_mean_a().unwrap();
                     let at_current = (stream.predict_eod_s(so_far_a).unwrap() - end_s).abs();
+                    eprintln!(
+                        "discharge {k} at half: end {at_power:.0} s off at its power, {at_current:.0} s at the mean current so \
+                         far, of {length_s:.0} s"
+                    );
                     assert!(
                         at_power < 0.02 * length_s && 3.0 * at_power < at_current,
                         "discharge {k}: {at_power:.0} s off at power, {at_current:.0} s at the mean current so far"
@@ -2530,6 +2534,7 @@ mod tests {
             // Past the crossing the stream states the charge measured to it (checked apart from it elsewhere).
             let measured_ah = stream.step(&r[below]).unwrap().delivered_ah.unwrap();
             let predicted_ah = at_half.unwrap();
+            eprintln!("discharge {k}: charge at half {predicted_ah:.4} Ah, delivered {measured_ah:.4} Ah");
             assert!((predicted_ah - measured_ah).abs() < 0.015 * measured_ah, "{predicted_ah} against {measured_ah}");
             for x in &r[below + 1..] {
                 stream.step(x).unwrap();

@@ -14,14 +14,30 @@ pub fn simulated_record(
     noise_seed: u64,
     cycle: u32,
 ) -> CellRecord {
+    simulated_record_under(cfg, truth, soc0, noise_seed, cycle, Load::CurrentA(2.0))
+}
+
+/// [`simulated_record`] under `load` after the rest (a current, or a power held constant).
+pub fn simulated_record_under(
+    cfg: &ScenarioConfig,
+    truth: Degradation,
+    soc0: f64,
+    noise_seed: u64,
+    cycle: u32,
+    load: Load,
+) -> CellRecord {
     let ambient_k = cfg.model.params().tb0_k;
+    let (kind, rest) = match load {
+        Load::CurrentA(_) => (LoadKind::ConstantCurrent, Load::CurrentA(0.0)),
+        Load::PowerW(_) => (LoadKind::ConstantPower, Load::PowerW(0.0)),
+    };
     let ep = simulate(
         cfg,
         &EpisodeSpec {
             truth,
             soc0,
-            kind: LoadKind::ConstantCurrent,
-            profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (60.0, Load::CurrentA(2.0))]),
+            kind,
+            profile: LoadProfile::Piecewise(vec![(0.0, rest), (60.0, load)]),
             rest_s: 60.0,
             ambient_k,
             interval_s: [9.0, 19.0],
@@ -33,13 +49,24 @@ pub fn simulated_record(
     )
     .expect("the simulator runs its own default cell");
     let samples: Vec<Sample> = ep.samples.iter().map(|s| Sample { request: Request::Unknown, ..*s }).collect();
+    // The load's own current; under a power, the loaded readings' mean (as a record read from data has it).
+    let current_a = match load {
+        Load::CurrentA(a) => a,
+        Load::PowerW(_) => {
+            let mut mean = bcal_common::measured::LoadMean::default();
+            for s in &samples {
+                mean.push(s.t_s, s.current_a, s.voltage_v);
+            }
+            mean.current_a().expect("a load")
+        }
+    };
     CellRecord {
         cell: "T".into(),
         cycle,
         source: "simulated".into(),
         load_on_s: samples.iter().find(|s| s.current_a > 0.5).expect("a load").t_s,
         eod_s: ep.eod_s,
-        current_a: 2.0,
+        current_a,
         data_capacity_ah: None,
         stated_capacity_ah: None,
         ambient_k,

@@ -19,13 +19,24 @@ fn write_cycles(dir: &Path) -> PathBuf {
 /// Discharge `cycle` of the slowly fading cell, read by a voltage sensor that adds `offset_v`: 30 s at rest,
 /// then 2 A until the reading is at or below the cut-off, one row (time s, voltage V, current A) every 10 s.
 fn discharge_rows(cycle: u32, offset_v: f64) -> Vec<(f64, f64, f64)> {
+    discharge_rows_under(cycle, offset_v, Load::CurrentA(2.0))
+}
+
+/// [`discharge_rows`] under `load` after the rest (a current, or a power: the current P / V, V the cell's
+/// voltage at the start of each 1 s step).
+fn discharge_rows_under(cycle: u32, offset_v: f64, load: Load) -> Vec<(f64, f64, f64)> {
     let m = BatteryModel::default();
     let d = Degradation { q_mobile_c: 7000.0 - 40.0 * f64::from(cycle), r_o_ohm: 0.12 };
     let mut x = m.initial_state(&d);
     let (mut t, mut rows) = (0.0, Vec::new());
     loop {
-        let i = if t < 30.0 { 0.0 } else { 2.0 };
-        let v = m.voltage_v(&x, &d) + offset_v;
+        let true_v = m.voltage_v(&x, &d);
+        let i = match load {
+            _ if t < 30.0 => 0.0,
+            Load::CurrentA(a) => a,
+            Load::PowerW(w) => w / true_v,
+        };
+        let v = true_v + offset_v;
         if (t as u64).is_multiple_of(10) {
             rows.push((t, v, i));
             if t >= 30.0 && v <= CUTOFF_V {
@@ -40,13 +51,22 @@ fn discharge_rows(cycle: u32, offset_v: f64) -> Vec<(f64, f64, f64)> {
 
 /// [`write_cycles`] read by a voltage sensor that adds `offset_v` to every reading.
 fn write_cycles_with_offset(dir: &Path, offset_v: f64) -> PathBuf {
+    write_cycles_under(dir, offset_v, Load::CurrentA(2.0))
+}
+
+/// [`write_cycles_with_offset`] under `load` ([`discharge_rows_under`]).
+fn write_cycles_under(dir: &Path, offset_v: f64, load: Load) -> PathBuf {
     let mut text = String::from("time_s,voltage_v,current_a,cycle\n");
     for cycle in 1..=8u32 {
-        for (t, v, i) in discharge_rows(cycle, offset_v) {
+        for (t, v, i) in discharge_rows_under(cycle, offset_v, load) {
             text.push_str(&format!("{t},{v:.5},{i},{cycle}\n"));
         }
     }
-    let path = dir.join(if offset_v == 0.0 { "cell.csv".to_string() } else { format!("cell_offset_{offset_v}.csv") });
+    let path = match load {
+        Load::PowerW(w) => dir.join(format!("cell_{w}w.csv")),
+        _ if offset_v == 0.0 => dir.join("cell.csv"),
+        _ => dir.join(format!("cell_offset_{offset_v}.csv")),
+    };
     std::fs::write(&path, text).unwrap();
     path
 }
@@ -328,4 +348,26 @@ fn data_that_states_no_capacity_is_scored_against_its_own_charge_only() {
     let md = std::fs::read_to_string(out.join("calibration.md")).unwrap();
     assert!(!md.contains("capacity RMSE 0.000"), "{md}");
     assert!(md.contains("against the data's charge to the cut-off, the data stating no capacity"), "{md}");
+}
+
+/// A cell discharged at constant power (8 W: the current rises from about 2.0 to 2.7 A as the voltage falls)
+/// is predicted at that power: the joint UKF's end at half each judged discharge within 1 % of the discharge
+/// (0.16 % median when written; at the mean current so far, before, 3.4 %), its capacity, a full cell's
+/// charge at that power, within 0.01 Ah of the data's charge from half on (0.0013 Ah).
+#[test]
+fn a_cell_discharged_at_constant_power_is_predicted_at_its_power() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = write_cycles_under(dir.path(), 0.0, Load::PowerW(8.0));
+    let report =
+        calibrate_ukf(&["--data", csv.to_str().unwrap(), "--train-cycles", "1..4"], &dir.path().join("out"), &[]);
+    let ukf = &report["methods"]["ukf"];
+    let at_half = &ukf["eod_error_pct"]["50"];
+    assert_eq!(at_half["n"], serde_json::json!(4), "{ukf}");
+    let (median, p90) = (at_half["median"].as_f64().unwrap(), at_half["p90"].as_f64().unwrap());
+    assert!(median < 1.0 && p90 < 1.0, "end of discharge at half: {at_half}");
+    let data_ah = ukf["capacity_rmse_ah_vs_data"]["50"].as_f64().unwrap();
+    eprintln!(
+        "end of discharge at half: median {median:.2} %, p90 {p90:.2} %; capacity RMSE from half {data_ah:.4} Ah"
+    );
+    assert!(data_ah < 0.01, "capacity from half against the data's charge: {data_ah} Ah");
 }
