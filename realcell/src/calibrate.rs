@@ -659,12 +659,16 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         },
     ));
     if carrying.tuning_width != width {
+        let tw = &carrying.tuning_width;
         progress(&format!(
             "prior: the training discharges (the validation cycles among them) start from the width learned on the \
-             {} pairs before the validation cycles: sd after the usual rest {:.4} / {:.4} z",
-            carrying.tuning_width.pairs,
-            carrying.tuning_width.a_z2[0].sqrt(),
-            carrying.tuning_width.a_z2[1].sqrt()
+             {} pairs before the validation cycles: {}",
+            tw.pairs,
+            if tw.fitted() {
+                format!("sd after the usual rest {:.4} / {:.4} z", tw.a_z2[0].sqrt(), tw.a_z2[1].sqrt())
+            } else {
+                "too few pairs: each calibrator's own prior width".into()
+            }
         ));
     }
     // What each training and judged discharge starts from, one walk through both: under the end fits (the
