@@ -57,7 +57,7 @@ class Estimate(TypedDict):
     """Mean discharge current of the loaded readings so far, A; where the load switches about as often as it
     is sampled (a square wave read once per half-period), the mean current over time since the load came on;
     under a load held at constant power (eod_power_w), the mean current the model draws at that power from
-    now to eod_s (it rises as the voltage falls)."""
+    now to its own end (it rises as the voltage falls), before any rule moves that end."""
     eod_power_w: Optional[float]
     """The power the prediction assumes, W, where the load has been held at constant power (the loaded
     readings' power varied, sd over mean, less than half as much as their current); None under a current."""
@@ -67,7 +67,9 @@ class Estimate(TypedDict):
     on its last 10 discharges followed to the cut-off; None until 9 of them are scored."""
     delivered_ah: Optional[float]
     """The charge this discharge will have delivered at its end, Ah: what its readings drew so far plus
-    eod_current_a until eod_s (from a full cell, its capacity at that current as a cycler measures it). Once
+    eod_current_a until eod_s (from a full cell, its capacity at that current as a cycler measures it; under a
+    power, the charge the model draws to its own end, and on to eod_s at the current the power draws at the
+    cut-off). Once
     the discharge has crossed its cut-off, the charge measured to the crossing. None before the load and in
     a piece of a discharge whose start the stream did not see (after lost readings)."""
     delivered_lo_ah: Optional[float]

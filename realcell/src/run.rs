@@ -233,10 +233,10 @@ pub fn run_cycle_with(
         let iv = c.interval();
         let predict_here = only.is_none_or(|o| o.binary_search(&k).is_ok()) && assumed.is_some();
         let assumed = assumed.unwrap_or(Load::CurrentA(0.0));
-        let current_a = load.current_a().unwrap_or(0.0);
-        // The knee is charge: at this discharge's current so far it takes knee / current seconds.
+        // The knee is charge: at this discharge's current near its end it takes knee / current seconds.
         let cap_shift = knee.capacity_c / 3600.0;
-        let knee_s = if current_a > 0.0 { knee.eod_c / current_a } else { 0.0 };
+        let knee_a = knee_current_a(assumed, cutoff_v);
+        let knee_s = if knee_a > 0.0 { knee.eod_c / knee_a } else { 0.0 };
         let state = |p: &Degradation| c.state_under(p);
         // End of discharge: the model at the cell's temperature now.
         let now =
@@ -388,20 +388,27 @@ fn knee_from(
     let dyn_d = Degradation { r_o_ohm: d.r_o_ohm * p.ro_factor, ..*d };
     let x0 = bcal_common::measured::scenario::rest_state(m, d, xn0, t_k);
     // Under the load the record's predictions assume at its end: its current, or its power where it was
-    // held at power (the knee's charge then at the model's mean current to its end).
-    let profile = bcal_common::battery::LoadProfile::Constant(r.load());
+    // held at power.
+    let load = r.load();
+    let profile = bcal_common::battery::LoadProfile::Constant(load);
     let q = bcal_calib::EodQuery {
         profile: &profile,
         cutoff_v,
         dt_s: predict::PREDICT_DT_S,
         max_s: predict::PREDICT_MAX_S,
     };
-    let model = bcal_calib::predict_eod(m, &x0, &dyn_d, r.load_on_s, &q)?;
-    let current_a = match r.load() {
+    let model_eod = bcal_calib::predict_eod_s(m, &x0, &dyn_d, r.load_on_s, &q)?;
+    Some((eod - model_eod) * knee_current_a(load, cutoff_v))
+}
+
+/// The current through a knee, A, to turn its time into charge and back: the load's own current, or under a
+/// power the current it draws at the cut-off (the knee lies there, where the current is highest; measured and
+/// applied the same way, so a knee's time carries over unchanged between discharges at the same power).
+fn knee_current_a(load: Load, cutoff_v: f64) -> f64 {
+    match load {
         Load::CurrentA(a) => a,
-        Load::PowerW(_) => model.mean_current_a(r.load_on_s)?,
-    };
-    Some((eod - model.eod_s) * current_a)
+        Load::PowerW(w) => w / cutoff_v,
+    }
 }
 
 /// The knees a discharge runs with, C: each the median over the last [`KNEE_WINDOW`] discharges before it

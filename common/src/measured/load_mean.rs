@@ -11,7 +11,10 @@
 //! far is what it drew while the voltage was high, and predicted at it the end comes late by most of that
 //! rise. Where the loaded readings' power has held steadier than their current (a coefficient of
 //! variation under half the current's), the prediction runs at their mean power instead; a cycler in CC mode
-//! holds its current and its power falls with the voltage, so nothing changes for it.
+//! holds its current and its power falls with the voltage, so nothing changes for it. The readings of the
+//! first minute under load and those that followed a load step stay out of that comparison: a reading caught
+//! on the way up (a soft start, a ramp, a reading mid-step) sets both spreads alike and hid a held power for
+//! most of a discharge.
 
 use super::{LOADED_A, MIN_ALTERNATING_LOADED, STEP_A};
 use crate::battery::Load;
@@ -22,9 +25,14 @@ pub fn alternates(loaded: usize, followed_a_step: usize) -> bool {
     loaded >= MIN_ALTERNATING_LOADED as usize && 2 * followed_a_step > loaded
 }
 
-/// The load is taken as held at constant power where the loaded readings' power varies (sd over mean) less
-/// than this share of their current's variation.
+/// The load is taken as held at constant power where the settled loaded readings' power varies (sd over mean)
+/// less than this share of their current's variation ...
 pub const POWER_HELD_RATIO: f64 = 0.5;
+/// ... and, once taken, let go only where it varies more than this share (a dead band: near the threshold,
+/// early in a discharge sampled at 1 s, the noise alone flipped the assumption back and forth).
+pub const POWER_RELEASED_RATIO: f64 = 0.7;
+/// Loaded readings within this time of the load-on stay out of the comparison of power and current, s.
+pub const POWER_SETTLE_S: f64 = 60.0;
 
 /// Running mean and sum of squared deviations (Welford's update: the spread of a few mA on 2 A is not lost
 /// to cancellation).
@@ -52,9 +60,12 @@ impl Spread {
 pub struct LoadMean {
     loaded_sum_a: f64,
     loaded_n: u32,
-    /// The loaded readings' current, A, and power, W.
+    /// The settled loaded readings' current, A, and power, W ([`POWER_SETTLE_S`] after the load-on, not
+    /// following a load step), how many, and whether their power is taken as held.
     current: Spread,
     power: Spread,
+    settled_n: u32,
+    power_held: bool,
     /// Loaded readings whose current stepped from the reading before.
     switched_n: u32,
     /// The first loaded reading, s.
@@ -68,20 +79,30 @@ impl LoadMean {
     /// Takes a reading: its time, s, current, A (positive while discharging), and terminal voltage, V.
     pub fn push(&mut self, t_s: f64, current_a: f64, voltage_v: f64) {
         let loaded = current_a > LOADED_A;
+        let mut stepped = true;
         if let Some((t0_s, i0_a)) = self.last {
             if self.on_s.is_some() {
                 self.drawn_as += 0.5 * (i0_a + current_a) * (t_s - t0_s);
             }
-            if loaded && (current_a - i0_a).abs() > STEP_A {
+            stepped = (current_a - i0_a).abs() > STEP_A;
+            if loaded && stepped {
                 self.switched_n += 1;
             }
         }
         if loaded {
             self.loaded_sum_a += current_a;
             self.loaded_n += 1;
-            self.current.push(self.loaded_n, current_a);
-            self.power.push(self.loaded_n, current_a * voltage_v);
-            self.on_s.get_or_insert(t_s);
+            let on_s = *self.on_s.get_or_insert(t_s);
+            if !stepped && t_s - on_s >= POWER_SETTLE_S {
+                self.settled_n += 1;
+                self.current.push(self.settled_n, current_a);
+                self.power.push(self.settled_n, current_a * voltage_v);
+                if self.settled_n >= MIN_ALTERNATING_LOADED {
+                    let ratio = self.power.variation(self.settled_n) / self.current.variation(self.settled_n);
+                    let bound = if self.power_held { POWER_RELEASED_RATIO } else { POWER_HELD_RATIO };
+                    self.power_held = ratio < bound;
+                }
+            }
         }
         self.last = Some((t_s, current_a));
     }
@@ -103,17 +124,15 @@ impl LoadMean {
         }
     }
 
-    /// Whether the load has been held at constant power: at least [`MIN_ALTERNATING_LOADED`] loaded readings,
-    /// not alternating, whose power varied less than [`POWER_HELD_RATIO`] times their current did.
+    /// Whether the load has been held at constant power: not alternating, and at least
+    /// [`MIN_ALTERNATING_LOADED`] settled loaded readings whose power varied less than [`POWER_HELD_RATIO`]
+    /// times their current did (once taken, until it varies more than [`POWER_RELEASED_RATIO`] times).
     pub fn power_held(&self) -> bool {
-        let n = self.loaded_n;
-        n >= MIN_ALTERNATING_LOADED
-            && !self.alternating()
-            && self.power.variation(n) < POWER_HELD_RATIO * self.current.variation(n)
+        self.power_held && !self.alternating()
     }
 
-    /// The load to assume for the rest of the discharge: the loaded readings' mean power where the load has
-    /// been held at power ([`LoadMean::power_held`]), else [`LoadMean::current_a`]. None before the first
+    /// The load to assume for the rest of the discharge: the settled loaded readings' mean power where the
+    /// load has been held at power ([`LoadMean::power_held`]), else [`LoadMean::current_a`]. None before the first
     /// loaded reading.
     pub fn load(&self) -> Option<Load> {
         if self.power_held() {
@@ -160,9 +179,10 @@ mod tests {
         assert!(!sq.power_held(), "an alternating load is taken at its mean current over time");
     }
 
-    /// Readings of a cell whose voltage falls from 4.0 to 3.2 V at 1 s, with 3 mV and 10 mA of sensor noise
-    /// (a fixed pseudo-random sequence), under a load held at `power_w` or at `current_a`.
-    fn falling(n: u32, held: Load) -> LoadMean {
+    /// Readings every `dt_s` of a cell whose voltage falls from 4.0 to 3.2 V over 3000 s, with 3 mV and 10 mA
+    /// of sensor noise (a fixed pseudo-random sequence), under a load held at `power_w` or at `current_a`,
+    /// the first `ramp` loaded readings on the way up to it (at 1 / (ramp + 1), 2 / (ramp + 1), ... of it).
+    fn falling(n: u32, held: Load, dt_s: f64, ramp: u32) -> LoadMean {
         let mut m = LoadMean::default();
         let mut u = 0x9e37_79b9_u32;
         let mut noise = move || {
@@ -173,34 +193,46 @@ mod tests {
         };
         m.push(0.0, 0.0, 4.1);
         for k in 1..=n {
-            let v = 4.0 - 0.8 * f64::from(k) / 3000.0;
-            let i = match held {
-                Load::PowerW(w) => w / v,
-                Load::CurrentA(a) => a,
-            };
-            m.push(f64::from(k), i + 0.02 * noise(), v + 0.006 * noise());
+            let t_s = f64::from(k) * dt_s;
+            let v = 4.0 - 0.8 * t_s / 3000.0;
+            let share = if k <= ramp { f64::from(k) / f64::from(ramp + 1) } else { 1.0 };
+            let i = share
+                * match held {
+                    Load::PowerW(w) => w / v,
+                    Load::CurrentA(a) => a,
+                };
+            m.push(t_s, i + 0.02 * noise(), v + 0.006 * noise());
         }
         m
     }
 
     /// A load held at constant power is assumed at its mean power once its current has been seen to rise
     /// more than its power varies, and a constant current stays a current however far its power falls; before
-    /// [`MIN_ALTERNATING_LOADED`] loaded readings, and in the first seconds while the voltage has moved less
-    /// than the noise, it is a current.
+    /// [`MIN_ALTERNATING_LOADED`] settled readings, and in the first minutes while the voltage has moved little
+    /// more than the noise, it is a current. Readings on the way up to the load (a reading caught mid-step at
+    /// load-on, a soft start) do not hide the power.
     #[test]
     fn a_load_held_at_constant_power_is_assumed_at_its_mean_power() {
-        let cp = falling(3000, Load::PowerW(8.0));
+        let cp = falling(3000, Load::PowerW(8.0), 1.0, 0);
         assert!(cp.power_held());
         match cp.load() {
             Some(Load::PowerW(w)) => assert!((w - 8.0).abs() < 0.01, "{w}"),
             other => panic!("{other:?}"),
         }
-        let cc = falling(3000, Load::CurrentA(2.0));
+        let cc = falling(3000, Load::CurrentA(2.0), 1.0, 0);
         assert!(!cc.power_held());
         assert_eq!(cc.load(), cc.current_a().map(Load::CurrentA));
-        assert!(!falling(5, Load::PowerW(8.0)).power_held());
-        // 300 readings in (a tenth of the discharge) the current has risen 2 % against 0.3 % of noise.
-        assert!(falling(300, Load::PowerW(8.0)).power_held());
-        assert!(!falling(300, Load::CurrentA(2.0)).power_held());
+        assert!(!falling(65, Load::PowerW(8.0), 1.0, 0).power_held(), "5 settled readings");
+        // A fifth of the discharge in, the current has risen 4 % against 0.3 % of noise, read at 1 s or at 10 s.
+        assert!(falling(600, Load::PowerW(8.0), 1.0, 0).power_held());
+        assert!(falling(60, Load::PowerW(8.0), 10.0, 0).power_held());
+        assert!(!falling(600, Load::CurrentA(2.0), 1.0, 0).power_held());
+        // A first loaded reading at 60 % of the load, or a 40 s soft start read every 10 s.
+        for ramp in [1, 4] {
+            let m = falling(60, Load::PowerW(8.0), 10.0, ramp);
+            assert!(m.power_held(), "ramp of {ramp}");
+            assert!(matches!(m.load(), Some(Load::PowerW(w)) if (w - 8.0).abs() < 0.01), "{:?}", m.load());
+            assert!(!falling(300, Load::CurrentA(2.0), 10.0, ramp).power_held());
+        }
     }
 }
