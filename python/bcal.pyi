@@ -216,9 +216,10 @@ class Calibrator:
         estimate. A temperature of None or NaN (pandas' missing value) reads as the ambient. A reading
         that is not finite, not a cell's voltage or not later than the last raises ValueError and leaves
         the calibrator as it was."""
-    def predict_eod_s(self, current_a: float) -> Optional[float]:
-        """End of discharge (absolute time, s) if the cell now draws `current_a` (A) to the cut-off;
-        None before the first reading or beyond the 40 000 s horizon."""
+    def predict_eod_s(self, current_a: Optional[float] = None, *, power_w: Optional[float] = None) -> Optional[float]:
+        """End of discharge (absolute time, s) if the cell now draws `current_a` (A), or `power_w` (W: the
+        current P / V rising as the voltage falls), to the cut-off; exactly one of them. None before the first
+        reading or beyond the 40 000 s horizon."""
     def state(self) -> Optional[dict[str, float]]:
         """The calibrated model state under progpy's names (qpS, qpB, qnB, qnS in C; Vo, Vsn, Vsp in V;
         tb in K), or None before the first reading."""

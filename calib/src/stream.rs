@@ -1547,7 +1547,13 @@ impl<'a> Stream<'a> {
     /// doctor's Arrhenius factors when the model has them). None before the first reading, or when the model
     /// does not reach the cut-off within [`PREDICT_MAX_S`].
     pub fn predict_eod_s(&self, current_a: f64) -> Option<f64> {
-        self.predict_from(self.cal.as_ref(), Load::CurrentA(current_a)).map(|p| p.eod_s - self.clock_offset_s)
+        self.predict_eod_under_s(Load::CurrentA(current_a))
+    }
+
+    /// [`Self::predict_eod_s`] under any load: a current, or a power held to the cut-off (the current P / V
+    /// rising as the voltage falls).
+    pub fn predict_eod_under_s(&self, load: Load) -> Option<f64> {
+        self.predict_from(self.cal.as_ref(), load).map(|p| p.eod_s - self.clock_offset_s)
     }
 
     /// How many times the readings' clock went back and the stream took the new one ([`CLOCK_BACK_READINGS`]).

@@ -6,6 +6,7 @@
 use crate::convert::{dict, from_serde};
 use crate::errors::{doctor_error, value_error};
 use bcal_calib::stream::{resolve, CalibratorKind, Estimate, Reading, Stream, StreamError};
+use bcal_common::battery::Load;
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::math::idx;
 use bcal_common::measured::env::MeasuredSpec;
@@ -249,11 +250,23 @@ impl Calibrator {
         estimate_dict(py, &e)
     }
 
-    /// The end of discharge (absolute time, s) if the cell now draws `current_a` (A) until the cut-off,
-    /// from the calibrated state; None before the first reading or beyond the 40 000 s horizon.
-    fn predict_eod_s(&self, current_a: f64) -> PyResult<Option<f64>> {
-        bcal_common::simulate::positive(current_a).map_err(|why| value_error(format!("current_a: {why}")))?;
-        Ok(self.with_stream(|s| s.predict_eod_s(current_a)))
+    /// The end of discharge (absolute time, s) if the cell now draws `current_a` (A), or `power_w` (W: the
+    /// current P / V rising as the voltage falls), until the cut-off, from the calibrated state; None before
+    /// the first reading or beyond the 40 000 s horizon.
+    #[pyo3(signature = (current_a=None, *, power_w=None))]
+    fn predict_eod_s(&self, current_a: Option<f64>, power_w: Option<f64>) -> PyResult<Option<f64>> {
+        let load = match (current_a, power_w) {
+            (Some(a), None) => {
+                bcal_common::simulate::positive(a).map_err(|why| value_error(format!("current_a: {why}")))?;
+                Load::CurrentA(a)
+            }
+            (None, Some(w)) => {
+                bcal_common::simulate::positive(w).map_err(|why| value_error(format!("power_w: {why}")))?;
+                Load::PowerW(w)
+            }
+            _ => return Err(value_error("give the load as one of current_a (A) or power_w (W)")),
+        };
+        Ok(self.with_stream(|s| s.predict_eod_under_s(load)))
     }
 
     /// The calibrated model state now under progpy's state names (qpS, qpB, qnB, qnS in C; Vo, Vsn, Vsp in

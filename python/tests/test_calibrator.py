@@ -194,6 +194,14 @@ def test_prediction_state_and_spec(discharge):
     assert repr(cal) == f"Calibrator('fit', readings={half})"
     with pytest.raises(ValueError, match="current_a: -1 must be greater than 0"):
         cal.predict_eod_s(-1.0)
+    # At the power the cell now draws the current rises as the voltage falls: the end comes sooner.
+    now_w = e["eod_current_a"] * discharge["voltage_v"].iloc[half - 1]
+    assert e["time_s"] < cal.predict_eod_s(power_w=now_w) < cal.predict_eod_s(e["eod_current_a"])
+    for both_or_none in [dict(current_a=2.0, power_w=8.0), {}]:
+        with pytest.raises(ValueError, match="one of current_a"):
+            cal.predict_eod_s(**both_or_none)
+    with pytest.raises(ValueError, match="power_w: 0 must be greater than 0"):
+        cal.predict_eod_s(power_w=0.0)
     # A higher cut-off ends sooner; the same readings otherwise.
     high = make("fit", cutoff_v=3.3)
     for r in discharge.iloc[:half].itertuples():
