@@ -17,6 +17,10 @@ use std::collections::BTreeMap;
 
 const FRACTIONS: [f64; 3] = [0.1, 0.5, 0.9];
 
+/// Per (kind of load, fraction): the absolute errors under the rule, the mean current and the oracle, s, and
+/// how many predictions assumed a power.
+type Table = BTreeMap<(String, usize), ([Vec<f64>; 3], usize)>;
+
 /// The cell's true state at each time of `at` (sorted), stepped as the simulator steps it.
 fn true_states(e: &Episode, model: &BatteryModel, dt_s: f64, at: &[f64]) -> Vec<[f64; 8]> {
     let mut x = rest_state(model, &e.spec.truth, xn_of_soc(&model.params, e.spec.soc0), e.spec.ambient_k);
@@ -43,8 +47,7 @@ fn main() {
     let cfg = MeasuredSpec::default().scenario;
     assert!(!cfg.model.temperature_dependent() && cfg.model == Default::default(), "the base model");
     let cells = episode_set(&cfg, Split::Test, n).expect("the test cells simulate");
-    // (kind, fraction) -> errors under the rule, the mean current, the oracle; powers assumed.
-    let mut table: BTreeMap<(String, usize), ([Vec<f64>; 3], usize)> = BTreeMap::new();
+    let mut table = Table::new();
     for e in &cells {
         let Some(end_s) = e.eod_s else { continue };
         let params = BatteryParams { tb0_k: e.spec.ambient_k, ..cfg.model.params() };
