@@ -1,12 +1,13 @@
 //! The measured-only setting of one real cell, derived from its training cycles alone (nothing tuned to a
-//! particular cell): the load (constant current at the cycles' current), the sampling the data has, the
+//! particular cell): the load (constant current at the cycles' current, or constant power at their power
+//! where most of them held a power: `bcal_common::measured::LoadMean`), the sampling the data has, the
 //! rest before each discharge, the starting charge, the ambient temperature with a self-heating cell, the
 //! cut-off, and parameter ranges around the doctor's fits of the training cycles, widened for the ageing
 //! still to come. An RL policy for the cell trains on cells drawn from it; the joint UKF is tuned on its
 //! validation cells; both read the cell's measured temperature.
 
 use crate::record::CellRecord;
-use bcal_common::battery::Degradation;
+use bcal_common::battery::{Degradation, Load};
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{LoadKind, ScenarioConfig, SplitLoads, KELVIN_0C};
@@ -24,6 +25,8 @@ pub const R_AGEING_CEILING: f64 = 2.5;
 #[derive(Clone, Debug, Serialize)]
 pub struct CellFacts {
     pub current_a: f64,
+    /// The training records' median power, W, where most of them held a power (None: a current).
+    pub power_w: Option<f64>,
     pub interval_s: [f64; 2],
     pub rest_s: [f64; 2],
     pub ambient_c: f64,
@@ -65,7 +68,21 @@ pub fn cell_spec(
     // Data ranges: what the cell may be over the rest of its life; estimate ranges a little wider.
     let q_data = [Q_AGEING_FLOOR * q_lo, 1.05 * q_hi];
     let r_data = [(0.5 * r_lo).max(0.005), R_AGEING_CEILING * r_hi.max(0.01)];
-    let loads = SplitLoads { power_w: [1.0, 1.0], current_a: [0.95 * current_a, 1.05 * current_a] };
+    // A cell most of whose training discharges held a power trains at it: at its current, the simulated
+    // cells' current would not rise as their voltage falls, and the policy would learn another cell's end.
+    let powers: Vec<f64> = train
+        .iter()
+        .filter_map(|r| match r.load() {
+            Load::PowerW(w) => Some(w),
+            Load::CurrentA(_) => None,
+        })
+        .collect();
+    let power_w = (2 * powers.len() > train.len()).then(|| quantile(powers, 0.5));
+    let (load_kind, power_range_w) = match power_w {
+        Some(w) => (LoadKind::ConstantPower, [0.95 * w, 1.05 * w]),
+        None => (LoadKind::ConstantCurrent, [1.0, 1.0]),
+    };
+    let loads = SplitLoads { power_w: power_range_w, current_a: [0.95 * current_a, 1.05 * current_a] };
     let scenario = ScenarioConfig {
         q_mobile_c: q_data,
         r_o_ohm: r_data,
@@ -73,7 +90,7 @@ pub fn cell_spec(
         soc0: [0.95, 1.0],
         rest_s,
         sample_interval_s: vec![interval_s],
-        load_kinds: vec![LoadKind::ConstantCurrent],
+        load_kinds: vec![load_kind],
         train: loads.clone(),
         validation: loads.clone(),
         test: loads,
@@ -92,8 +109,15 @@ pub fn cell_spec(
         model,
         ..TrackerSpec::default()
     };
-    let facts =
-        CellFacts { current_a, interval_s, rest_s, ambient_c, fit_q_mobile_c: [q_lo, q_hi], fit_r_o_ohm: [r_lo, r_hi] };
+    let facts = CellFacts {
+        current_a,
+        power_w,
+        interval_s,
+        rest_s,
+        ambient_c,
+        fit_q_mobile_c: [q_lo, q_hi],
+        fit_r_o_ohm: [r_lo, r_hi],
+    };
     (MeasuredSpec { scenario, tracker, ..MeasuredSpec::default() }, facts)
 }
 
@@ -146,6 +170,29 @@ mod tests {
         assert!(!spec.tracker.use_measured_temperature && !spec.scenario.thermal);
         assert_eq!(spec.tracker.model.reference_k, Some(297.15));
         // A run config over the measured preset with this setting passes the config's checks.
+        let mut c = bcal_common::config::Preset::Measured.config();
+        c.measured = spec;
+        c.validate().unwrap();
+        assert_eq!((facts.power_w, &c.measured.scenario.load_kinds[..]), (None, &[LoadKind::ConstantCurrent][..]));
+    }
+
+    /// Training discharges held at constant power (7.5 W, the simulator's cell) give a setting of simulated
+    /// cells at that power, which the config's checks pass.
+    #[test]
+    fn a_cell_discharged_at_constant_power_trains_at_its_power() {
+        let cfg = ScenarioConfig { cutoff_v: 2.5, ..Default::default() };
+        let truth = Degradation { q_mobile_c: 7200.0, r_o_ohm: 0.12 };
+        let train: Vec<CellRecord> = (1..=3)
+            .map(|c| crate::testing::simulated_record_under(&cfg, truth, 1.0, u64::from(c), c, Load::PowerW(7.5)))
+            .collect();
+        let fits = vec![(truth, ModelExtension::default()); 3];
+        let (spec, facts) = cell_spec(&train, &fits, 2.5);
+        let w = facts.power_w.expect("a power");
+        assert!((w - 7.5).abs() < 0.05, "{w} W");
+        assert_eq!(spec.scenario.load_kinds, vec![LoadKind::ConstantPower]);
+        for range in [spec.scenario.train.power_w, spec.scenario.validation.power_w, spec.scenario.test.power_w] {
+            assert!(range[0] < 7.5 && 7.5 < range[1], "{range:?}");
+        }
         let mut c = bcal_common::config::Preset::Measured.config();
         c.measured = spec;
         c.validate().unwrap();
