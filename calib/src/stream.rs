@@ -399,6 +399,8 @@ fn prior_alone<'a>(setup: &Setup) -> Option<Box<dyn Calibrator + Send + 'a>> {
 /// A calibrator with its stream bookkeeping.
 pub struct Stream<'a> {
     cal: Box<dyn Calibrator + Send + 'a>,
+    /// Whether `cal` has read a reading since it was built (its estimate is the prior's only from then).
+    cal_read: bool,
     spec: TrackerSpec,
     ambient_k: f64,
     /// The last reading's time on the stream's clock, s: the readings' own plus `clock_offset_s` ...
@@ -797,6 +799,7 @@ impl<'a> Stream<'a> {
         );
         Self {
             cal,
+            cal_read: false,
             spec: spec.clone(),
             ambient_k,
             last_t_s: None,
@@ -1043,10 +1046,7 @@ impl<'a> Stream<'a> {
                     let number = self.discharge;
                     self.new_discharge(idle.t_s);
                     self.discharge = number;
-                    self.cal.step(&idle);
-                    for p in self.prior_cal.iter_mut().chain(self.previous_cal.iter_mut()) {
-                        p.step(&idle);
-                    }
+                    self.step_calibrators(&idle);
                     self.samples.push(idle);
                 }
             }
@@ -1054,9 +1054,18 @@ impl<'a> Stream<'a> {
         self.charge_started_s = if charging { self.charge_started_s.or(Some(r.time_s)) } else { None };
         self.loaded_run = loaded_run;
         self.last_sample = Some(s);
-        self.cal.step(&s);
-        for p in self.prior_cal.iter_mut().chain(self.previous_cal.iter_mut()) {
-            p.step(&s);
+        // A charge is read by the calibrators only while it may be a regenerative pulse of the discharge
+        // under way: a discharge starts afresh after a charge (built again from what the last one told), so
+        // a filter that followed it would show, for the charge's length, estimates that no discharge keeps
+        // (a stream that began on a charge showed qMobile and Ro at their ranges' ends until the load). A
+        // stream that keeps no readings cannot start afresh: its calibrator reads every reading. A calibrator
+        // that has read nothing yet reads the first (it has no start, and no estimate, before one).
+        let charge_kept_out = charging
+            && self.rebuild.is_some()
+            && self.cal_read
+            && (self.loaded_n == 0 || self.charge_started_s.is_some_and(|t0| r.time_s - t0 >= MIN_CHARGE_S));
+        if !charge_kept_out {
+            self.step_calibrators(&s);
         }
         self.last_t_s = Some(r.time_s);
         self.readings += 1;
@@ -1276,6 +1285,7 @@ impl<'a> Stream<'a> {
             // discharge starts from the setting's own prior, as the stream's first does, with no rest known
             // before it.
             self.cal = build(setup, *net).expect("the stream's calibrator was built from this setting");
+            self.cal_read = false;
             self.prior_cal = prior_alone(setup);
             self.rest_before_s = None;
             self.reset_discharge();
@@ -1356,6 +1366,7 @@ impl<'a> Stream<'a> {
         }
         // The same kind, setting and network built once already: it builds again.
         self.cal = build(&next, *net).expect("the stream's calibrator was built from this setting");
+        self.cal_read = false;
         self.prior_cal = prior_alone(&next);
         self.previous_cal = self.previous_fit.and_then(|d| {
             (setup.kind != CalibratorKind::Uncalibrated)
@@ -1559,6 +1570,15 @@ impl<'a> Stream<'a> {
     /// How many times the readings' clock went back and the stream took the new one ([`CLOCK_BACK_READINGS`]).
     pub fn clock_changes(&self) -> u32 {
         self.clock_changes
+    }
+
+    /// The calibrator and its twins (the prior alone, the previous discharge's fit) read `s`.
+    fn step_calibrators(&mut self, s: &Sample) {
+        self.cal.step(s);
+        self.cal_read = true;
+        for p in self.prior_cal.iter_mut().chain(self.previous_cal.iter_mut()) {
+            p.step(s);
+        }
     }
 
     /// [`Self::predict_eod_s`] from the state and estimate of `cal`, under `load` (a current or a power), with
@@ -2445,7 +2465,13 @@ mod tests {
         let without: Vec<Estimate> =
             readings[..n_first].iter().chain(&readings[n_before..]).map(|r| plain.step(r).unwrap()).collect();
         assert_eq!(est[n_before].q_mobile, without[n_first].q_mobile, "carried from the discharge, not the charge");
-        assert_ne!(est[n_before - 1].q_mobile, est[n_before].q_mobile, "the filter moved while charging");
+        // The charge, after the gap, is kept out of the filter: the estimate holds through it (where the next
+        // discharge starts from).
+        let held = |e: &Estimate| (e.q_mobile, e.r_o);
+        assert!(
+            est[n_first..n_before].iter().all(|e| held(e) == held(&est[n_first])),
+            "the filter moved while charging"
+        );
     }
 
     /// The charge a discharge delivers: none before the load; while it runs, what it drew plus the assumed
@@ -2557,6 +2583,41 @@ mod tests {
                 stream.step(x).unwrap();
             }
         }
+    }
+
+    /// A charge the filter would follow to the end of its ranges (its voltage is no model's) is kept out of
+    /// the calibrator: a stream that begins on it reports the prior until the charge ends, and the discharge
+    /// after it is, reading for reading, what a stream that began after the charge gives; a charge that
+    /// follows a discharge at once is read for its first minute (it could be a regenerative pulse) and then
+    /// held.
+    #[test]
+    fn a_charge_is_kept_out_of_the_calibrator() {
+        let (readings, starts) = cycler_life(1, |_, spec| spec);
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let prior = setup.spec.tracker.prior;
+        // The discharge an hour after the charge began (half an hour after it ended).
+        let later: Vec<Reading> =
+            readings[..starts[1]].iter().map(|r| Reading { time_s: r.time_s + 3600.0, ..*r }).collect();
+        let mut first = charge(0.0, 90, -1.5, 3.9, 0.3);
+        first.extend(later.iter().copied());
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let est: Vec<Estimate> = first.iter().map(|r| stream.step(r).unwrap()).collect();
+        for e in &est[..91] {
+            let at_prior = (e.q_mobile - prior.q_mobile_c).abs() < 1e-6 && (e.r_o - prior.r_o_ohm).abs() < 1e-12;
+            assert!(at_prior, "during the charge: {e:?}");
+        }
+        let mut plain = Stream::of(&setup, None, None).unwrap();
+        for (k, r) in later.iter().enumerate() {
+            let (a, b) = (&est[91 + k], plain.step(r).unwrap());
+            assert_eq!((a.q_mobile, a.r_o, a.eod_s), (b.q_mobile, b.r_o, b.eod_s), "reading {k} of the discharge");
+        }
+        // The same discharge, then at once a charge: read for a minute, then held.
+        let end_s = readings[starts[1] - 1].time_s;
+        let mut stream = fed(&setup, &readings[..starts[1]]);
+        let after: Vec<Estimate> =
+            charge(end_s + 20.0, 90, -1.5, 3.9, 0.3).iter().map(|r| stream.step(r).unwrap()).collect();
+        assert_ne!(after[0].q_mobile, after[2].q_mobile, "the first minute is read");
+        assert!(after[4..].iter().all(|e| (e.q_mobile, e.r_o) == (after[4].q_mobile, after[4].r_o)), "then held");
     }
 
     /// Two constant-current discharges of a cycler (a 30 s rest, then 2 A to the cut-off, read every 10-20 s),
