@@ -352,8 +352,8 @@ fn data_that_states_no_capacity_is_scored_against_its_own_charge_only() {
 
 /// A cell discharged at constant power (8 W: the current rises from about 2.0 to 2.7 A as the voltage falls)
 /// is predicted at that power: the joint UKF's end at half each judged discharge within 1 % of the discharge
-/// (0.16 % median when written; at the mean current so far, before, 3.4 %), its capacity, a full cell's
-/// charge at that power, within 0.01 Ah of the data's charge from half on (0.0016 Ah).
+/// (0.16 % median when written; the mean current so far put it late by most of the current's rise), its
+/// capacity, a full cell's charge at that power, within 0.01 Ah of the data's charge from half on (0.0016 Ah).
 #[test]
 fn a_cell_discharged_at_constant_power_is_predicted_at_its_power() {
     let dir = tempfile::tempdir().unwrap();
