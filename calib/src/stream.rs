@@ -401,6 +401,8 @@ pub struct Stream<'a> {
     cal: Box<dyn Calibrator + Send + 'a>,
     /// Whether `cal` has read a reading since it was built (its estimate is the prior's only from then).
     cal_read: bool,
+    /// The estimate and interval the charge under way began with (what the stream shows during it).
+    charge_start_estimate: Option<(Degradation, Option<crate::Interval>)>,
     spec: TrackerSpec,
     ambient_k: f64,
     /// The last reading's time on the stream's clock, s: the readings' own plus `clock_offset_s` ...
@@ -800,6 +802,7 @@ impl<'a> Stream<'a> {
         Self {
             cal,
             cal_read: false,
+            charge_start_estimate: None,
             spec: spec.clone(),
             ambient_k,
             last_t_s: None,
@@ -1054,18 +1057,25 @@ impl<'a> Stream<'a> {
         self.charge_started_s = if charging { self.charge_started_s.or(Some(r.time_s)) } else { None };
         self.loaded_run = loaded_run;
         self.last_sample = Some(s);
-        // A charge is read by the calibrators only while it may be a regenerative pulse of the discharge
-        // under way: a discharge starts afresh after a charge (built again from what the last one told), so
-        // a filter that followed it would show, for the charge's length, estimates that no discharge keeps
-        // (a stream that began on a charge showed qMobile and Ro at their ranges' ends until the load). A
-        // stream that keeps no readings cannot start afresh: its calibrator reads every reading. A calibrator
-        // that has read nothing yet reads the first (it has no start, and no estimate, before one).
-        let charge_kept_out = charging
+        // What a charge shows: the estimate the charge began with, not the filter following it. A discharge
+        // starts afresh after a charge (built again from what the last one told), so what the filter takes
+        // from the charge is kept by no discharge, and on the way it showed qMobile and Ro at their ranges'
+        // ends (a stream that began on a charge, until the load). The filter still reads every reading (a
+        // short charge is no new discharge, and a regenerative pulse is part of one). Held before any load of
+        // the discharge under way, and past a charge's first minute; a stream that keeps no readings never
+        // starts afresh and shows its filter.
+        let charge_held = charging
             && self.rebuild.is_some()
-            && self.cal_read
             && (self.loaded_n == 0 || self.charge_started_s.is_some_and(|t0| r.time_s - t0 >= MIN_CHARGE_S));
-        if !charge_kept_out {
-            self.step_calibrators(&s);
+        if !charging {
+            self.charge_start_estimate = None;
+        } else if self.charge_start_estimate.is_none() && self.cal_read {
+            self.charge_start_estimate = Some((self.cal.estimate(), self.cal.interval()));
+        }
+        self.step_calibrators(&s);
+        // A calibrator that had read nothing has its start (and its prior as an estimate) only now.
+        if charging && self.charge_start_estimate.is_none() {
+            self.charge_start_estimate = Some((self.cal.estimate(), self.cal.interval()));
         }
         self.last_t_s = Some(r.time_s);
         self.readings += 1;
@@ -1216,8 +1226,10 @@ impl<'a> Stream<'a> {
             }
             (None, None) => (None, None, None),
         };
-        let d = self.cal.estimate();
-        let iv = self.cal.interval();
+        let (d, iv) = match self.charge_start_estimate {
+            Some(held) if charge_held => held,
+            _ => (self.cal.estimate(), self.cal.interval()),
+        };
         Ok(Estimate {
             time_s: r.time_s,
             q_mobile: d.q_mobile_c,
@@ -1250,6 +1262,8 @@ impl<'a> Stream<'a> {
     /// after a gap) is no discharge to learn from or carry: the one before it is.
     fn new_discharge(&mut self, start_s: f64) {
         let Some((setup, net)) = &self.rebuild else { return };
+        // A charge that goes on into the new discharge shows the new calibrator's start.
+        self.charge_start_estimate = None;
         let spec = &setup.spec.tracker;
         for src in &mut self.sources {
             // Predictions of a discharge that stopped above its cut-off are never scored.
@@ -2591,7 +2605,7 @@ mod tests {
     /// follows a discharge at once is read for its first minute (it could be a regenerative pulse) and then
     /// held.
     #[test]
-    fn a_charge_is_kept_out_of_the_calibrator() {
+    fn a_charge_shows_the_estimate_it_began_with() {
         let (readings, starts) = cycler_life(1, |_, spec| spec);
         let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         let prior = setup.spec.tracker.prior;
@@ -2616,8 +2630,27 @@ mod tests {
         let mut stream = fed(&setup, &readings[..starts[1]]);
         let after: Vec<Estimate> =
             charge(end_s + 20.0, 90, -1.5, 3.9, 0.3).iter().map(|r| stream.step(r).unwrap()).collect();
-        assert_ne!(after[0].q_mobile, after[2].q_mobile, "the first minute is read");
-        assert!(after[4..].iter().all(|e| (e.q_mobile, e.r_o) == (after[4].q_mobile, after[4].r_o)), "then held");
+        let ended = est_at_end(&setup, &readings[..starts[1]]);
+        assert_ne!(after[0].q_mobile, after[2].q_mobile, "the first minute shows the filter");
+        assert!(after[3..].iter().all(|e| (e.q_mobile, e.r_o) == ended), "then what the charge began with");
+        // A 40 s charge at rest before the load: shown held, read by the filter.
+        let at = |t_s: f64, r: &Reading| Reading { time_s: t_s, ..*r };
+        let rest = at(0.0, &later[0]);
+        let pulse = charge(5.0, 2, -1.5, 3.9, 0.0);
+        let next = at(55.0, &later[0]);
+        let mut with = Stream::of(&setup, None, None).unwrap();
+        let shown: Vec<Estimate> =
+            std::iter::once(&rest).chain(&pulse).chain([&next]).map(|r| with.step(r).unwrap()).collect();
+        assert!(shown[1..3].iter().all(|e| (e.q_mobile, e.r_o) == (shown[0].q_mobile, shown[0].r_o)));
+        let without = fed(&setup, &[rest, next]);
+        assert_ne!(with.calibrator().state(), without.calibrator().state(), "the short charge is read");
+    }
+
+    /// The estimate (qMobile, Ro) a stream of `setup` shows after `readings`.
+    fn est_at_end(setup: &Setup, readings: &[Reading]) -> (f64, f64) {
+        let mut stream = Stream::of(setup, None, None).unwrap();
+        let last = readings.iter().map(|r| stream.step(r).unwrap()).last().unwrap();
+        (last.q_mobile, last.r_o)
     }
 
     /// Two constant-current discharges of a cycler (a 30 s rest, then 2 A to the cut-off, read every 10-20 s),
