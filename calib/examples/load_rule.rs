@@ -91,7 +91,10 @@ fn main() {
             entry.1 += usize::from(matches!(mean.load(), Some(Load::PowerW(_))));
         }
     }
-    println!("| load | at | cells | power assumed | rule: MAE / median s | mean current: MAE / median s | oracle: MAE / median s |");
+    println!(
+        "| load | at | cells | power assumed | rule: MAE / median s | mean current: MAE / median s | oracle: MAE / \
+         median s |"
+    );
     println!("| --- | ---: | ---: | ---: | ---: | ---: | ---: |");
     let stats = |v: &[f64]| {
         let mut s = v.to_vec();

@@ -181,8 +181,8 @@ pub struct Estimate {
     /// The charge this discharge will have delivered at its end, Ah: what its readings drew so far plus
     /// `eod_current_a` until `eod_s` (from a full cell, its capacity at that current as a cycler measures
     /// it), and the same at the interval's ends; under a power, plus the charge the model draws to its own
-    /// end and, from there to `eod_s` (or an interval's end), the current the power draws at the cut-off. Once the discharge has crossed its cut-off, the charge
-    /// it delivered to the crossing, measured (as `bcal calibrate`'s records measure it), without an
+    /// end and, from there to `eod_s` (or an interval's end), the current the power draws at the cut-off.
+    /// Once the discharge has crossed its cut-off, the charge it delivered to the crossing, measured (as `bcal calibrate`'s records measure it), without an
     /// interval. None before the load, in a piece of a discharge whose start the stream did not see (after
     /// lost readings) and in streams that keep no readings ([`Stream::new`]).
     pub delivered_ah: Option<f64>,
@@ -2577,8 +2577,8 @@ mod tests {
                     let so_far_a = mean_a.loaded_mean_a().unwrap();
                     let at_current = (stream.predict_eod_s(so_far_a).unwrap() - end_s).abs();
                     eprintln!(
-                        "discharge {k} at half: end {at_power:.0} s off at its power, {at_current:.0} s at the mean current so \
-                         far, of {length_s:.0} s"
+                        "discharge {k} at half: end {at_power:.0} s off at its power, {at_current:.0} s at the mean \
+                         current so far, of {length_s:.0} s"
                     );
                     assert!(
                         at_power < 0.02 * length_s && 3.0 * at_power < at_current,
