@@ -47,7 +47,7 @@ pub struct CellRecord {
 /// The discharge's load as its predictions assume it at its end (`bcal_calib::LoadMean`): the mean current
 /// of its loaded readings, or over time where the load alternates, or their mean power where it was held at
 /// power.
-fn load_mean(samples: &[Sample]) -> bcal_calib::LoadMean {
+pub(crate) fn load_mean(samples: &[Sample]) -> bcal_calib::LoadMean {
     let mut load = bcal_calib::LoadMean::default();
     for s in samples {
         load.push(s.t_s, s.current_a, s.voltage_v);

@@ -52,13 +52,7 @@ pub fn simulated_record_under(
     // The load's own current; under a power, the loaded readings' mean (as a record read from data has it).
     let current_a = match load {
         Load::CurrentA(a) => a,
-        Load::PowerW(_) => {
-            let mut mean = bcal_common::measured::LoadMean::default();
-            for s in &samples {
-                mean.push(s.t_s, s.current_a, s.voltage_v);
-            }
-            mean.current_a().expect("a load")
-        }
+        Load::PowerW(_) => crate::record::load_mean(&samples).current_a().expect("a load"),
     };
     CellRecord {
         cell: "T".into(),
