@@ -1102,10 +1102,7 @@ impl<'a> Stream<'a> {
             _ => None,
         };
         // Under a power, the model's run to its own end: the calibrator's, else the prior's, else the previous fit's.
-        let power_run = match eod_load {
-            Some(Load::PowerW(w)) => method.or(prior_run).or(previous_run).map(|p| (w, p)),
-            _ => None,
-        };
+        let power_run = eod_power_w.and_then(|w| method.or(prior_run).or(previous_run).map(|p| (w, p)));
         let eod_current_a = match eod_load {
             Some(Load::CurrentA(a)) => Some(a),
             Some(Load::PowerW(w)) => power_run.and_then(|(_, p)| p.mean_current_a(r.time_s)).or(Some(w / r.voltage_v)),
