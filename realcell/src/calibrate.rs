@@ -750,9 +750,26 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         };
         return Err(CalibrateError::Validation(format!(
             "the streaming calibrators' settings are chosen on the last training cycles, and {reaching} of the \
-             training cycles reach the {cut} V cut-off (at least {} are needed): {what}",
+             training cycles reach the {cut} V cut-off (at least 1 is needed, {} for a sound choice): {what}",
             2 * tune::MIN_VALIDATION
         )));
+    }
+    settings.insert(
+        "validation".into(),
+        serde_json::json!({"cycles": validation.iter().map(|r| r.cycle).collect::<Vec<_>>(),
+            "short": tune::validation_is_short(&train),
+            "what": format!("the training cycles every choice is made on: the last quarter of those that reach the \
+                cut-off, at least {}; `short`: fewer than {} reach it, so every complete one but the first is taken \
+                and the choices are weak", tune::MIN_VALIDATION, 2 * tune::MIN_VALIDATION)}),
+    );
+    if !validation.is_empty() && tune::validation_is_short(&train) {
+        progress(&format!(
+            "validation: only {} of the training cycles reach the {cut} V cut-off ({} make a sound choice): every \
+             choice below rests on cycle(s) {} alone and is weak",
+            train.iter().filter(|r| r.eod_s.is_some()).count(),
+            2 * tune::MIN_VALIDATION,
+            validation.iter().map(|r| r.cycle.to_string()).collect::<Vec<_>>().join(", ")
+        ));
     }
     let factors = prior_factors(&carrying.tuning_width);
     let mut widenings = serde_json::Map::new();

@@ -117,6 +117,15 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
             r.records.partial_start
         );
     }
+    let validation = &r.settings["validation"];
+    if validation["short"].as_bool() == Some(true) {
+        let _ = writeln!(
+            s,
+            "- few training cycles reach the cut-off: every choice of the streaming calibrators rests on cycle(s) {} \
+             alone and is weak (more training cycles, --train-cycles, make it sound)",
+            validation["cycles"]
+        );
+    }
     if let Some(sc) = r.records.stated_capacity.as_ref().filter(|sc| sc.differs_from_cutoff(r.cutoff_v)) {
         let _ = writeln!(
             s,

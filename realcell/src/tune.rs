@@ -22,14 +22,24 @@ pub const MIN_VALIDATION: usize = 2;
 pub const PRIOR_FACTORS: [f64; 5] = [0.25, 0.5, 1.0, 2.0, 4.0];
 
 /// The validation cycles, as indices into `train`: the last quarter of the training cycles that reach the
-/// cut-off (at least [`MIN_VALIDATION`]; none when there are fewer than twice that).
+/// cut-off (at least [`MIN_VALIDATION`]). A short life has fewer than twice that (NASA's B0049-B0052 ran 25
+/// discharges, most of B0052's files are empty, and a third trains): then every complete one but the first
+/// (one of one), so the choice is weak but made and the cell still calibrates ([`validation_is_short`]); none
+/// when no training cycle reaches the cut-off.
 pub fn validation_records(train: &[CellRecord]) -> Vec<usize> {
     let complete: Vec<usize> = (0..train.len()).filter(|&k| train[k].eod_s.is_some()).collect();
-    if complete.len() < 2 * MIN_VALIDATION {
-        return Vec::new();
-    }
-    let n = ((complete.len() as f64 * VALIDATION_SHARE).ceil() as usize).max(MIN_VALIDATION);
+    let n = if complete.len() < 2 * MIN_VALIDATION {
+        complete.len().saturating_sub(1).max(complete.len().min(1))
+    } else {
+        ((complete.len() as f64 * VALIDATION_SHARE).ceil() as usize).max(MIN_VALIDATION)
+    };
     complete[complete.len() - n..].to_vec()
+}
+
+/// Whether [`validation_records`] of `train` are fewer than a choice usually rests on (said in the log and
+/// the report: every choice on them is weak).
+pub fn validation_is_short(train: &[CellRecord]) -> bool {
+    train.iter().filter(|r| r.eod_s.is_some()).count() < 2 * MIN_VALIDATION
 }
 
 /// The objective every choice minimises: the mean absolute end-of-discharge error, % of the discharge,
@@ -741,6 +751,28 @@ mod tests {
     fn candidate(index: usize, per_cycle_pct: Vec<f64>) -> Candidate {
         let eod_error_pct = per_cycle_pct.iter().sum::<f64>() / per_cycle_pct.len() as f64;
         Candidate { label: format!("c{index}"), eod_error_pct, index, per_cycle_pct }
+    }
+
+    /// The last quarter of the complete training cycles validates (at least two); a short life, fewer than
+    /// four complete, every complete one but the first (one of one), flagged short; none of none. Cycles cut
+    /// short never validate.
+    #[test]
+    fn validation_takes_the_last_complete_cycles_and_a_short_life_all_but_its_first() {
+        let records = |complete: &[bool]| -> Vec<CellRecord> {
+            let p = Predicted { value: Some(1.0), lo: None, hi: None };
+            (0..complete.len())
+                .map(|k| {
+                    let (r, _) = crate::record::test_discharge(k as u32 + 1, 1.0, |_| p, p);
+                    CellRecord { eod_s: complete[k].then_some(100.0), ..r }
+                })
+                .collect()
+        };
+        let at = |complete: &[bool]| (validation_records(&records(complete)), validation_is_short(&records(complete)));
+        assert_eq!(at(&[true; 12]), ((9..12).collect(), false));
+        assert_eq!(at(&[true; 4]), (vec![2, 3], false));
+        assert_eq!(at(&[true, false, true, true, false]), (vec![2, 3], true));
+        assert_eq!(at(&[false, true]), (vec![1], true));
+        assert_eq!(at(&[false, false]), (vec![], true));
     }
 
     /// A candidate that wins the mean on two cycles and loses the other eight is passed over for one that

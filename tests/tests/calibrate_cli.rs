@@ -333,6 +333,29 @@ fn records_not_read_are_named_in_the_report() {
     assert!(md.contains("- not read: 00011.csv"), "{md}");
 }
 
+/// A cell with few readable discharges (NASA's B0052: 4 of 25 files hold data, the software crashed) still
+/// calibrates on its default split: three train, one is judged, and the choices rest on the last two of the
+/// three, said in the log, the report and `calibration.json` as weak (refused before 2026-11-29: "at least 4
+/// are needed: widen --train-cycles", which such a cell cannot).
+#[test]
+fn a_cell_of_few_readable_discharges_calibrates_and_says_its_choice_is_weak() {
+    let dir = tempfile::tempdir().unwrap();
+    let nasa = write_nasa(dir.path());
+    for cycle in 5..=12u32 {
+        std::fs::write(nasa.join("data").join(format!("{cycle:05}.csv")), "").unwrap();
+    }
+    let out = dir.path().join("out");
+    let report = calibrate_ukf(&["--data", nasa.to_str().unwrap(), "--cell", "B0049"], &out, &[]);
+    assert_eq!(report["cycles_judged"], serde_json::json!([4]), "{}", report["cycles_judged"]);
+    let validation = &report["settings"]["validation"];
+    assert_eq!(validation["cycles"], serde_json::json!([2, 3]), "{validation}");
+    assert_eq!(validation["short"], serde_json::json!(true), "{validation}");
+    let ukf = report["methods"]["ukf"]["eod_error_pct"]["50"]["median"].as_f64().unwrap();
+    assert!(ukf.is_finite() && ukf < 5.0, "the filter's end at half: {ukf} %");
+    let md = std::fs::read_to_string(out.join("calibration.md")).unwrap();
+    assert!(md.contains("few training cycles reach the cut-off") && md.contains("[2,3]"), "{md}");
+}
+
 /// Data that states no capacity (a generic CSV) has no capacity score against one: none in the report, not
 /// an RMSE of 0 that reads as a target met; the data's charge is the reference the reading states.
 #[test]
