@@ -25,6 +25,14 @@ pub const CELSIUS_TO_KELVIN: f64 = 273.15;
 /// complete. 2.5 V is the lowest cut-off of the NASA 2 A cells in `../shared` (B0006, B0018; B0005 stops
 /// at 2.7 V, B0007 at 2.2 V) and a common 18650 cut-off; give the cell's own when it differs.
 pub const DEFAULT_CUTOFF_V: f64 = 2.5;
+/// How far below its voltage at the load-on (the lowest loaded one of the load's first [`LOAD_ON_SPAN_S`]) a
+/// record's fit window may reach when that lies under the fit's floor, V: a cold or worn cell whose load pulls
+/// it near or under the floor at once (NASA's B0041-B0044 at 4 A and 4 C deliver 0.05-0.09 Ah above 2.7 V) is
+/// fitted down to 0.25 V below where it started. Every discharge of the six NASA cells at hand reads 3.18 V or
+/// more in its load's first minute (all but one 3.6 V or more), so none of their windows moves.
+pub const FLOOR_BELOW_LOAD_ON_V: f64 = 0.25;
+/// The span after the first loaded sample the load-on voltage is read over, s.
+pub const LOAD_ON_SPAN_S: f64 = 60.0;
 
 /// The cut-off the records themselves show, V, when nobody gives one: a cycler stops a discharge at its
 /// cut-off under load, so records that end still loaded end just below it. It is read when at least two
@@ -163,7 +171,10 @@ impl Discharge {
     }
 
     /// Finds the load window: loaded means `current_a > load_threshold_a`; the fit window stops at the first
-    /// loaded sample below `v_floor_v` (the knee is beyond the model's reach there) or at the cut-off. A
+    /// loaded sample below `v_floor_v` (the knee is beyond the model's reach there), or below the load-on
+    /// voltage less [`FLOOR_BELOW_LOAD_ON_V`] where that is lower (a cell whose resistance puts it under the
+    /// floor from the load on, as NASA's 4 A discharges at 4 C run, still has its voltage fitted down to its
+    /// knee), or at the cut-off. A
     /// record ending under load is taken as ending at the [`DEFAULT_CUTOFF_V`] cut-off if its last loaded
     /// voltage is at or below it (see [`Discharge::windows_with_cutoff`]). `None` when no sample is loaded.
     pub fn windows(&self, load_threshold_a: f64, v_floor_v: f64) -> Option<Windows> {
@@ -177,7 +188,15 @@ impl Discharge {
         let load_on = self.first_loaded(load_threshold_a)?;
         let last_loaded = self.current_a.iter().rposition(|i| *i > load_threshold_a)?;
         let load_end = last_loaded + 1;
-        let fit_end = (load_on..load_end).find(|&k| self.voltage_v[k] < v_floor_v).unwrap_or(load_end);
+        // The load-on voltage: the lowest loaded one of the load's first minute (the first loaded sample can
+        // be read before the voltage has settled under the load).
+        let on_v = (load_on..load_end)
+            .take_while(|&k| self.time_s[k] - self.time_s[load_on] <= LOAD_ON_SPAN_S)
+            .filter(|&k| self.current_a[k] > load_threshold_a)
+            .map(|k| self.voltage_v[k])
+            .fold(f64::INFINITY, f64::min);
+        let floor_v = v_floor_v.min(on_v - FLOOR_BELOW_LOAD_ON_V);
+        let fit_end = (load_on..load_end).find(|&k| self.voltage_v[k] < floor_v).unwrap_or(load_end);
         let under_load_at_end = load_end == self.len();
         let ended_at_cutoff = under_load_at_end && self.voltage_v[last_loaded] <= cutoff_v.unwrap_or(DEFAULT_CUTOFF_V);
         Some(Windows { load_on, fit_end, load_end, truncated: under_load_at_end && !ended_at_cutoff, ended_at_cutoff })
@@ -276,6 +295,11 @@ impl Discharge {
 mod tests {
     use super::*;
 
+    /// `d` read once a minute.
+    fn minutely(d: Discharge) -> Discharge {
+        Discharge { time_s: (0..d.len()).map(|k| 60.0 * k as f64).collect(), ..d }
+    }
+
     fn record(current_a: Vec<f64>, voltage_v: Vec<f64>) -> Discharge {
         let n = current_a.len();
         Discharge {
@@ -314,10 +338,32 @@ mod tests {
 
     #[test]
     fn windows_find_load_floor_and_cutoff() {
-        let r = record(vec![0.0, 2.0, 2.0, 2.0, 2.0, 0.0, 0.0], vec![4.2, 4.0, 3.8, 2.85, 2.7, 3.3, 3.4]);
+        // A reading a minute (the load-on voltage, 3.8 V, leaves the floor where it is).
+        let r = minutely(record(vec![0.0, 2.0, 2.0, 2.0, 2.0, 0.0, 0.0], vec![4.2, 4.0, 3.8, 2.85, 2.7, 3.3, 3.4]));
         let w = r.windows(0.05, 2.9).unwrap();
         assert_eq!(w, Windows { load_on: 1, fit_end: 3, load_end: 5, truncated: false, ended_at_cutoff: false });
         assert_eq!(w.fit_len(), 2);
+    }
+
+    /// A cell under the floor from the load on (a 4 A discharge at 4 C) is fitted down to 0.25 V below its
+    /// load-on voltage, the lowest of the load's first minute (the first loaded sample, read before the
+    /// voltage settled, does not set it); one that starts above the floor by more than that keeps the floor.
+    #[test]
+    fn a_record_under_the_floor_from_its_load_on_is_fitted_to_below_its_start() {
+        let cold = Discharge {
+            time_s: (0..8).map(|k| 20.0 * k as f64).collect(),
+            ..record(vec![0.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0], vec![4.1, 3.5, 2.6, 2.55, 2.45, 2.34, 2.2, 1.98])
+        };
+        let w = cold.windows_with_cutoff(0.05, 2.9, Some(2.0)).unwrap();
+        // Load-on 2.45 V (the lowest of 3.5, 2.6, 2.55, 2.45 at 20-80 s): the floor 2.2 V.
+        assert_eq!((w.load_on, w.fit_end, w.load_end), (1, 7, 8), "{w:?}");
+        assert!(w.ended_at_cutoff);
+        let warm = Discharge {
+            time_s: (0..8).map(|k| 30.0 * k as f64).collect(),
+            ..record(vec![0.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0], vec![4.2, 3.4, 3.35, 3.3, 3.1, 2.95, 2.88, 2.6])
+        };
+        // Load-on 3.3 V: 3.05 V is above the floor, which stays.
+        assert_eq!(warm.windows(0.05, 2.9).unwrap().fit_end, 6);
     }
 
     #[test]
@@ -332,7 +378,7 @@ mod tests {
     #[test]
     fn a_record_ending_under_load_at_or_below_the_cutoff_is_complete() {
         // B0006's way: still loaded at the last sample, 2.35 V, below its 2.5 V cut-off.
-        let r = record(vec![0.0, 2.0, 2.0, 2.0, 2.0], vec![4.2, 4.0, 3.6, 2.8, 2.35]);
+        let r = minutely(record(vec![0.0, 2.0, 2.0, 2.0, 2.0], vec![4.2, 4.0, 3.6, 2.8, 2.35]));
         for cutoff in [None, Some(2.5), Some(2.35)] {
             let w = r.windows_with_cutoff(0.05, 2.9, cutoff).unwrap();
             assert!(w.ended_at_cutoff && !w.truncated, "{cutoff:?}: {w:?}");

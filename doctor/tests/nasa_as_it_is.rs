@@ -119,3 +119,18 @@ fn recovery_after_rest_is_named_on_the_2_a_cells() {
         assert!((0.05..0.15).contains(&a) && (5.0..50.0).contains(&tau_h), "{cell}: A {a:.3} Ah, tau {tau_h:.1} h");
     }
 }
+
+/// The fit window's floor under a load-on voltage (`FLOOR_BELOW_LOAD_ON_V`, for cells pulled under 2.9 V at
+/// once) moves no window of the six cells: each ends at the first loaded sample below 2.9 V, as before it.
+#[test]
+fn the_load_on_floor_moves_no_window_of_the_six_cells() {
+    let Some(root) = shared() else { return };
+    for (cell, cutoff_v, _) in CELLS {
+        let (records, _) = read_nasa(&root, cell, None).unwrap();
+        for d in &records {
+            let Some(w) = d.windows_with_cutoff(0.05, 2.9, Some(cutoff_v)) else { continue };
+            let fixed = (w.load_on..w.load_end).find(|&k| d.voltage_v[k] < 2.9).unwrap_or(w.load_end);
+            assert_eq!(w.fit_end, fixed, "{cell} cycle {}", d.cycle);
+        }
+    }
+}
