@@ -29,6 +29,7 @@ import re
 import shutil
 import statistics
 import subprocess
+import sys
 from datetime import datetime, timezone
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
@@ -198,7 +199,9 @@ def main() -> None:
     p.add_argument("--history-from", type=int, default=None,
                    help="start the stream at discharge H (1-based, at most A): H..A-1 are followed, not scored")
     p.add_argument("--kind", default="ukf")
-    p.add_argument("--cutoff-v", type=float, default=3.0)
+    p.add_argument("--cutoff-v", type=float, default=None,
+                   help="the cut-off the stream predicts and is scored at, V (default 3.0, the model's own, said on "
+                        "stderr: give the cell's, e.g. 2.7 for B0005, 2.5 for B0006 and B0018, from its extra_infos)")
     p.add_argument("--bcal", default=None, help="the bcal executable (default: this clone's build)")
     p.add_argument("--model", default=None, help="the doctor's diagnosis.json to calibrate on (default: the base model)")
     p.add_argument("--config", default=None, help="a bcal cell-config TOML: the cell's filter, prior, ranges and lifetime model")
@@ -212,6 +215,10 @@ def main() -> None:
     history = first if a.history_from is None else a.history_from
     if not 1 <= history <= first:
         raise SystemExit(f"--history-from {history}: need 1 <= H <= {first} (the first scored discharge)")
+    if a.cutoff_v is None:
+        a.cutoff_v = 3.0
+        print(f"note: scoring at the default cut-off 3.0 V, not {a.cell}'s own: give --cutoff-v (e.g. 2.7 for B0005)",
+              file=sys.stderr)
     bcal = a.bcal or find_bcal()
     if a.model and not pathlib.Path(a.model).is_file():
         raise SystemExit(f"--model {a.model}: no such file (bcal diagnose --out DIR writes DIR/diagnosis.json)")

@@ -126,7 +126,11 @@ impl<'a> PriorWalk<'a> {
         }
     }
 
-    /// Takes the discharge `record` once it has ended: its offline fit and measured capacity.
+    /// Takes the discharge `record` once it has ended: its offline fit and measured capacity. A record cut
+    /// short measures none and hands on the fit carried into it ([`crate::carry::over_cut_short`]): with it
+    /// goes the capacity that fit was measured with, so the discharges after a block cut short still move by
+    /// the fade over the block (they stood at the block's first prior: the fade alone, B0042-like cell of
+    /// 2026-11-29, five discharges).
     pub fn observe(&mut self, record: &CellRecord, rest_s: Option<f64>, fit: &Degradation) {
         if let Some(t) = self.life.as_mut() {
             t.advance_to(record.cycle, rest_s, condition(record));
@@ -134,7 +138,8 @@ impl<'a> PriorWalk<'a> {
                 t.observe(c);
             }
         }
-        self.last = Some((record.cycle, *fit, record.data_capacity_ah, record.current_a));
+        let capacity_ah = record.data_capacity_ah.or_else(|| self.last.and_then(|l| l.2));
+        self.last = Some((record.cycle, *fit, capacity_ah, record.current_a));
     }
 }
 
@@ -262,6 +267,31 @@ mod tests {
         fast.observe(&CellRecord { current_a: 4.0, ..record(10, Some(3_600.0), 1.77) }, Some(3_600.0), &fit);
         let after_fast = fast.prior(&record(11, Some(3_600.0), 0.0), Some(3_600.0), &fit).mean;
         assert!((after_fast.q_mobile_c - at(2.0).q_mobile_c).abs() < 1e-9, "{after_fast:?}");
+    }
+
+    /// After a block of discharges cut short (no capacity measured; each hands on the fit carried into it)
+    /// the next prior moves by the fade over the whole block, as if the block had not been there.
+    #[test]
+    fn a_block_cut_short_still_fades_the_prior_after_it() {
+        let life = fading_life(0.0, 0.0);
+        let spec = TrackerSpec::default();
+        let width = RestWidth { a_z2: [1e-4; 2], b_z2: [0.0; 2], usual_rest_s: 3_600.0, pairs: 20, long_rest_pairs: 0 };
+        let fit = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.12 };
+        let walked = |cut_short: bool| {
+            let mut walk = PriorWalk::new(&spec, Some(&life), width);
+            walk.observe(&record(10, Some(3_600.0), 1.77), Some(3_600.0), &fit);
+            if cut_short {
+                for c in 11..=15 {
+                    let r = CellRecord { eod_s: None, data_capacity_ah: None, ..record(c, Some(3_600.0), 0.0) };
+                    walk.observe(&r, Some(3_600.0), &fit);
+                }
+            }
+            walk.prior(&record(16, Some(3_600.0), 0.0), Some(3_600.0), &fit).mean
+        };
+        let (after_block, without) = (walked(true), walked(false));
+        // Six discharges of 3 mAh fade from 1.77 Ah: 1 % of qMobile.
+        assert!((without.q_mobile_c / fit.q_mobile_c - (1.77 - 0.018) / 1.77).abs() < 1e-9, "{without:?}");
+        assert!((after_block.q_mobile_c - without.q_mobile_c).abs() < 1e-9, "{after_block:?} vs {without:?}");
     }
 
     #[test]
