@@ -538,6 +538,13 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
         grid.len(),
         history.factors().len()
     );
+    if bcal_realcell::tune::validation_is_short(&records) {
+        eprintln!(
+            "  (few training cycles reach the cut-off: the choice rests on {} of them and is weak; more training \
+             cycles, --train-cycles, make it sound)",
+            bcal_realcell::tune::validation_records(&records).len()
+        );
+    }
     let (mut ukf, factor, choice) =
         choose_cell_ukf(&spec.tracker, &records, &history, &grid, cut).ok_or_else(too_few)?;
     eprintln!(
