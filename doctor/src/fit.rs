@@ -8,10 +8,11 @@
 //! is searched through a logistic map onto its box (log-scaled where the parameter spans decades), and
 //! the Jacobian is ours: forward differences that re-simulate only the cycles a column touches, so a joint
 //! fit of N cycles, k shared and m per-cycle parameters costs N * (k + m + 3) simulations per iteration,
-//! in parallel. A record fitted on its own is searched from a coarse grid and a knee-matching start (about
-//! 150 simulations) unless it comes with a start whose model is known on it and the fit from that start
-//! does at least as well ([`CycleStart::rmse_v`]): the held-out re-fits of every candidate start from the
-//! base model's searched fits, and the search was three quarters of `bcal diagnose`'s time.
+//! in parallel. A record fitted on its own is searched from the best point of a coarse grid and from three
+//! knee-matching starts (about 150 simulations before 2026-11-29, when one knee start was searched) unless
+//! it comes with a start whose model is known on it and the fit from that start does at least as well
+//! ([`CycleStart::rmse_v`]): the held-out re-fits of every candidate start from the base model's searched
+//! fits, and the search was three quarters of `bcal diagnose`'s time.
 
 use crate::error::DoctorError;
 use crate::record::PARTIAL_START_DROP_V;
@@ -282,7 +283,7 @@ fn fit_inner(
             .map(|(c, r)| {
                 // From a given start whose model is known on this record, a re-fit of qMobile and Ro alone
                 // that does at least as well is kept as it is: the start came from a searched fit, and the
-                // search (grid and knee starts, 150 simulations, most of a re-fit's cost) is for when the
+                // search (grid and knee starts, most of a re-fit's cost) is for when the
                 // extension moved the optimum away from it. Not with per-cycle extension parameters: their
                 // landscape has minima that beat the start and are still far from the best (three synthetic
                 // `electrode_balance` cells of ten kept 9-17 mV where the search finds 3 mV).

@@ -45,7 +45,7 @@ pub fn read_any(
 pub const DEFAULT_TRAIN_MAX: usize = 40;
 
 /// Fewest training cycles a cell gets by default while it leaves one to judge: `bcal calibrate` chooses its
-/// filters on at least 4 training discharges that reach the cut-off.
+/// filters soundly on 4 training discharges that reach the cut-off (on fewer, weakly, and says so).
 pub const DEFAULT_TRAIN_MIN: usize = 4;
 
 /// The training cycles `bcal calibrate` and `bcal cell-config` take when none are given: the cell's first

@@ -25,14 +25,18 @@ pub const CELSIUS_TO_KELVIN: f64 = 273.15;
 /// complete. 2.5 V is the lowest cut-off of the NASA 2 A cells in `../shared` (B0006, B0018; B0005 stops
 /// at 2.7 V, B0007 at 2.2 V) and a common 18650 cut-off; give the cell's own when it differs.
 pub const DEFAULT_CUTOFF_V: f64 = 2.5;
-/// How far below its voltage at the load-on (the lowest loaded one of the load's first [`LOAD_ON_SPAN_S`]) a
-/// record's fit window may reach when that lies under the fit's floor, V: a cold or worn cell whose load pulls
-/// it near or under the floor at once (NASA's B0041-B0044 at 4 A and 4 C deliver 0.05-0.09 Ah above 2.7 V) is
-/// fitted down to 0.25 V below where it started. Every discharge of the six NASA cells at hand reads 3.18 V or
-/// more in its load's first minute (all but one 3.6 V or more), so none of their windows moves.
+/// How far below its settled load-on voltage a record's fit window may reach where that lies under the fit's
+/// floor, V, when the load pulled the voltage down by more than [`LOAD_ON_DROP_V`] from the rest before it (a
+/// cold or worn cell at a high current: NASA's B0041-B0044 deliver 0.05-0.09 Ah above 2.7 V at 4 A and 4 C),
+/// never below the cut-off where it is known. A start from a partial charge lies low for its charge, not its
+/// resistance, and keeps the floor. Every discharge of the six NASA cells at hand drops less than that, or
+/// reads 3.18 V or more in its load's first minute, so none of their windows moves.
 pub const FLOOR_BELOW_LOAD_ON_V: f64 = 0.25;
-/// The span after the first loaded sample the load-on voltage is read over, s.
-pub const LOAD_ON_SPAN_S: f64 = 60.0;
+/// The drop from the rest to the settled load-on voltage beyond which the load, not a low charge, put the cell
+/// near its floor, V (the six NASA cells' discharges at 2 and 4 A drop 0.27-0.59 V).
+pub const LOAD_ON_DROP_V: f64 = 0.6;
+/// How long after the last reading at rest a loaded reading is taken as settled, s (the fit's `settle_s`).
+pub const LOAD_ON_SETTLE_S: f64 = 30.0;
 
 /// The cut-off the records themselves show, V, when nobody gives one: a cycler stops a discharge at its
 /// cut-off under load, so records that end still loaded end just below it. It is read when at least two
@@ -188,18 +192,29 @@ impl Discharge {
         let load_on = self.first_loaded(load_threshold_a)?;
         let last_loaded = self.current_a.iter().rposition(|i| *i > load_threshold_a)?;
         let load_end = last_loaded + 1;
-        // The load-on voltage: the lowest loaded one of the load's first minute (the first loaded sample can
-        // be read before the voltage has settled under the load).
-        let on_v = (load_on..load_end)
-            .take_while(|&k| self.time_s[k] - self.time_s[load_on] <= LOAD_ON_SPAN_S)
-            .filter(|&k| self.current_a[k] > load_threshold_a)
-            .map(|k| self.voltage_v[k])
-            .fold(f64::INFINITY, f64::min);
-        let floor_v = v_floor_v.min(on_v - FLOOR_BELOW_LOAD_ON_V);
+        let floor_v = match (self.load_on_drop(load_on, load_end, load_threshold_a), cutoff_v) {
+            (Some((on_v, drop_v)), cut) if drop_v > LOAD_ON_DROP_V => {
+                v_floor_v.min(on_v - FLOOR_BELOW_LOAD_ON_V).max(cut.unwrap_or(f64::NEG_INFINITY))
+            }
+            _ => v_floor_v,
+        };
         let fit_end = (load_on..load_end).find(|&k| self.voltage_v[k] < floor_v).unwrap_or(load_end);
         let under_load_at_end = load_end == self.len();
         let ended_at_cutoff = under_load_at_end && self.voltage_v[last_loaded] <= cutoff_v.unwrap_or(DEFAULT_CUTOFF_V);
         Some(Windows { load_on, fit_end, load_end, truncated: under_load_at_end && !ended_at_cutoff, ended_at_cutoff })
+    }
+
+    /// The settled load-on voltage, V, and how far the load pulled the voltage down from the rest before it,
+    /// V: the first loaded reading [`LOAD_ON_SETTLE_S`] or more after the last reading at rest (one read
+    /// sooner can come before the voltage settles under the load). None without a reading at rest before
+    /// the load, or without such a loaded reading.
+    fn load_on_drop(&self, load_on: usize, load_end: usize, load_threshold_a: f64) -> Option<(f64, f64)> {
+        let rest = load_on.checked_sub(1)?;
+        let settled = (load_on..load_end).find(|&k| {
+            self.current_a[k] > load_threshold_a && self.time_s[k] - self.time_s[rest] >= LOAD_ON_SETTLE_S
+        })?;
+        let on_v = self.voltage_v[settled];
+        Some((on_v, self.voltage_v[rest] - on_v))
     }
 
     /// Whether the load switches about as often as the record samples it ([`alternates`]: more than half of
@@ -345,24 +360,32 @@ mod tests {
         assert_eq!(w.fit_len(), 2);
     }
 
-    /// A cell under the floor from the load on (a 4 A discharge at 4 C) is fitted down to 0.25 V below its
-    /// load-on voltage, the lowest of the load's first minute (the first loaded sample, read before the
-    /// voltage settled, does not set it); one that starts above the floor by more than that keeps the floor.
+    /// A cell the load pulls far under its rest and near or under the floor at once (a 4 A discharge at 4 C)
+    /// is fitted down to 0.25 V below its settled load-on voltage (the first loaded reading 30 s after the rest,
+    /// not the one read before the voltage settled), never below the cut-off; a start from a partial charge,
+    /// low for its charge, and a cell that starts above the floor by more than that keep the floor.
     #[test]
     fn a_record_under_the_floor_from_its_load_on_is_fitted_to_below_its_start() {
-        let cold = Discharge {
-            time_s: (0..8).map(|k| 20.0 * k as f64).collect(),
-            ..record(vec![0.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0], vec![4.1, 3.5, 2.6, 2.55, 2.45, 2.34, 2.2, 1.98])
-        };
+        let every_20_s = |d: Discharge| Discharge { time_s: (0..d.len()).map(|k| 20.0 * k as f64).collect(), ..d };
+        let cold = every_20_s(record(
+            vec![0.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0],
+            vec![4.1, 3.5, 2.6, 2.55, 2.45, 2.34, 2.2, 1.98],
+        ));
+        // Settled at 40 s, 2.6 V (1.5 V under the rest): the floor 2.35 V.
         let w = cold.windows_with_cutoff(0.05, 2.9, Some(2.0)).unwrap();
-        // Load-on 2.45 V (the lowest of 3.5, 2.6, 2.55, 2.45 at 20-80 s): the floor 2.2 V.
-        assert_eq!((w.load_on, w.fit_end, w.load_end), (1, 7, 8), "{w:?}");
+        assert_eq!((w.load_on, w.fit_end, w.load_end), (1, 5, 8), "{w:?}");
         assert!(w.ended_at_cutoff);
+        // Never below the cut-off.
+        assert_eq!(cold.windows_with_cutoff(0.05, 2.9, Some(2.4)).unwrap().fit_end, 5);
+        assert_eq!(cold.windows_with_cutoff(0.05, 2.9, Some(2.5)).unwrap().fit_end, 4);
+        // From a partial charge: 3.6 V at rest, 3.3 V settled (0.3 V under it): the floor stays at 2.9 V.
+        let partial = every_20_s(record(vec![0.0, 2.0, 2.0, 2.0, 2.0, 2.0], vec![3.6, 3.35, 3.3, 3.0, 2.85, 2.6]));
+        assert_eq!(partial.windows(0.05, 2.9).unwrap().fit_end, 4);
         let warm = Discharge {
             time_s: (0..8).map(|k| 30.0 * k as f64).collect(),
             ..record(vec![0.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0], vec![4.2, 3.4, 3.35, 3.3, 3.1, 2.95, 2.88, 2.6])
         };
-        // Load-on 3.3 V: 3.05 V is above the floor, which stays.
+        // Load-on 3.4 V: 3.15 V is above the floor, which stays.
         assert_eq!(warm.windows(0.05, 2.9).unwrap().fit_end, 6);
     }
 

@@ -538,11 +538,11 @@ pub fn run_cell_config(a: CellConfigArgs) -> anyhow::Result<()> {
         grid.len(),
         history.factors().len()
     );
-    if bcal_realcell::tune::validation_is_short(&records) {
+    let validating = bcal_realcell::tune::validation_records(&records).len();
+    if validating > 0 && bcal_realcell::tune::validation_is_short(&records) {
         eprintln!(
-            "  (few training cycles reach the cut-off: the choice rests on {} of them and is weak; more training \
-             cycles, --train-cycles, make it sound)",
-            bcal_realcell::tune::validation_records(&records).len()
+            "  (few training cycles reach the cut-off: the choice rests on {validating} of them and is weak; more \
+             training cycles, --train-cycles, make it sound)"
         );
     }
     let (mut ukf, factor, choice) =

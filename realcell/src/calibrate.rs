@@ -144,8 +144,8 @@ fn refuse_unfittable(
         let keep: Vec<bool> = (0..recs.len()).map(|k| usable(ds, kept, k)).collect();
         for (k, r) in recs.iter().enumerate().filter(|(k, _)| !keep[*k]) {
             summary.refused.push(format!(
-                "{} cycle {}: fewer than {MIN_FIT_SAMPLES} loaded samples above {} V settled {} s after a load step \
-                 ({} of them): the offline fit that starts the next discharge has nothing to fit (a start from a \
+                "{} cycle {}: fewer than {MIN_FIT_SAMPLES} loaded samples above the fit's floor ({} V, or lower \
+                 for a cell the load pulls under it at once) settled {} s after a load step ({} of them): the offline fit that starts the next discharge has nothing to fit (a start from a \
                  partial charge, or a load cut within seconds); left out",
                 r.cell,
                 r.cycle,

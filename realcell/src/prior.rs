@@ -165,7 +165,8 @@ pub fn learn_width(
     for (r, (fit, _)) in train.iter().zip(fits) {
         let rest = rests.get(&r.cycle).copied();
         let consecutive = walk.last.is_some_and(|(c, _, _, _)| c + 1 == r.cycle);
-        if consecutive {
+        // A record cut short measured no fit of its own (it hands on the one carried into it): no pair.
+        if consecutive && r.eod_s.is_some() {
             let p = walk.prior(r, rest, fit);
             let (z, m) = (spec.to_z(fit), spec.to_z(&p.mean));
             residuals.push((probe.h(rest), [z[0] - m[0], z[1] - m[1]]));
@@ -292,6 +293,30 @@ mod tests {
         // Six discharges of 3 mAh fade from 1.77 Ah: 1 % of qMobile.
         assert!((without.q_mobile_c / fit.q_mobile_c - (1.77 - 0.018) / 1.77).abs() < 1e-9, "{without:?}");
         assert!((after_block.q_mobile_c - without.q_mobile_c).abs() < 1e-9, "{after_block:?} vs {without:?}");
+    }
+
+    /// The width is learned on consecutive pairs of measured fits: a record cut short hands on the fit carried
+    /// into it and makes no pair (its residual against a prior that fades over the block would grow along it);
+    /// the discharge after the block does.
+    #[test]
+    fn a_block_cut_short_makes_no_pairs_for_the_width() {
+        let life = fading_life(0.0, 0.0);
+        let spec = TrackerSpec::default();
+        let fit = (Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.12 }, ModelExtension::default());
+        let train: Vec<CellRecord> = (1..=20)
+            .map(|c| {
+                let r = record(c, Some(3_600.0), 1.8 - 0.003 * f64::from(c));
+                if (11..=15).contains(&c) {
+                    CellRecord { eod_s: None, data_capacity_ah: None, ..r }
+                } else {
+                    r
+                }
+            })
+            .collect();
+        let rests: BTreeMap<u32, f64> = (1..=20).map(|c| (c, 3_600.0)).collect();
+        let width = learn_width(&spec, Some(&life), &train, &vec![fit.clone(); 20], &rests);
+        // Pairs 2-10, 16 (after the block) and 17-20.
+        assert_eq!(width.pairs, 14, "{width:?}");
     }
 
     #[test]

@@ -118,7 +118,8 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
         );
     }
     let validation = &r.settings["validation"];
-    if validation["short"].as_bool() == Some(true) {
+    let validated = validation["cycles"].as_array().is_some_and(|c| !c.is_empty());
+    if validated && validation["short"].as_bool() == Some(true) {
         let _ = writeln!(
             s,
             "- few training cycles reach the cut-off: every choice of the streaming calibrators rests on cycle(s) {} \
