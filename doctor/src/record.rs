@@ -175,10 +175,11 @@ impl Discharge {
     }
 
     /// Finds the load window: loaded means `current_a > load_threshold_a`; the fit window stops at the first
-    /// loaded sample below `v_floor_v` (the knee is beyond the model's reach there), or below the load-on
-    /// voltage less [`FLOOR_BELOW_LOAD_ON_V`] where that is lower (a cell whose resistance puts it under the
-    /// floor from the load on, as NASA's 4 A discharges at 4 C run, still has its voltage fitted down to its
-    /// knee), or at the cut-off. A
+    /// loaded sample below `v_floor_v` (the knee is beyond the model's reach there), or below the settled
+    /// load-on voltage less [`FLOOR_BELOW_LOAD_ON_V`] where that is lower and the load pulled the voltage more
+    /// than [`LOAD_ON_DROP_V`] under the rest (a cell whose resistance puts it under the floor from the load
+    /// on, as NASA's 4 A discharges at 4 C run, still has its voltage fitted; never below a cut-off given),
+    /// or at the cut-off. A
     /// record ending under load is taken as ending at the [`DEFAULT_CUTOFF_V`] cut-off if its last loaded
     /// voltage is at or below it (see [`Discharge::windows_with_cutoff`]). `None` when no sample is loaded.
     pub fn windows(&self, load_threshold_a: f64, v_floor_v: f64) -> Option<Windows> {

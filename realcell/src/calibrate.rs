@@ -145,8 +145,9 @@ fn refuse_unfittable(
         for (k, r) in recs.iter().enumerate().filter(|(k, _)| !keep[*k]) {
             summary.refused.push(format!(
                 "{} cycle {}: fewer than {MIN_FIT_SAMPLES} loaded samples above the fit's floor ({} V, or lower \
-                 for a cell the load pulls under it at once) settled {} s after a load step ({} of them): the offline fit that starts the next discharge has nothing to fit (a start from a \
-                 partial charge, or a load cut within seconds); left out",
+                 for a cell the load pulls under it at once) settled {} s after a load step ({} of them): the \
+                 offline fit that starts the next discharge has nothing to fit (a start from a partial charge, or \
+                 a load cut within seconds); left out",
                 r.cell,
                 r.cycle,
                 cfg.v_floor_v,
