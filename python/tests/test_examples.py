@@ -181,3 +181,21 @@ def test_record_rooms_learner_sees_only_the_discharges_before():
         assert moved[:k] == base[:k]
         assert abs((moved[k] - changed[k]) - (base[k] - errors[k])) < 1e-12, k
         assert base[k] != errors[k], "the learner moves once it has a record"
+
+
+def test_by_previous_current_groups_each_discharge_by_its_current_and_the_one_before(tmp_path):
+    """Three hand-made discharges of a blind cell (load on at 10 s, true end 1000 s after it): the second at 2 A
+    after 1 A predicted 20 s late at half (+2 %), the third at 2 A after 2 A 10 s early (-1 %); the first has no
+    discharge before it and is left out."""
+    truth = tmp_path / "truth.csv"
+    truth.write_text("cell,cycle,current_a,t_on_s,eod_from_load_s\n"
+                     "X,1,1.0,10,1000\nX,2,2.0,10,1000\nX,3,2.0,10,1000\n")
+    ukf = tmp_path / "cal" / "readings" / "ukf"
+    ukf.mkdir(parents=True)
+    for cycle, off_s in [(1, 0.0), (2, 20.0), (3, -10.0)]:
+        rows = ["t_s,eod_s"] + [f"{t},{1010.0 + off_s * (t == 510)}" for t in (0, 300, 510, 900)]
+        (ukf / f"X-{cycle:04d}.csv").write_text("\n".join(rows) + "\n")
+    out = run_example("blind/by_previous_current.py", "--out", str(tmp_path / "cal"), "--truth", str(truth),
+                      "--cell", "X")
+    assert out.splitlines() == ["ukf at 2 A after 1 A:   1 discharges, signed median +2.00 %",
+                                "ukf at 2 A after 2 A:   1 discharges, signed median -1.00 %"], out
