@@ -37,8 +37,12 @@ import math
 import os
 from multiprocessing import Pool
 
-import numpy as np
-from progpy.models import BatteryElectroChemEOD
+try:
+    import numpy as np
+    from progpy.models import BatteryElectroChemEOD
+except ImportError as e:
+    raise SystemExit(f"{e}: the generator runs progpy's model (python3 -m venv venv && venv/bin/pip install progpy "
+                     "numpy, then venv/bin/python examples/blind/progpy_cells.py)") from None
 
 DT = 1.0
 RTH = 44.0  # K/W at low power
