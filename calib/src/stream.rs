@@ -182,8 +182,8 @@ pub struct Estimate {
     /// `eod_current_a` until `eod_s` (from a full cell, its capacity at that current as a cycler measures
     /// it), and the same at the interval's ends; under a power, plus the charge the model draws to its own
     /// end and, from there to `eod_s` (or an interval's end), the current the power draws at the cut-off.
-    /// Once the discharge has crossed its cut-off, the charge it delivered to the crossing, measured (as `bcal calibrate`'s records measure it), without an
-    /// interval. None before the load, in a piece of a discharge whose start the stream did not see (after
+    /// Once the discharge has crossed its cut-off, the charge it delivered to the crossing, measured (as
+    /// `bcal calibrate`'s records measure it), without an interval. None before the load, in a piece of a discharge whose start the stream did not see (after
     /// lost readings) and in streams that keep no readings ([`Stream::new`]).
     pub delivered_ah: Option<f64>,
     pub delivered_lo_ah: Option<f64>,
@@ -2476,8 +2476,8 @@ mod tests {
         let without: Vec<Estimate> =
             readings[..n_first].iter().chain(&readings[n_before..]).map(|r| plain.step(r).unwrap()).collect();
         assert_eq!(est[n_before].q_mobile, without[n_first].q_mobile, "carried from the discharge, not the charge");
-        // The charge, after the gap, is kept out of the filter: the estimate holds through it (where the next
-        // discharge starts from).
+        // The charge, after the gap, shows the estimate it began with: it holds through the charge (where the
+        // next discharge starts from), though the filter reads every reading.
         let held = |e: &Estimate| (e.q_mobile, e.r_o);
         assert!(
             est[n_first..n_before].iter().all(|e| held(e) == held(&est[n_first])),
@@ -2596,11 +2596,11 @@ mod tests {
         }
     }
 
-    /// A charge the filter would follow to the end of its ranges (its voltage is no model's) is kept out of
-    /// the calibrator: a stream that begins on it reports the prior until the charge ends, and the discharge
-    /// after it is, reading for reading, what a stream that began after the charge gives; a charge that
-    /// follows a discharge at once is read for its first minute (it could be a regenerative pulse) and then
-    /// held.
+    /// A charge the filter would follow to the end of its ranges (its voltage is no model's) shows the
+    /// estimate it began with, while the filter still reads it: a stream that begins on it reports the prior
+    /// until the charge ends, and the discharge after it is, reading for reading, what a stream that began
+    /// after the charge gives; a charge that follows a discharge at once shows the filter for its first minute
+    /// (it could be a regenerative pulse) and then is held.
     #[test]
     fn a_charge_shows_the_estimate_it_began_with() {
         let (readings, starts) = cycler_life(1, |_, spec| spec);

@@ -28,10 +28,10 @@ pub const PRIOR_FACTORS: [f64; 5] = [0.25, 0.5, 1.0, 2.0, 4.0];
 /// when no training cycle reaches the cut-off.
 pub fn validation_records(train: &[CellRecord]) -> Vec<usize> {
     let complete: Vec<usize> = (0..train.len()).filter(|&k| train[k].eod_s.is_some()).collect();
-    let n = if complete.len() < 2 * MIN_VALIDATION {
-        complete.len().saturating_sub(1).max(complete.len().min(1))
-    } else {
-        ((complete.len() as f64 * VALIDATION_SHARE).ceil() as usize).max(MIN_VALIDATION)
+    let n = match complete.len() {
+        m @ (0 | 1) => m,
+        m if m < 2 * MIN_VALIDATION => m - 1,
+        m => ((m as f64 * VALIDATION_SHARE).ceil() as usize).max(MIN_VALIDATION),
     };
     complete[complete.len() - n..].to_vec()
 }
