@@ -105,8 +105,9 @@ class Estimate(TypedDict):
     eod_learned_weight: float
     """Kind "ukf_learned": the weight, in eod_s, of what the rules above deliver moved by the signed error the
     learner on the stream's own record expects of it at this share (from its last errors, the rest before
-    this discharge and how warm its loaded readings run against the discharges before it that started at
-    its temperature; least squares on the last 30 discharges followed to the cut-off), blended with the
+    this discharge, how warm its loaded readings run against the discharges before it that started at
+    its temperature, and how far their mean current so far moved from the last discharge's; least squares
+    on the last 30 discharges followed to the cut-off), blended with the
     unmoved by the two's records over the last 15; 0 for other kinds and until 19 discharges have been
     followed to the cut-off."""
     discharge: int

@@ -1,15 +1,20 @@
 //! A learner on a calibrator's record across a real cell's discharges: before each discharge it expects the
 //! calibrator's signed error there from the errors of the discharges that ended before it, the rest before
-//! this one and how warm it runs, and the prediction is moved by that expectation. Least squares, refitted
-//! before every discharge on the last [`RECORD_WINDOW`] discharges (at least [`MIN_RECORD_PAIRS`]), on four
-//! inputs: the last error, the mean of the last five, the log of the rest before, and a temperature input
-//! (in `bcal calibrate`: how much warmer the discharge's loaded readings ran up to where its error is taken,
-//! or so far, than the record's at the same time after the load-on), scaled by the record's spread. Within
-//! linear policies on these inputs this is the optimum of a policy trained by cost alone (the squared error
-//! it leaves) on the same record; the first three settings were fixed before any figure was seen
-//! (docs/calibrator.md, "a learner on the record", where `examples/record_room.py` measures the learner on
-//! those three on `bcal calibrate` runs); the temperature input was added after the cold cell B0055 (4 C)
-//! showed its errors following the discharge's temperature ("the temperature on the record"). On NASA cells
+//! this one, how warm it runs and how its current differs from the last one's, and the prediction is moved by
+//! that expectation. Least squares, refitted before every discharge on the last [`RECORD_WINDOW`] discharges
+//! (at least [`MIN_RECORD_PAIRS`]), on five inputs: the last error, the mean of the last five, the log of the
+//! rest before, a temperature input (in `bcal calibrate`: how much warmer the discharge's loaded readings ran
+//! up to where its error is taken, or so far, than the record's at the same time after the load-on), scaled
+//! by the record's spread, and a current input ([`current_switch`]: the log of the ratio of its loaded
+//! readings' mean current so far to the last discharge's, 0 within [`LIKE_CURRENT`]; learned only from a
+//! window where the current moved on [`MIN_CURRENT_SWITCHES`] discharges or more). Within linear policies
+//! on these inputs this is the optimum of a policy trained by cost alone (the squared error it leaves) on the
+//! same record; the first three settings were fixed before any figure was seen (docs/calibrator.md, "a
+//! learner on the record", where `examples/record_room.py` measures the learner on those three on `bcal
+//! calibrate` runs); the temperature input was added after the cold cell B0055 (4 C) showed its errors
+//! following the discharge's temperature ("the temperature on the record"), the current input after a blind
+//! cell cycled at 1, 2 and 4 A in no order showed the joint UKF's end erring by the current of the discharge
+//! before (what it carries over holds that current's model error; "the current on the record"). On NASA cells
 //! its gain is on the capacity, from the rest before the discharge on some cells (a cell regains charge over
 //! a rest, by more than the lifetime model's long-rest jump carries for the rests it sees most) and from a
 //! persistent bias on others, and on the cold cell's end of discharge, from its temperature. `bcal calibrate`
@@ -18,7 +23,7 @@
 //! nothing here reads or prints.
 
 use crate::widening::EOD_FRACTIONS_PCT;
-use nalgebra::{Matrix5, Vector5};
+use nalgebra::{Matrix6, Vector6};
 use std::collections::VecDeque;
 
 /// Discharges the learner fits on: the last that ended with a scored error.
@@ -36,24 +41,50 @@ pub const MIN_TEMPERATURE_SPREAD_K: f64 = 0.1;
 /// The temperature input is held within this many spreads of the record's mean: a line fitted on the
 /// record is not carried far past what the record held (a sensor that shifts, a discharge far colder).
 pub const MAX_TEMPERATURE_INPUT: f64 = 3.0;
+/// Two discharges whose mean currents differ by less than this share ran at a like current: the current
+/// input is 0 (a cell cycled at one current, whose means differ by the cycler's noise, learns nothing of it).
+pub const LIKE_CURRENT: f64 = 0.2;
+/// The current input is held within the log of this ratio (NASA's protocols span 1-4 A; a current far
+/// outside the record's is not carried far down a line).
+pub const MAX_CURRENT_RATIO: f64 = 8.0;
+/// Fewest discharges in a learner's window whose current moved from the last one's ([`LIKE_CURRENT`]) for it
+/// to learn the current input; with fewer its coefficient is 0.
+pub const MIN_CURRENT_SWITCHES: usize = 3;
 
 /// One discharge of the record: its signed error (predicted minus measured), the rest before it, s (None
 /// where the schedule does not tell), and its temperature input, K (in `bcal calibrate`, how much warmer its
 /// loaded readings ran up to where the error was taken than the discharges before it did at the same time
 /// after their load-on; None where there is nothing to compare with. A reader without a temperature column
-/// fills in the ambient, which gives 0).
+/// fills in the ambient, which gives 0), and its current input ([`current_switch`]; None where no discharge
+/// before it is known, which gives 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Entry {
     pub error: f64,
     pub rest_before_s: Option<f64>,
     pub temperature_k: Option<f64>,
+    pub current_switch: Option<f64>,
 }
 
-/// A learner fitted on a record: what it expects of the next discharge given the rest before it and its
-/// loaded readings' mean temperature so far.
+/// The current input of a discharge whose loaded readings' mean current so far is `now_a` after one whose
+/// mean current was `before_a`: the log of their ratio, 0 where they differ by less than [`LIKE_CURRENT`],
+/// held within the log of [`MAX_CURRENT_RATIO`]; None where either is not a positive current. What a
+/// discharge starts from (the end fit carried over, the model's knee) holds the model's error at the current
+/// it was measured at, and a model whose error depends on the current errs the more the further the
+/// current moved.
+pub fn current_switch(now_a: f64, before_a: f64) -> Option<f64> {
+    let x = (now_a / before_a).ln();
+    if !(now_a > 0.0 && before_a > 0.0 && x.is_finite()) {
+        return None;
+    }
+    let max = MAX_CURRENT_RATIO.ln();
+    Some(if x.abs() < (1.0 + LIKE_CURRENT).ln() { 0.0 } else { x.clamp(-max, max) })
+}
+
+/// A learner fitted on a record: what it expects of the next discharge given the rest before it, its
+/// loaded readings' mean temperature so far and its current input.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Learned {
-    coef: Vector5<f64>,
+    coef: Vector6<f64>,
     /// The record's error spread: the fit is on errors in this unit.
     scale: f64,
     /// The last error and the mean of the last five (in units of `scale`): the next discharge's inputs.
@@ -67,14 +98,21 @@ pub struct Learned {
 
 impl Learned {
     /// The error expected of the next discharge, after a rest of `rest_before_s`, at a reading whose loaded
-    /// readings so far had a mean temperature of `temperature_k` (None: the record's mean, which says nothing).
-    pub fn expected(&self, rest_before_s: Option<f64>, temperature_k: Option<f64>) -> Option<f64> {
-        let x = Vector5::new(
+    /// readings so far had a mean temperature of `temperature_k` (None: the record's mean, which says nothing)
+    /// and a current input of `current_switch` ([`current_switch`]; None: 0).
+    pub fn expected(
+        &self,
+        rest_before_s: Option<f64>,
+        temperature_k: Option<f64>,
+        current_switch: Option<f64>,
+    ) -> Option<f64> {
+        let x = Vector6::new(
             1.0,
             self.last,
             self.mean5,
             rest_before_s.map_or(self.mean_log_rest, log_rest),
             temperature_k.map_or(0.0, |t| standardized(t, self.mean_k, self.spread_k)),
+            current_input(current_switch),
         );
         let expected = self.coef.dot(&x) * self.scale;
         expected.is_finite().then_some(expected)
@@ -109,26 +147,33 @@ pub fn fit(record: &[Entry]) -> Option<Learned> {
         let last5 = &errors[k.saturating_sub(5)..k];
         (errors[k - 1], last5.iter().sum::<f64>() / last5.len() as f64)
     };
+    // The current input is learned only from a window that moved its current on a few discharges: one switch
+    // alone makes the input that discharge's own intercept, which takes it out of every other input's fit (a
+    // cold cell's single move from 4 A to 1 A, after a long rest, left the rest's line to one discharge).
+    let window = (1..n).rev().take(RECORD_WINDOW);
+    let switches = window.clone().filter(|&k| current_input(kept[k].current_switch) != 0.0).count();
+    let with_current = switches >= MIN_CURRENT_SWITCHES;
     let inputs = |k: usize| {
         let (last, mean5) = tail(k);
         let e = kept[k];
-        Vector5::new(
+        Vector6::new(
             1.0,
             last,
             mean5,
             e.rest_before_s.map_or(mean_log_rest, log_rest),
             e.temperature_k.filter(|t| t.is_finite()).map_or(0.0, |t| standardized(t, mean_k, spread_k)),
+            if with_current { current_input(e.current_switch) } else { 0.0 },
         )
     };
-    let (mut a, mut b) = (Matrix5::<f64>::zeros(), Vector5::<f64>::zeros());
+    let (mut a, mut b) = (Matrix6::<f64>::zeros(), Vector6::<f64>::zeros());
     let mut count = 0usize;
-    for k in (1..n).rev().take(RECORD_WINDOW) {
+    for k in window {
         let x = inputs(k);
         a += x * x.transpose();
         b += x * errors[k];
         count += 1;
     }
-    for p in 1..5 {
+    for p in 1..6 {
         a[(p, p)] += RIDGE * count as f64;
     }
     let coef = a.cholesky()?.solve(&b);
@@ -137,8 +182,13 @@ pub fn fit(record: &[Entry]) -> Option<Learned> {
 }
 
 /// The error the learner on `record` expects of the next discharge ([`fit`], [`Learned::expected`]).
-pub fn expected_error(record: &[Entry], rest_before_s: Option<f64>, temperature_k: Option<f64>) -> Option<f64> {
-    fit(record)?.expected(rest_before_s, temperature_k)
+pub fn expected_error(
+    record: &[Entry],
+    rest_before_s: Option<f64>,
+    temperature_k: Option<f64>,
+    current_switch: Option<f64>,
+) -> Option<f64> {
+    fit(record)?.expected(rest_before_s, temperature_k, current_switch)
 }
 
 /// Discharges whose ambients differ by no more than this, K, ran at the same ambient (NASA gives whole degrees;
@@ -147,22 +197,28 @@ pub fn expected_error(record: &[Entry], rest_before_s: Option<f64>, temperature_
 /// within [`crate::recentre::SAME_AMBIENT_K`].
 pub const SAME_AMBIENT_K: f64 = 1.0;
 
-/// A discharge's loaded readings' mean cell temperature so far: a BMS's running mean from the load-on.
+/// A discharge's loaded readings' mean so far of one quantity (its cell temperature, K, or its current, A): a
+/// BMS's running mean from the load-on.
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct LoadedHeat {
-    /// (time of a loaded reading after the load-on, s; the mean temperature of the loaded readings up to it, K).
+pub struct LoadedMean {
+    /// (time of a loaded reading after the load-on, s; the mean of the loaded readings up to it).
     means: Vec<(f64, f64)>,
-    sum_k: f64,
+    sum: f64,
 }
 
-impl LoadedHeat {
-    /// Adds a loaded reading `tau_s` after the load-on (in time order) at `temperature_k`; a non-finite
-    /// temperature is no reading of it.
-    pub fn push(&mut self, tau_s: f64, temperature_k: f64) {
-        if temperature_k.is_finite() {
-            self.sum_k += temperature_k;
-            self.means.push((tau_s, self.sum_k / (self.means.len() + 1) as f64));
+impl LoadedMean {
+    /// Adds a loaded reading `tau_s` after the load-on (in time order) of `value`; a non-finite value is no
+    /// reading of it.
+    pub fn push(&mut self, tau_s: f64, value: f64) {
+        if value.is_finite() {
+            self.sum += value;
+            self.means.push((tau_s, self.sum / (self.means.len() + 1) as f64));
         }
+    }
+
+    /// The mean over every loaded reading (None: none).
+    pub fn whole(&self) -> Option<f64> {
+        self.means.last().map(|m| m.1)
     }
 
     /// The mean at `tau_s` after the load-on (of the loaded readings at or before it; past the last, the
@@ -178,7 +234,7 @@ impl LoadedHeat {
 /// before it in a learner's window run at the same ambient: a cell moved to another chamber, or a sensor that
 /// shifts, is not a warmer discharge). A cell warms through a discharge, so the mean so far alone would tell
 /// the time into the discharge more than how warm this discharge runs. None without a reference.
-pub fn warmth_k<'h>(own: &LoadedHeat, refs: impl IntoIterator<Item = &'h LoadedHeat>, tau_s: f64) -> Option<f64> {
+pub fn warmth_k<'h>(own: &LoadedMean, refs: impl IntoIterator<Item = &'h LoadedMean>, tau_s: f64) -> Option<f64> {
     let own = own.at(tau_s)?;
     let (sum, n) = refs.into_iter().filter_map(|h| h.at(tau_s)).fold((0.0, 0usize), |(s, n), t| (s + t, n + 1));
     (n > 0).then(|| own - sum / n as f64)
@@ -188,8 +244,9 @@ pub fn warmth_k<'h>(own: &LoadedHeat, refs: impl IntoIterator<Item = &'h LoadedH
 /// kind), as `bcal calibrate`'s `ukf_learned` learns on the joint UKF's record
 /// (`bcal_realcell::tune::learn_on_record`): per share of the discharge ([`EOD_FRACTIONS_PCT`]) the end the
 /// stream delivers is moved by the signed error (% of the discharge) the learner expects of it from the
-/// discharges followed to their cut-off before, the rest before this one and how warm it runs against the
-/// discharges before it that started at its temperature, and the moved and unmoved are blended by their
+/// discharges followed to their cut-off before, the rest before this one, how warm it runs against the
+/// discharges before it that started at its temperature and how far its current moved from the last
+/// discharge's ([`current_switch`]), and the moved and unmoved are blended by their
 /// records ([`crate::blend`]). The end only: a stream measures a discharge's capacity once it has ended, so
 /// it has none to move while the discharge runs.
 #[derive(Clone, Debug, Default)]
@@ -199,13 +256,17 @@ pub struct EndRecord {
     entries: [Vec<Entry>; EOD_FRACTIONS_PCT.len()],
     /// The last [`RECORD_WINDOW`] + 1 counted discharges with a temperature: their running temperature and
     /// load-on temperature, K, the references of the temperature input.
-    past: VecDeque<(LoadedHeat, f64)>,
+    past: VecDeque<(LoadedMean, f64)>,
     /// Whether the current discharge's load has come on, its running temperature and the first temperature
     /// read under its load, K (None: none read yet; readings without a temperature are not read as the
     /// ambient a stream fills in, which would be a temperature the cell never had) ...
     started: bool,
-    heat: LoadedHeat,
+    heat: LoadedMean,
     start_k: Option<f64>,
+    /// ... its running current, A (the mean of its loaded readings so far), and the last counted discharge's
+    /// mean current, A (None: none yet) ...
+    current: LoadedMean,
+    last_current_a: Option<f64>,
     /// ... and, once it has been followed to its cut-off, its signed error per share, % of the discharge, and
     /// the time after its load-on the error was taken at, s.
     scored: Option<[Option<(f64, f64)>; EOD_FRACTIONS_PCT.len()]>,
@@ -221,17 +282,27 @@ impl EndRecord {
     /// The current discharge's load came on.
     pub fn load_on(&mut self) {
         self.started = true;
-        self.heat = LoadedHeat::default();
+        self.heat = LoadedMean::default();
         self.start_k = None;
+        self.current = LoadedMean::default();
     }
 
     /// A loaded reading of the current discharge, `tau_s` after its load-on, at a cell temperature of
-    /// `temperature_k` (NaN: the reading gave none).
-    pub fn push(&mut self, tau_s: f64, temperature_k: f64) {
-        if self.started && temperature_k.is_finite() {
+    /// `temperature_k` (NaN: the reading gave none), drawing `current_a`.
+    pub fn push(&mut self, tau_s: f64, temperature_k: f64, current_a: f64) {
+        if !self.started {
+            return;
+        }
+        self.current.push(tau_s, current_a);
+        if temperature_k.is_finite() {
             self.heat.push(tau_s, temperature_k);
             self.start_k.get_or_insert(temperature_k);
         }
+    }
+
+    /// The current input of the current discharge at `tau_s` after its load-on ([`current_switch`]).
+    fn switch(&self, tau_s: f64) -> Option<f64> {
+        current_switch(self.current.at(tau_s)?, self.last_current_a?)
     }
 
     /// The temperature input of the current discharge at `tau_s` after its load-on ([`warmth_k`]) against the
@@ -241,7 +312,7 @@ impl EndRecord {
     }
 
     /// The same of a discharge's `heat` whose load came on at `start_k`.
-    fn warmth_of(&self, heat: &LoadedHeat, start_k: f64, tau_s: f64) -> Option<f64> {
+    fn warmth_of(&self, heat: &LoadedMean, start_k: f64, tau_s: f64) -> Option<f64> {
         let same = |k: f64| (k - start_k).abs() <= crate::recentre::SAME_AMBIENT_K;
         warmth_k(heat, self.past.iter().filter(|(_, k)| same(*k)).map(|(h, _)| h), tau_s)
     }
@@ -258,7 +329,7 @@ impl EndRecord {
         rest_before_s: Option<f64>,
     ) -> Option<(f64, f64)> {
         let (learned, w) = (self.fitted[b].as_ref()?, self.weights[b]?);
-        let x = learned.expected(rest_before_s, self.warmth(tau_s))?;
+        let x = learned.expected(rest_before_s, self.warmth(tau_s), self.switch(tau_s))?;
         // An error in % of the discharge, the predicted one standing for it.
         let shift_s = x / 100.0 * (eod_s - load_on_s).max(0.0);
         Some((crate::blend::blended(w, eod_s - shift_s, eod_s), w))
@@ -284,13 +355,20 @@ impl EndRecord {
         for b in 0..EOD_FRACTIONS_PCT.len() {
             let at = scored.and_then(|s| s[b]);
             let temperature_k = at.zip(start_k).and_then(|((_, tau_s), k)| self.warmth_of(&heat, k, tau_s));
+            let current_switch = at.and_then(|(_, tau_s)| self.switch(tau_s));
             let error = at.map_or(f64::NAN, |(e, _)| e);
-            if let Some(x) = self.fitted[b].as_ref().and_then(|l| l.expected(rest_before_s, temperature_k)) {
+            let expected =
+                self.fitted[b].as_ref().and_then(|l| l.expected(rest_before_s, temperature_k, current_switch));
+            if let Some(x) = expected {
                 self.pairs[b].push(((error - x).abs(), error.abs()));
             }
-            self.entries[b].push(Entry { error, rest_before_s, temperature_k });
+            self.entries[b].push(Entry { error, rest_before_s, temperature_k, current_switch });
             self.fitted[b] = fit(&self.entries[b]);
             self.weights[b] = crate::blend::blend_weight(&self.pairs[b]);
+        }
+        // The next discharge's current is compared with this one's, however it ended.
+        if let Some(a) = std::mem::take(&mut self.current).whole() {
+            self.last_current_a = Some(a);
         }
         let Some(start_k) = start_k else { return };
         if self.past.len() == RECORD_WINDOW + 1 {
@@ -316,6 +394,11 @@ fn standardized(t_k: f64, mean_k: f64, spread_k: f64) -> f64 {
     }
 }
 
+/// A current input as the fit takes it (none known: 0; a non-finite one says nothing).
+fn current_input(x: Option<f64>) -> f64 {
+    x.filter(|x| x.is_finite()).unwrap_or(0.0)
+}
+
 /// The rest's input: its log, from a second up (a rest of 0 s is a schedule's glitch, not an input).
 fn log_rest(rest_s: f64) -> f64 {
     rest_s.max(1.0).ln()
@@ -329,32 +412,34 @@ mod tests {
         errors
             .iter()
             .zip(rests)
-            .map(|(&error, &r)| Entry { error, rest_before_s: Some(r), temperature_k: None })
+            .map(|(&error, &r)| Entry { error, rest_before_s: Some(r), temperature_k: None, current_switch: None })
             .collect()
     }
 
     #[test]
     fn too_short_a_record_expects_nothing() {
         let e = entries(&[0.01; MIN_RECORD_PAIRS], &[1e4; MIN_RECORD_PAIRS]);
-        assert_eq!(expected_error(&e, Some(1e4), None), None);
+        assert_eq!(expected_error(&e, Some(1e4), None, None), None);
         // No spread at all: nothing to scale by.
         let e = entries(&[0.0; 20], &[1e4; 20]);
-        assert_eq!(expected_error(&e, Some(1e4), None), None);
+        assert_eq!(expected_error(&e, Some(1e4), None, None), None);
         // A failed prediction is not part of the record.
         let mut e = entries(&[0.01; MIN_RECORD_PAIRS], &[1e4; MIN_RECORD_PAIRS]);
-        e.push(Entry { error: f64::INFINITY, rest_before_s: Some(1e4), temperature_k: None });
-        assert_eq!(expected_error(&e, Some(1e4), None), None);
+        e.push(Entry { error: f64::INFINITY, rest_before_s: Some(1e4), temperature_k: None, current_switch: None });
+        assert_eq!(expected_error(&e, Some(1e4), None, None), None);
     }
 
     #[test]
     fn a_constant_bias_is_expected_again_whatever_the_rests() {
         // Every rest the same: the rest's input is constant, and the ridge keeps the fit solvable.
         let e = entries(&[0.02; 15], &[14_000.0; 15]);
-        let x = expected_error(&e, Some(14_000.0), None).unwrap();
+        let x = expected_error(&e, Some(14_000.0), None, None).unwrap();
         assert!((x - 0.02).abs() < 1e-3 * 0.02, "{x}");
         // Unknown rests take the record's mean: the same.
-        let e: Vec<Entry> = (0..15).map(|_| Entry { error: 0.02, rest_before_s: None, temperature_k: None }).collect();
-        let x = expected_error(&e, None, None).unwrap();
+        let e: Vec<Entry> = (0..15)
+            .map(|_| Entry { error: 0.02, rest_before_s: None, temperature_k: None, current_switch: None })
+            .collect();
+        let x = expected_error(&e, None, None, None).unwrap();
         assert!((x - 0.02).abs() < 1e-3 * 0.02, "{x}");
     }
 
@@ -365,13 +450,13 @@ mod tests {
         // from the last error.
         let rests: Vec<f64> = (0..30).map(|k| 3600.0 * (2.0 + ((k * 7) % 13) as f64 * 0.5)).collect();
         let errors: Vec<f64> = rests.iter().map(|r| 0.01 * (r / 14_400.0).ln()).collect();
-        let x = expected_error(&entries(&errors, &rests), Some(86_400.0), None).unwrap();
+        let x = expected_error(&entries(&errors, &rests), Some(86_400.0), None, None).unwrap();
         let truth = 0.01 * (86_400.0f64 / 14_400.0).ln();
         assert!((x - truth).abs() < 0.05 * truth, "{x} against {truth}");
         // Only the last RECORD_WINDOW pairs count: an old record of another law is forgotten.
         let mut long: Vec<Entry> = entries(&[0.5; 40], &[3600.0; 40]);
         long.extend(entries(&errors, &rests));
-        let y = expected_error(&long, Some(86_400.0), None).unwrap();
+        let y = expected_error(&long, Some(86_400.0), None, None).unwrap();
         assert!((y - truth).abs() < 0.1 * truth, "{y} against {truth}");
     }
 
@@ -392,7 +477,7 @@ mod tests {
         let last = *errors.last().unwrap();
         assert!(last.abs() > 0.003, "the record ends on a small error: {last}");
         let rests = vec![14_000.0; errors.len()];
-        let x = expected_error(&entries(&errors, &rests), Some(14_000.0), None).unwrap();
+        let x = expected_error(&entries(&errors, &rests), Some(14_000.0), None, None).unwrap();
         assert!((-0.9..=-0.3).contains(&(x / last)), "{x} after {last}");
     }
 
@@ -409,28 +494,150 @@ mod tests {
                 error: 0.005 - 0.01 * (t - mean_k),
                 rest_before_s: Some(14_000.0),
                 temperature_k: Some(t),
+                current_switch: None,
             })
             .collect();
-        let x = expected_error(&record, Some(14_000.0), Some(mean_k + 2.0)).unwrap();
+        let x = expected_error(&record, Some(14_000.0), Some(mean_k + 2.0), None).unwrap();
         let truth = 0.005 - 0.02;
         assert!((x - truth).abs() < 0.05 * truth.abs(), "{x} against {truth}");
         // A discharge far colder than any on the record (a sensor that shifted by 15 K) is expected as one
         // at three spreads from the mean, not on the line carried fifteen kelvin out.
         let spread_k = (temps.iter().map(|t| (t - mean_k).powi(2)).sum::<f64>() / temps.len() as f64).sqrt();
-        let far = expected_error(&record, Some(14_000.0), Some(mean_k - 15.0)).unwrap();
+        let far = expected_error(&record, Some(14_000.0), Some(mean_k - 15.0), None).unwrap();
         let edge = 0.005 + 0.01 * MAX_TEMPERATURE_INPUT * spread_k;
         assert!((far - edge).abs() < 0.05 * edge, "{far} against {edge}");
         // Without the temperature the learner expects the record's mean error, about.
-        let y = expected_error(&record, Some(14_000.0), None).unwrap();
+        let y = expected_error(&record, Some(14_000.0), None, None).unwrap();
         assert!((y - 0.005).abs() < 0.003, "{y}");
         // A record held at one temperature learns nothing of it: a discharge reading warmer is expected the same.
         let flat: Vec<Entry> = record.iter().map(|e| Entry { temperature_k: Some(297.0), ..*e }).collect();
         let (a, b) = (
-            expected_error(&flat, Some(14_000.0), Some(297.0)).unwrap(),
-            expected_error(&flat, Some(14_000.0), Some(299.0)).unwrap(),
+            expected_error(&flat, Some(14_000.0), Some(297.0), None).unwrap(),
+            expected_error(&flat, Some(14_000.0), Some(299.0), None).unwrap(),
         );
         assert!((a - b).abs() < 1e-12, "{a} {b}");
     }
+    #[test]
+    fn a_current_within_a_fifth_of_the_last_is_a_like_current() {
+        assert_eq!(current_switch(2.0, 2.0), Some(0.0));
+        // The cycler's noise, a square wave's mean: like currents.
+        assert_eq!(current_switch(2.02, 1.98), Some(0.0));
+        assert_eq!(current_switch(1.0, 1.19), Some(0.0));
+        let x = current_switch(4.0, 2.0).unwrap();
+        assert!((x - 2f64.ln()).abs() < 1e-12, "{x}");
+        let x = current_switch(1.0, 4.0).unwrap();
+        assert!((x + 4f64.ln()).abs() < 1e-12, "{x}");
+        // Held within the log of MAX_CURRENT_RATIO.
+        assert_eq!(current_switch(20.0, 0.1), Some(MAX_CURRENT_RATIO.ln()));
+        // No current to compare: nothing known.
+        assert_eq!(current_switch(2.0, 0.0), None);
+        assert_eq!(current_switch(f64::NAN, 2.0), None);
+        assert_eq!(current_switch(-1.0, 2.0), None);
+    }
+
+    /// A cell cycled at 1, 2 and 4 A in no order, whose calibrator carries each discharge's model error
+    /// into the next (the error 0.3 + 1.2 times the current input, % of the discharge, and a fresh part of
+    /// +-0.1): a discharge at 4 A after one at 1 A is expected about 1.2 ln 4 + 0.3 off, one at a like current
+    /// about 0.3; without the current input the learner expects neither.
+    #[test]
+    fn an_error_that_follows_the_current_before_is_expected_from_it() {
+        let amps = [1.0, 2.0, 4.0];
+        let current = |k: usize| amps[(k * 7 + k / 3) % 3];
+        let mut seed = 99u64;
+        let mut fresh = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.2
+        };
+        let record: Vec<Entry> = (1..31)
+            .map(|k| {
+                let switch = current_switch(current(k), current(k - 1));
+                Entry {
+                    error: 0.3 + 1.2 * switch.unwrap() + fresh(),
+                    rest_before_s: Some(14_000.0),
+                    temperature_k: None,
+                    current_switch: switch,
+                }
+            })
+            .collect();
+        let up = expected_error(&record, Some(14_000.0), None, current_switch(4.0, 1.0)).unwrap();
+        let truth = 0.3 + 1.2 * 4f64.ln();
+        assert!((up - truth).abs() < 0.1, "{up} against {truth}");
+        let like = expected_error(&record, Some(14_000.0), None, Some(0.0)).unwrap();
+        assert!((like - 0.3).abs() < 0.1, "{like}");
+        // The same record without the input: the switches look like noise about their mean.
+        let blind: Vec<Entry> = record.iter().map(|e| Entry { current_switch: None, ..*e }).collect();
+        let x = expected_error(&blind, Some(14_000.0), None, current_switch(4.0, 1.0)).unwrap();
+        assert!((x - truth).abs() > 0.5, "{x} against {truth}");
+        // A cell that moved its current once in the window (a cold cell's 4 A life, then 1 A): fewer than
+        // MIN_CURRENT_SWITCHES moves teach nothing, and the learner is the one without the input.
+        let once: Vec<Entry> = record
+            .iter()
+            .enumerate()
+            .map(|(k, e)| Entry { current_switch: Some(if k == 20 { -(4f64.ln()) } else { 0.0 }), ..*e })
+            .collect();
+        let plain: Vec<Entry> = once.iter().map(|e| Entry { current_switch: None, ..*e }).collect();
+        for next in [Some(0.0), current_switch(1.0, 4.0), None] {
+            assert_eq!(
+                expected_error(&once, Some(14_000.0), None, next),
+                expected_error(&plain, Some(14_000.0), None, None)
+            );
+        }
+    }
+
+    /// A stream's record at mixed currents ([`EndRecord`]): 25 discharges at 1, 2 or 4 A in no order, the
+    /// rules' error 0.2 + 1.5 times the current input. The next discharge, at 4 A after 1 A, is moved by the
+    /// error the line gives from its first loaded reading on (its current so far, no look-ahead), times the
+    /// moved end's weight; at a like current by the intercept alone; a discharge that did not count is not
+    /// the one compared with.
+    #[test]
+    fn a_streams_record_moves_the_end_by_how_far_the_current_moved() {
+        let amps = [1.0, 2.0, 4.0];
+        let current = |k: usize| amps[(k * 7 + k / 3) % 3];
+        let feed = |rec: &mut EndRecord, a: f64| {
+            rec.load_on();
+            for i in 0..=30 {
+                rec.push(100.0 * f64::from(i), 297.0, a);
+            }
+        };
+        let rest = Some(14_400.0);
+        let mut rec = EndRecord::default();
+        for k in 0..26 {
+            feed(&mut rec, current(k));
+            let e = if k == 0 { 0.2 } else { 0.2 + 1.5 * current_switch(current(k), current(k - 1)).unwrap() };
+            rec.score([Some((e, 300.0)), Some((e, 1500.0)), Some((e, 2700.0))]);
+            rec.close(true, rest);
+        }
+        assert_eq!(rec.last_current_a, Some(current(25)));
+        assert!(rec.weights().iter().all(|w| w.is_some_and(|w| w > 0.9)), "{:?}", rec.weights());
+        // (load-on 1000 s, the rules' end at 4000 s.)
+        let shift_of = |rec: &EndRecord, tau_s: f64| {
+            let (moved_s, w) = rec.moved(1, 4000.0, 1000.0, tau_s, rest).expect("a learner with a weight");
+            (moved_s - 4000.0) / w
+        };
+        let mut low = rec.clone();
+        feed(&mut low, 1.0);
+        low.score([Some((0.2, 300.0)); 3]);
+        low.close(true, rest);
+        let mut up = low.clone();
+        up.load_on();
+        up.push(0.0, 297.0, 4.0);
+        let expected_s = -(0.2 + 1.5 * 4f64.ln()) / 100.0 * 3000.0;
+        let shift = shift_of(&up, 0.0);
+        assert!((shift - expected_s).abs() < 0.05 * expected_s.abs(), "moved by {shift} s, not {expected_s}");
+        let mut like = low.clone();
+        like.load_on();
+        like.push(0.0, 297.0, 1.1);
+        let shift = shift_of(&like, 0.0);
+        assert!((shift + 0.2 / 100.0 * 3000.0).abs() < 1.0, "{shift}");
+        // A 4 A load too short to count: the next is still compared with the 1 A discharge before it.
+        let mut blip = low.clone();
+        feed(&mut blip, 4.0);
+        blip.close(false, rest);
+        blip.load_on();
+        blip.push(0.0, 297.0, 4.0);
+        assert_eq!(shift_of(&blip, 0.0), shift_of(&up, 0.0));
+    }
+
     /// A stream's record ([`EndRecord`]): 25 discharges whose load comes on at 24 C plus 2 u K (u in -1..1, in
     /// no order) and which warm by 3 K over 3000 s, the rules' error at each share 0.2 - 1.5 u % of the
     /// discharge. The next discharge, 1.6 K warmer than the record's mean, is moved by about the error the
@@ -444,7 +651,7 @@ mod tests {
             rec.load_on();
             for i in 0..=30 {
                 let tau_s = 100.0 * f64::from(i);
-                rec.push(tau_s, start_k + 3.0 * tau_s / 3000.0);
+                rec.push(tau_s, start_k + 3.0 * tau_s / 3000.0, 2.0);
             }
         };
         let rest = Some(14_400.0);
@@ -477,7 +684,7 @@ mod tests {
         // Another chamber: no reference, so the record's mean warmth.
         let mut other = rec.clone();
         feed(&mut other, next_k + 20.0);
-        let at_mean = other.fitted[1].as_ref().unwrap().expected(rest, None).unwrap() / 100.0 * 3000.0;
+        let at_mean = other.fitted[1].as_ref().unwrap().expected(rest, None, None).unwrap() / 100.0 * 3000.0;
         let shift = shift_of(&other);
         assert!((shift + at_mean).abs() < 1e-9, "{shift} against {at_mean}");
         assert!(shift.abs() < 10.0, "{shift}");
@@ -489,9 +696,9 @@ mod tests {
         for i in 0..=30 {
             let tau_s = 100.0 * f64::from(i);
             let k = next_k + 3.0 * tau_s / 3000.0;
-            gap.push(tau_s, if i < 3 { f64::NAN } else { k });
+            gap.push(tau_s, if i < 3 { f64::NAN } else { k }, 2.0);
             if i >= 3 {
-                without.push(tau_s, k);
+                without.push(tau_s, k, 2.0);
             }
         }
         assert_eq!(gap.warmth(1500.0), without.warmth(1500.0));
@@ -501,7 +708,7 @@ mod tests {
         let mut cold = rec.clone();
         cold.load_on();
         for i in 0..=30 {
-            cold.push(100.0 * f64::from(i), f64::NAN);
+            cold.push(100.0 * f64::from(i), f64::NAN, 2.0);
         }
         cold.score([Some((0.2, 300.0)); 3]);
         cold.close(true, rest);

@@ -227,8 +227,8 @@ impl Calibrator {
     /// with the fit carried over, by the same rule on the discharges after rests of up to a day; 0 after a
     /// longer rest or where the prior alone predicts), `eod_learned_weight` (kind `ukf_learned`: the weight of
     /// the end moved by the error the learner on the stream's record expects, from its last errors, the rest
-    /// before and how warm the discharge runs; 0 for other kinds and until 19 discharges have been followed to
-    /// the cut-off) and `discharge` (from 0: a new one
+    /// before, how warm the discharge runs and how far its current moved from the last one's; 0 for other
+    /// kinds and until 19 discharges have been followed to the cut-off) and `discharge` (from 0: a new one
     /// after a charge or a gap of more than half an hour, started from what the last one told: the charge its
     /// end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.

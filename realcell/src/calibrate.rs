@@ -856,15 +856,18 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 "a learner on this calibrator's record: least squares refitted before each \
                 discharge on its signed errors where the scores take them in that share of the discharge over the \
                 last {} discharges that ended (validation cycles first; at least {} pairs), on the last error, the \
-                mean of the last five, the log of the rest before and how much warmer the discharge's loaded \
+                mean of the last five, the log of the rest before, how much warmer the discharge's loaded \
                 readings ran up to there (at each reading: so far) than the record's at the same time after the \
-                load-on; the moved prediction's weight per share (10 / 50 / \
+                load-on, and the log of the ratio of their mean current up to there to the discharge before's (0 \
+                within {:.0} %; learned where the window moved current on {} discharges or more); the moved prediction's weight per share (10 / 50 / \
                 90 %) is the delivered one's mean squared error over the sum of both over the last {} discharges it \
                 moved (none before {}; `weight`: its median over the judged discharges blended, and how many); \
                 `without`: the figures without it (before the intervals are widened, which leaves the values as \
                 they are)",
                 bcal_calib::record_learner::RECORD_WINDOW,
                 bcal_calib::record_learner::MIN_RECORD_PAIRS,
+                bcal_calib::record_learner::LIKE_CURRENT * 100.0,
+                bcal_calib::record_learner::MIN_CURRENT_SWITCHES,
                 bcal_calib::blend::BLEND_WINDOW,
                 bcal_calib::blend::MIN_BLEND_PAIRS
             );

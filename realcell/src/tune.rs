@@ -349,14 +349,17 @@ pub struct LearnedWeights {
 /// record expects ([`bcal_calib::record_learner`]): per share of the discharge, before each discharge
 /// (validation cycles first) the learner fits the signed errors where the scores take the capacity in that
 /// share (as [`gate_capacity`] judges it, against the data's charge, Ah) and the end (at 10 / 50 / 90 %, in %
-/// of the discharge) over the discharges that ended before, with the rest before each and the mean
-/// temperature of its loaded readings up to there, and moves each reading's prediction (value and bounds) in
+/// of the discharge) over the discharges that ended before, with the rest before each, the mean temperature
+/// of its loaded readings up to there and their mean current against the discharge before it
+/// ([`bcal_calib::record_learner::current_switch`]), and moves each reading's prediction (value and bounds) in
 /// that share by the error it expects from the rest before this discharge and its loaded readings' mean
-/// temperature so far (no look-ahead). The moved and the delivered prediction are then blended
+/// temperature and current so far (no look-ahead). The moved and the delivered prediction are then blended
 /// ([`bcal_calib::blend`]) by their squared errors over the last discharges where the learner moved it: a
 /// learner that errs more gets little weight, before it has a record none. The temperature carries what an
 /// isothermal model misses on a cold cell (B0055 at 4 C: the warmer a discharge runs, the more it delivers
-/// and the later it ends; docs/calibrator.md, "the temperature on the record"). A reading's share is the one
+/// and the later it ends; docs/calibrator.md, "the temperature on the record"); the current what the filter
+/// carries from a discharge at another current (a cell cycled at mixed currents; "the current on the record").
+/// A reading's share is the one
 /// `shares`' predicted end puts it at. `bcal calibrate` delivers the joint UKF so learned as a method of its
 /// own (`ukf_learned`) beside it.
 pub fn learn_on_record(
@@ -365,10 +368,18 @@ pub fn learn_on_record(
     validation: &[CellRecord],
     judged: &[CellRecord],
 ) -> (Runs, LearnedWeights) {
-    use bcal_calib::record_learner::{fit, warmth_k, Entry, Learned, LoadedHeat, RECORD_WINDOW, SAME_AMBIENT_K};
+    use bcal_calib::record_learner::{
+        current_switch, fit, warmth_k, Entry, Learned, LoadedMean, RECORD_WINDOW, SAME_AMBIENT_K,
+    };
     let records: Vec<&CellRecord> = validation.iter().chain(judged).collect();
     let n_val = validation.len();
-    let heat: Vec<LoadedHeat> = records.iter().map(|r| loaded_heat(r)).collect();
+    let heat: Vec<LoadedMean> = records.iter().map(|r| loaded_mean(r, |s| s.temperature_k)).collect();
+    let current: Vec<LoadedMean> = records.iter().map(|r| loaded_mean(r, |s| s.current_a)).collect();
+    // The current input of discharge `j` at `tau_s` after its load-on, against the whole of the discharge
+    // before it (the first has none in the record), both the mean of loaded readings, as a stream takes them.
+    let switch = |j: usize, tau_s: f64| -> Option<f64> {
+        current_switch(current[j].at(tau_s)?, current[j.checked_sub(1)?].whole()?)
+    };
     // The temperature input of discharge `j` at `tau_s` after its load-on ([`warmth_k`]), against the
     // discharges before it in a learner's window run at the same ambient.
     let anomaly = |j: usize, tau_s: f64| -> Option<f64> {
@@ -398,6 +409,7 @@ pub fn learn_on_record(
                     error: errors[j],
                     rest_before_s: records[j].rest_before_s,
                     temperature_k: taken_s[j].and_then(|tau| anomaly(j, tau)),
+                    current_switch: taken_s[j].and_then(|tau| switch(j, tau)),
                 })
                 .collect();
             // (moved, delivered) absolute errors where the learner moved the prediction.
@@ -405,7 +417,8 @@ pub fn learn_on_record(
             *slot = (0..records.len())
                 .map(|k| {
                     let learned = fit(&entries[..k])?;
-                    let x = learned.expected(records[k].rest_before_s, entries[k].temperature_k);
+                    let e = &entries[k];
+                    let x = learned.expected(e.rest_before_s, e.temperature_k, e.current_switch);
                     let weight = bcal_calib::blend::blend_weight(&pairs);
                     if let Some(x) = x {
                         pairs.push(((errors[k] - x).abs(), errors[k].abs()));
@@ -428,9 +441,10 @@ pub fn learn_on_record(
             |k, bin, _, so| {
                 let r = &records[k];
                 let t_k = anomaly(offset + k, so.t_s - r.load_on_s);
+                let sw = switch(offset + k, so.t_s - r.load_on_s);
                 let mut step = so.clone();
                 if let Some((learned, w)) = &capacity[bin][offset + k] {
-                    if let Some(x) = learned.expected(r.rest_before_s, t_k) {
+                    if let Some(x) = learned.expected(r.rest_before_s, t_k, sw) {
                         let mix = |v: Option<f64>| v.map(|v| bcal_calib::blend::blended(*w, v - x, v));
                         let c = so.capacity;
                         step.capacity = Predicted { value: mix(c.value), lo: mix(c.lo), hi: mix(c.hi) };
@@ -438,7 +452,7 @@ pub fn learn_on_record(
                 }
                 if let (Some((learned, w)), Some(v)) = (&eod[bin][offset + k], so.eod.value) {
                     // An error in % of the discharge, the predicted one standing for it.
-                    if let Some(x) = learned.expected(r.rest_before_s, t_k) {
+                    if let Some(x) = learned.expected(r.rest_before_s, t_k, sw) {
                         let shift_s = x / 100.0 * (v - r.load_on_s).max(0.0);
                         let mix = |e: Option<f64>| e.map(|e| bcal_calib::blend::blended(*w, e - shift_s, e));
                         let e = so.eod;
@@ -459,13 +473,16 @@ pub fn learn_on_record(
     (runs, LearnedWeights { capacity: weights(&capacity), eod: weights(&eod) })
 }
 
-/// A discharge's loaded readings' running mean temperature from its load-on.
-fn loaded_heat(r: &CellRecord) -> bcal_calib::record_learner::LoadedHeat {
-    let mut heat = bcal_calib::record_learner::LoadedHeat::default();
+/// A discharge's loaded readings' running mean of `of` (their temperature, their current) from its load-on.
+fn loaded_mean(
+    r: &CellRecord,
+    of: impl Fn(&bcal_common::measured::scenario::Sample) -> f64,
+) -> bcal_calib::record_learner::LoadedMean {
+    let mut mean = bcal_calib::record_learner::LoadedMean::default();
     for s in r.samples.iter().filter(|s| s.t_s >= r.load_on_s && s.current_a > crate::record::LOAD_THRESHOLD_A) {
-        heat.push(s.t_s - r.load_on_s, s.temperature_k);
+        mean.push(s.t_s - r.load_on_s, of(s));
     }
-    heat
+    mean
 }
 
 /// Per discharge, the signed error of `runs`' end of discharge at `fraction_pct` of it, % of the discharge
@@ -1160,6 +1177,55 @@ mod tests {
         let moved = moved_runs.judged[last].steps[half].eod.value.unwrap()
             - delivered.judged[last].steps[half].eod.value.unwrap();
         assert!((-2.0..0.0).contains(&moved), "moved {moved}");
+    }
+
+    /// A cell cycled at 1, 2 and 4 A in no order whose calibrator's end errs by the current of the discharge
+    /// before (2 % of the discharge per e-fold the current moved, 0.5 % besides): the learner on its record
+    /// moves the end by what the current so far against the last discharge's tells, at every reading,
+    /// onto the measured one; a discharge whose load starts at 4 A after one at 1 A is moved from its first
+    /// loaded reading. The capacity, exact, is left alone.
+    #[test]
+    fn the_end_learned_on_the_record_takes_off_what_follows_the_current_before() {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 1.0), hi: Some(v + 1.0) };
+        let amps = [1.0, 2.0, 4.0];
+        let current_a = |c: u32| amps[((c * 7 + c / 3) % 3) as usize];
+        let error_pct = |c: u32| {
+            let switch = bcal_calib::record_learner::current_switch(current_a(c), current_a(c - 1)).unwrap();
+            0.5 + 2.0 * switch
+        };
+        let build = |cycles: std::ops::Range<u32>| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles
+                .map(|c| {
+                    let (mut r, run) = crate::record::test_discharge(c, 1.0, |_| at(100.0 + error_pct(c)), at(1.0));
+                    r.samples.iter_mut().for_each(|s| s.current_a = current_a(c));
+                    r.rest_before_s = Some(14_400.0);
+                    (r, run)
+                })
+                .unzip()
+        };
+        let (validation, v) = build(1..31);
+        let (judged, j) = build(31..51);
+        let delivered = Runs { validation: v, judged: j };
+        let (runs, weights) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        assert!(weights.capacity.iter().flatten().all(Option::is_none), "{:?}", weights.capacity);
+        assert!(weights.eod[1].iter().all(|w| w.is_some_and(|w| w > 0.95)), "{:?}", weights.eod[1]);
+        let mut switched = 0;
+        for (k, (run, d)) in runs.judged.iter().zip(&delivered.judged).enumerate() {
+            let erred = error_pct(judged[k].cycle);
+            switched += usize::from((erred - 0.5).abs() > 1.0);
+            assert!(run.steps.iter().zip(&d.steps).all(|(s, sd)| s.capacity == sd.capacity), "judged {k}");
+            // The first loaded reading (the load comes on at 0 s), a tenth, half and 80 %.
+            for f in [0.0, 0.1, 0.5, 0.8] {
+                let i = if f == 0.0 { 0 } else { judged[k].reading_at_fraction(f).unwrap() };
+                let moved = run.steps[i].eod.value.unwrap() - d.steps[i].eod.value.unwrap();
+                assert!(
+                    (moved + erred).abs() < 0.05 * erred.abs() + 0.05,
+                    "judged {k}: moved {moved} at {f} (erred {erred})"
+                );
+            }
+        }
+        assert!(switched >= 10, "{switched} of the judged discharges moved current");
     }
 
     /// The prior alone is judged against what it would replace, the method as delivered, blended with it:
