@@ -6,7 +6,7 @@
 //! rest before, a temperature input (in `bcal calibrate`: how much warmer the discharge's loaded readings ran
 //! up to where its error is taken, or so far, than the record's at the same time after the load-on), scaled
 //! by the record's spread, and a current input ([`current_switch`]: the log of the ratio of its loaded
-//! readings' mean current so far to the last discharge's, 0 within [`LIKE_CURRENT`]; learned only from a
+//! readings' mean current so far to the last discharge's, 0 for a like current ([`LIKE_CURRENT`]); learned only from a
 //! window where the current moved on [`MIN_CURRENT_SWITCHES`] discharges or more). Within linear policies
 //! on these inputs this is the optimum of a policy trained by cost alone (the squared error it leaves) on the
 //! same record; the first three settings were fixed before any figure was seen (docs/calibrator.md, "a
@@ -41,8 +41,8 @@ pub const MIN_TEMPERATURE_SPREAD_K: f64 = 0.1;
 /// The temperature input is held within this many spreads of the record's mean: a line fitted on the
 /// record is not carried far past what the record held (a sensor that shifts, a discharge far colder).
 pub const MAX_TEMPERATURE_INPUT: f64 = 3.0;
-/// Two discharges whose mean currents differ by less than this share ran at a like current: the current
-/// input is 0 (a cell cycled at one current, whose means differ by the cycler's noise, learns nothing of it).
+/// Two discharges whose mean currents' ratio lies between 1 / (1 + this) and 1 + this ran at a like current:
+/// the current input is 0 (a cell cycled at one current, whose means differ by the cycler's noise, learns nothing of it).
 pub const LIKE_CURRENT: f64 = 0.2;
 /// The current input is held within the log of this ratio (NASA's protocols span 1-4 A; a current far
 /// outside the record's is not carried far down a line).
@@ -577,10 +577,9 @@ mod tests {
             .collect();
         let plain: Vec<Entry> = once.iter().map(|e| Entry { current_switch: None, ..*e }).collect();
         for next in [Some(0.0), current_switch(1.0, 4.0), None] {
-            assert_eq!(
-                expected_error(&once, Some(14_000.0), None, next),
-                expected_error(&plain, Some(14_000.0), None, None)
-            );
+            let (with, without) =
+                (expected_error(&once, Some(14_000.0), None, next), expected_error(&plain, Some(14_000.0), None, None));
+            assert!(with.is_some() && with == without, "{with:?} {without:?}");
         }
     }
 

@@ -2438,8 +2438,8 @@ mod tests {
     /// not carry (4 % more per e-fold of current, as a cell whose model errs by current): each discharge
     /// starts from what the last one, at another current, told, and early in it the joint UKF has not yet
     /// read the difference. The `ukf_learned` kind moves the end by what its record expects of a discharge
-    /// whose current moved so far from the last one's: at a tenth of each of the last twelve of 44
-    /// discharges its error is less than half of `ukf`'s.
+    /// whose current moved so far from the last one's: at a tenth of the last twelve of 44 discharges its
+    /// error (in % of each discharge, summed over the twelve) is less than half of `ukf`'s.
     #[test]
     fn the_learner_on_the_record_takes_off_what_follows_the_current_before() {
         let amps = [1.0f64, 2.0, 4.0];

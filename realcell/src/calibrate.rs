@@ -730,6 +730,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // Every choice of the streaming calibrators is made on the last training cycles.
     let validation_idx = tune::validation_records(&train);
     let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
+    // What the learner on the record compares each discharge's current with: the record before it.
+    let before_a = tune::currents_before(train.iter().chain(&judged));
     let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
     let validation_ref_before: Vec<Before> = validation_idx.iter().map(|&k| train_ref_before[k].clone()).collect();
     if (input.ukf || input.adaptive_ukf || !input.policies.is_empty()) && validation.is_empty() {
@@ -851,7 +853,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             learned_entry["recentred"] = entry["recentred"].clone();
             learned_entry["blended"] = entry["blended"].clone();
             let without = MethodEntry::new(learned_key, score(&judged, &held.judged));
-            let (learned_runs, weights) = tune::learn_on_record(&held, &r, &validation, &judged);
+            let (learned_runs, weights) = tune::learn_on_record(&held, &r, &validation, &judged, &before_a);
             let learner = format!(
                 "a learner on this calibrator's record: least squares refitted before each \
                 discharge on its signed errors where the scores take them in that share of the discharge over the \
@@ -859,17 +861,18 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 mean of the last five, the log of the rest before, how much warmer the discharge's loaded \
                 readings ran up to there (at each reading: so far) than the record's at the same time after the \
                 load-on, and the log of the ratio of their mean current up to there to the discharge before's (0 \
-                within {:.0} %; learned where the window moved current on {} discharges or more); the moved prediction's weight per share (10 / 50 / \
-                90 %) is the delivered one's mean squared error over the sum of both over the last {} discharges it \
-                moved (none before {}; `weight`: its median over the judged discharges blended, and how many); \
+                for a ratio within 1/{like} to {like}; learned where the window moved current on {} discharges or \
+                more); the moved prediction's weight per share (10 / 50 / 90 %) is the delivered one's mean \
+                squared error over the sum of both over the last {} discharges it moved (none before {}; \
+                `weight`: its median over the judged discharges blended, and how many); \
                 `without`: the figures without it (before the intervals are widened, which leaves the values as \
                 they are)",
                 bcal_calib::record_learner::RECORD_WINDOW,
                 bcal_calib::record_learner::MIN_RECORD_PAIRS,
-                bcal_calib::record_learner::LIKE_CURRENT * 100.0,
                 bcal_calib::record_learner::MIN_CURRENT_SWITCHES,
                 bcal_calib::blend::BLEND_WINDOW,
-                bcal_calib::blend::MIN_BLEND_PAIRS
+                bcal_calib::blend::MIN_BLEND_PAIRS,
+                like = 1.0 + bcal_calib::record_learner::LIKE_CURRENT,
             );
             learned_entry["learned_capacity"] = serde_json::json!({"weight": weights_json(&weights.capacity),
                 "without": {"capacity_rmse_ah": without.capacity_rmse_ah,

@@ -11,6 +11,7 @@ use crate::run::{run_sequence, Before, CycleRun, Step, Streaming};
 use crate::score::{score, share_bin, CAPACITY_FRACTIONS_PCT, EOD_FRACTIONS_PCT};
 use rayon::prelude::*;
 use serde::Serialize;
+use std::collections::BTreeMap;
 
 /// Share of the training cycles (the last ones) held out for validation, and the least count.
 pub const VALIDATION_SHARE: f64 = 0.25;
@@ -350,8 +351,8 @@ pub struct LearnedWeights {
 /// (validation cycles first) the learner fits the signed errors where the scores take the capacity in that
 /// share (as [`gate_capacity`] judges it, against the data's charge, Ah) and the end (at 10 / 50 / 90 %, in %
 /// of the discharge) over the discharges that ended before, with the rest before each, the mean temperature
-/// of its loaded readings up to there and their mean current against the discharge before it
-/// ([`bcal_calib::record_learner::current_switch`]), and moves each reading's prediction (value and bounds) in
+/// of its loaded readings up to there and their mean current against the discharge before it (`before_a`:
+/// per cycle, [`currents_before`]; [`bcal_calib::record_learner::current_switch`]), and moves each reading's prediction (value and bounds) in
 /// that share by the error it expects from the rest before this discharge and its loaded readings' mean
 /// temperature and current so far (no look-ahead). The moved and the delivered prediction are then blended
 /// ([`bcal_calib::blend`]) by their squared errors over the last discharges where the learner moved it: a
@@ -367,6 +368,7 @@ pub fn learn_on_record(
     shares: &Runs,
     validation: &[CellRecord],
     judged: &[CellRecord],
+    before_a: &BTreeMap<u32, f64>,
 ) -> (Runs, LearnedWeights) {
     use bcal_calib::record_learner::{
         current_switch, fit, warmth_k, Entry, Learned, LoadedMean, RECORD_WINDOW, SAME_AMBIENT_K,
@@ -376,9 +378,9 @@ pub fn learn_on_record(
     let heat: Vec<LoadedMean> = records.iter().map(|r| loaded_mean(r, |s| s.temperature_k)).collect();
     let current: Vec<LoadedMean> = records.iter().map(|r| loaded_mean(r, |s| s.current_a)).collect();
     // The current input of discharge `j` at `tau_s` after its load-on, against the whole of the discharge
-    // before it (the first has none in the record), both the mean of loaded readings, as a stream takes them.
+    // before it, both the mean of loaded readings, as a stream takes them.
     let switch = |j: usize, tau_s: f64| -> Option<f64> {
-        current_switch(current[j].at(tau_s)?, current[j.checked_sub(1)?].whole()?)
+        current_switch(current[j].at(tau_s)?, *before_a.get(&records[j].cycle)?)
     };
     // The temperature input of discharge `j` at `tau_s` after its load-on ([`warmth_k`]), against the
     // discharges before it in a learner's window run at the same ambient.
@@ -471,6 +473,21 @@ pub fn learn_on_record(
         std::array::from_fn(|b| per[b][n_val..].iter().map(|x| x.as_ref().map(|x| x.1)).collect())
     };
     (runs, LearnedWeights { capacity: weights(&capacity), eod: weights(&eod) })
+}
+
+/// Per record of `records` (in order: every record prepared, training and judged, cut short or not, as a
+/// stream counts every discharge that ran a while), the mean current of the loaded readings of the record
+/// before it, A: what [`learn_on_record`]'s current input compares a discharge with.
+pub fn currents_before<'r>(records: impl IntoIterator<Item = &'r CellRecord>) -> BTreeMap<u32, f64> {
+    let mut out = BTreeMap::new();
+    let mut last: Option<f64> = None;
+    for r in records {
+        if let Some(a) = last {
+            out.insert(r.cycle, a);
+        }
+        last = loaded_mean(r, |s| s.current_a).whole().or(last);
+    }
+    out
 }
 
 /// A discharge's loaded readings' running mean of `of` (their temperature, their current) from its load-on.
@@ -1070,7 +1087,13 @@ mod tests {
         let (validation, v) = build(1..21);
         let (judged, j) = build(21..41);
         let delivered = Runs { validation: v, judged: j };
-        let (runs, weights) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        let (runs, weights) = learn_on_record(
+            &delivered,
+            &delivered,
+            &validation,
+            &judged,
+            &currents_before(validation.iter().chain(&judged)),
+        );
         let weights = weights.capacity;
         // The learner expects from the 12th discharge (11 in its record), its blend weighs it from the 20th
         // (8 discharges moved): every judged one, near all of the weight.
@@ -1105,7 +1128,13 @@ mod tests {
                 .collect()
         };
         let delivered = Runs { validation: exact(v), judged: exact(j) };
-        let (runs, weights) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        let (runs, weights) = learn_on_record(
+            &delivered,
+            &delivered,
+            &validation,
+            &judged,
+            &currents_before(validation.iter().chain(&judged)),
+        );
         let weights = weights.capacity;
         assert!(weights.iter().flatten().all(Option::is_none), "{weights:?}");
         for (run, d) in runs.judged.iter().zip(&delivered.judged) {
@@ -1141,7 +1170,13 @@ mod tests {
         let (validation, v) = build(1..31);
         let (judged, j) = build(31..51);
         let delivered = Runs { validation: v, judged: j };
-        let (runs, weights) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        let (runs, weights) = learn_on_record(
+            &delivered,
+            &delivered,
+            &validation,
+            &judged,
+            &currents_before(validation.iter().chain(&judged)),
+        );
         assert!(weights.capacity.iter().flatten().all(Option::is_none), "{:?}", weights.capacity);
         assert!(weights.eod[1].iter().all(|w| w.is_some_and(|w| w > 0.95)), "{:?}", weights.eod[1]);
         for (k, (run, d)) in runs.judged.iter().zip(&delivered.judged).enumerate() {
@@ -1172,24 +1207,32 @@ mod tests {
         let last = judged.len() - 1;
         judged[last].ambient_k += 20.0;
         judged[last].samples.iter_mut().for_each(|s| s.temperature_k += 20.0);
-        let (moved_runs, _) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        let (moved_runs, _) = learn_on_record(
+            &delivered,
+            &delivered,
+            &validation,
+            &judged,
+            &currents_before(validation.iter().chain(&judged)),
+        );
         let half = judged[last].reading_at_fraction(0.5).unwrap();
         let moved = moved_runs.judged[last].steps[half].eod.value.unwrap()
             - delivered.judged[last].steps[half].eod.value.unwrap();
         assert!((-2.0..0.0).contains(&moved), "moved {moved}");
     }
 
-    /// A cell cycled at 1, 2 and 4 A in no order whose calibrator's end errs by the current of the discharge
-    /// before (2 % of the discharge per e-fold the current moved, 0.5 % besides): the learner on its record
-    /// moves the end by what the current so far against the last discharge's tells, at every reading,
-    /// onto the measured one; a discharge whose load starts at 4 A after one at 1 A is moved from its first
-    /// loaded reading. The capacity, exact, is left alone.
+    /// A cell cycled at 1, 2 and 4 A in no order (some discharges at the last one's current) whose
+    /// calibrator's end errs by the current of the discharge before (2 % of the discharge per e-fold the
+    /// current moved, 0.5 % besides): the learner on its record moves the end by what the current so far
+    /// against the last discharge's tells, at every reading, onto the measured one; a discharge whose load
+    /// starts at 4 A after one at 1 A is moved from its first loaded reading. No look-ahead: a discharge
+    /// whose current changes at half is moved before it as before. The capacity, exact, is left alone.
     #[test]
     fn the_end_learned_on_the_record_takes_off_what_follows_the_current_before() {
         use crate::predict::Predicted;
         let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 1.0), hi: Some(v + 1.0) };
         let amps = [1.0, 2.0, 4.0];
-        let current_a = |c: u32| amps[((c * 7 + c / 3) % 3) as usize];
+        let order = [0, 0, 1, 2, 2, 0, 1, 1, 2, 0, 2, 1, 1];
+        let current_a = |c: u32| amps[order[c as usize % order.len()]];
         let error_pct = |c: u32| {
             let switch = bcal_calib::record_learner::current_switch(current_a(c), current_a(c - 1)).unwrap();
             0.5 + 2.0 * switch
@@ -1207,13 +1250,20 @@ mod tests {
         let (validation, v) = build(1..31);
         let (judged, j) = build(31..51);
         let delivered = Runs { validation: v, judged: j };
-        let (runs, weights) = learn_on_record(&delivered, &delivered, &validation, &judged);
+        let (runs, weights) = learn_on_record(
+            &delivered,
+            &delivered,
+            &validation,
+            &judged,
+            &currents_before(validation.iter().chain(&judged)),
+        );
         assert!(weights.capacity.iter().flatten().all(Option::is_none), "{:?}", weights.capacity);
         assert!(weights.eod[1].iter().all(|w| w.is_some_and(|w| w > 0.95)), "{:?}", weights.eod[1]);
-        let mut switched = 0;
+        let (mut switched, mut like) = (0, 0);
         for (k, (run, d)) in runs.judged.iter().zip(&delivered.judged).enumerate() {
             let erred = error_pct(judged[k].cycle);
             switched += usize::from((erred - 0.5).abs() > 1.0);
+            like += usize::from(erred == 0.5);
             assert!(run.steps.iter().zip(&d.steps).all(|(s, sd)| s.capacity == sd.capacity), "judged {k}");
             // The first loaded reading (the load comes on at 0 s), a tenth, half and 80 %.
             for f in [0.0, 0.1, 0.5, 0.8] {
@@ -1225,7 +1275,21 @@ mod tests {
                 );
             }
         }
-        assert!(switched >= 10, "{switched} of the judged discharges moved current");
+        assert!(switched >= 8 && like >= 4, "of the judged discharges {switched} moved current, {like} did not");
+        // The last judged discharge's current from half on changed (to 8 A): its readings before half are
+        // moved as they were, the ones after by their own current so far.
+        let last = judged.len() - 1;
+        let half = judged[last].reading_at_fraction(0.5).unwrap();
+        let mut changed = judged.clone();
+        changed[last].samples[half..].iter_mut().for_each(|s| s.current_a = 8.0);
+        let before_a = currents_before(validation.iter().chain(&changed));
+        let (again, _) = learn_on_record(&delivered, &delivered, &validation, &changed, &before_a);
+        let eod = |r: &Runs, i: usize| r.judged[last].steps[i].eod.value.unwrap();
+        assert!((0..half).all(|i| eod(&again, i) == eod(&runs, i)), "a reading before half moved");
+        assert!(eod(&again, half + 20) != eod(&runs, half + 20), "a reading after half did not move");
+        // Each record is compared with the one before it, training or judged.
+        assert_eq!(before_a[&judged[0].cycle], current_a(validation.last().unwrap().cycle));
+        assert!(!before_a.contains_key(&validation[0].cycle));
     }
 
     /// The prior alone is judged against what it would replace, the method as delivered, blended with it:
