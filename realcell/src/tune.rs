@@ -1087,13 +1087,7 @@ mod tests {
         let (validation, v) = build(1..21);
         let (judged, j) = build(21..41);
         let delivered = Runs { validation: v, judged: j };
-        let (runs, weights) = learn_on_record(
-            &delivered,
-            &delivered,
-            &validation,
-            &judged,
-            &currents_before(validation.iter().chain(&judged)),
-        );
+        let (runs, weights) = learn_on_own_runs(&delivered, &validation, &judged);
         let weights = weights.capacity;
         // The learner expects from the 12th discharge (11 in its record), its blend weighs it from the 20th
         // (8 discharges moved): every judged one, near all of the weight.
@@ -1128,18 +1122,45 @@ mod tests {
                 .collect()
         };
         let delivered = Runs { validation: exact(v), judged: exact(j) };
-        let (runs, weights) = learn_on_record(
-            &delivered,
-            &delivered,
-            &validation,
-            &judged,
-            &currents_before(validation.iter().chain(&judged)),
-        );
+        let (runs, weights) = learn_on_own_runs(&delivered, &validation, &judged);
         let weights = weights.capacity;
         assert!(weights.iter().flatten().all(Option::is_none), "{weights:?}");
         for (run, d) in runs.judged.iter().zip(&delivered.judged) {
             assert!(run.steps.iter().zip(&d.steps).all(|(s, sd)| s.capacity == sd.capacity && s.eod == sd.eod));
         }
+    }
+
+    /// [`learn_on_record`] with `delivered` its own shares, each record's current compared with the one before.
+    fn learn_on_own_runs(delivered: &Runs, validation: &[CellRecord], judged: &[CellRecord]) -> (Runs, LearnedWeights) {
+        learn_on_record(delivered, delivered, validation, judged, &currents_before(validation.iter().chain(judged)))
+    }
+
+    /// A life of 30 validation and 20 judged discharges (the blend's last 15 discharges then hold the
+    /// learner's own record only) whose delivered end errs by `error_pct(cycle)` % of the discharge (bounds
+    /// 1 % either side) and whose capacity is exact, each record set by `edit`; with the learner on its
+    /// record run on it: (validation, judged, delivered, learned, weights).
+    #[allow(clippy::type_complexity)]
+    fn learned_end_life(
+        error_pct: &dyn Fn(u32) -> f64,
+        edit: &dyn Fn(u32, &mut CellRecord),
+    ) -> (Vec<CellRecord>, Vec<CellRecord>, Runs, Runs, LearnedWeights) {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 1.0), hi: Some(v + 1.0) };
+        let build = |cycles: std::ops::Range<u32>| -> (Vec<CellRecord>, Vec<CycleRun>) {
+            cycles
+                .map(|c| {
+                    let (mut r, run) = crate::record::test_discharge(c, 1.0, |_| at(100.0 + error_pct(c)), at(1.0));
+                    edit(c, &mut r);
+                    r.rest_before_s = Some(14_400.0);
+                    (r, run)
+                })
+                .unzip()
+        };
+        let (validation, v) = build(1..31);
+        let (judged, j) = build(31..51);
+        let delivered = Runs { validation: v, judged: j };
+        let (runs, weights) = learn_on_own_runs(&delivered, &validation, &judged);
+        (validation, judged, delivered, runs, weights)
     }
 
     /// A cold cell's calibrator whose end of discharge errs by 1 % of the discharge per K its loaded readings
@@ -1149,34 +1170,11 @@ mod tests {
     /// the measured one; the capacity, exact, is left alone.
     #[test]
     fn the_end_learned_on_the_record_takes_off_what_follows_the_temperature() {
-        use crate::predict::Predicted;
-        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 1.0), hi: Some(v + 1.0) };
         // Each cycle's temperature at its load-on, K, 285-289 in no order (a multiplicative hash of the cycle).
         let start_k = |c: u32| 285.0 + f64::from(c.wrapping_mul(2_654_435_761) % 1000) * 0.004;
-        let build = |cycles: std::ops::Range<u32>| -> (Vec<CellRecord>, Vec<CycleRun>) {
-            cycles
-                .map(|c| {
-                    let error_pct = start_k(c) - 286.0;
-                    let (mut r, run) = crate::record::test_discharge(c, 1.0, |_| at(100.0 + error_pct), at(1.0));
-                    for s in &mut r.samples {
-                        s.temperature_k = start_k(c) + 0.04 * s.t_s;
-                    }
-                    r.rest_before_s = Some(14_400.0);
-                    (r, run)
-                })
-                .unzip()
-        };
-        // 30 validation cycles: the blend's last 15 discharges then hold the learner's own record only.
-        let (validation, v) = build(1..31);
-        let (judged, j) = build(31..51);
-        let delivered = Runs { validation: v, judged: j };
-        let (runs, weights) = learn_on_record(
-            &delivered,
-            &delivered,
-            &validation,
-            &judged,
-            &currents_before(validation.iter().chain(&judged)),
-        );
+        let (validation, judged, delivered, runs, weights) = learned_end_life(&|c| start_k(c) - 286.0, &|c, r| {
+            r.samples.iter_mut().for_each(|s| s.temperature_k = start_k(c) + 0.04 * s.t_s)
+        });
         assert!(weights.capacity.iter().flatten().all(Option::is_none), "{:?}", weights.capacity);
         assert!(weights.eod[1].iter().all(|w| w.is_some_and(|w| w > 0.95)), "{:?}", weights.eod[1]);
         for (k, (run, d)) in runs.judged.iter().zip(&delivered.judged).enumerate() {
@@ -1207,13 +1205,7 @@ mod tests {
         let last = judged.len() - 1;
         judged[last].ambient_k += 20.0;
         judged[last].samples.iter_mut().for_each(|s| s.temperature_k += 20.0);
-        let (moved_runs, _) = learn_on_record(
-            &delivered,
-            &delivered,
-            &validation,
-            &judged,
-            &currents_before(validation.iter().chain(&judged)),
-        );
+        let (moved_runs, _) = learn_on_own_runs(&delivered, &validation, &judged);
         let half = judged[last].reading_at_fraction(0.5).unwrap();
         let moved = moved_runs.judged[last].steps[half].eod.value.unwrap()
             - delivered.judged[last].steps[half].eod.value.unwrap();
@@ -1228,8 +1220,6 @@ mod tests {
     /// whose current changes at half is moved before it as before. The capacity, exact, is left alone.
     #[test]
     fn the_end_learned_on_the_record_takes_off_what_follows_the_current_before() {
-        use crate::predict::Predicted;
-        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 1.0), hi: Some(v + 1.0) };
         let amps = [1.0, 2.0, 4.0];
         let order = [0, 0, 1, 2, 2, 0, 1, 1, 2, 0, 2, 1, 1];
         let current_a = |c: u32| amps[order[c as usize % order.len()]];
@@ -1237,26 +1227,8 @@ mod tests {
             let switch = bcal_calib::record_learner::current_switch(current_a(c), current_a(c - 1)).unwrap();
             0.5 + 2.0 * switch
         };
-        let build = |cycles: std::ops::Range<u32>| -> (Vec<CellRecord>, Vec<CycleRun>) {
-            cycles
-                .map(|c| {
-                    let (mut r, run) = crate::record::test_discharge(c, 1.0, |_| at(100.0 + error_pct(c)), at(1.0));
-                    r.samples.iter_mut().for_each(|s| s.current_a = current_a(c));
-                    r.rest_before_s = Some(14_400.0);
-                    (r, run)
-                })
-                .unzip()
-        };
-        let (validation, v) = build(1..31);
-        let (judged, j) = build(31..51);
-        let delivered = Runs { validation: v, judged: j };
-        let (runs, weights) = learn_on_record(
-            &delivered,
-            &delivered,
-            &validation,
-            &judged,
-            &currents_before(validation.iter().chain(&judged)),
-        );
+        let (validation, judged, delivered, runs, weights) =
+            learned_end_life(&error_pct, &|c, r| r.samples.iter_mut().for_each(|s| s.current_a = current_a(c)));
         assert!(weights.capacity.iter().flatten().all(Option::is_none), "{:?}", weights.capacity);
         assert!(weights.eod[1].iter().all(|w| w.is_some_and(|w| w > 0.95)), "{:?}", weights.eod[1]);
         let (mut switched, mut like) = (0, 0);
@@ -1282,8 +1254,8 @@ mod tests {
         let half = judged[last].reading_at_fraction(0.5).unwrap();
         let mut changed = judged.clone();
         changed[last].samples[half..].iter_mut().for_each(|s| s.current_a = 8.0);
+        let (again, _) = learn_on_own_runs(&delivered, &validation, &changed);
         let before_a = currents_before(validation.iter().chain(&changed));
-        let (again, _) = learn_on_record(&delivered, &delivered, &validation, &changed, &before_a);
         let eod = |r: &Runs, i: usize| r.judged[last].steps[i].eod.value.unwrap();
         assert!((0..half).all(|i| eod(&again, i) == eod(&runs, i)), "a reading before half moved");
         assert!(eod(&again, half + 20) != eod(&runs, half + 20), "a reading after half did not move");
