@@ -6,21 +6,21 @@
 //! rest before, a temperature input (in `bcal calibrate`: how much warmer the discharge's loaded readings ran
 //! up to where its error is taken, or so far, than the record's at the same time after the load-on), scaled
 //! by the record's spread, and a current input ([`current_switch`]: the log of the ratio of its loaded
-//! readings' mean current so far to the last discharge's, 0 for a like current ([`LIKE_CURRENT`]); learned only from a
-//! window where the current moved on [`MIN_CURRENT_SWITCHES`] discharges or more). Within linear policies
-//! on these inputs this is the optimum of a policy trained by cost alone (the squared error it leaves) on the
-//! same record; the first three settings were fixed before any figure was seen (docs/calibrator.md, "a
-//! learner on the record", where `examples/record_room.py` measures the learner on those three on `bcal
-//! calibrate` runs); the temperature input was added after the cold cell B0055 (4 C) showed its errors
-//! following the discharge's temperature ("the temperature on the record"), the current input after a blind
-//! cell cycled at 1, 2 and 4 A in no order showed the joint UKF's end erring by the current of the discharge
-//! before (what it carries over holds that current's model error; "the current on the record"). On NASA cells
-//! its gain is on the capacity, from the rest before the discharge on some cells (a cell regains charge over
-//! a rest, by more than the lifetime model's long-rest jump carries for the rests it sees most) and from a
-//! persistent bias on others, and on the cold cell's end of discharge, from its temperature. `bcal calibrate`
-//! (`bcal_realcell::tune::learn_on_record`) blends its capacity and end with the joint UKF's as
-//! [`crate::blend`] weighs any two and delivers that as a method of its own, `ukf_learned`. Pure arithmetic:
-//! nothing here reads or prints.
+//! readings' mean current so far to the last discharge's, 0 for a like current ([`LIKE_CURRENT`]); learned
+//! only from a window where the current moved on [`MIN_CURRENT_SWITCHES`] discharges or more). Within linear
+//! policies on these inputs this is the optimum of a policy trained by cost alone (the squared error it
+//! leaves) on the same record; the first three settings were fixed before any figure was seen
+//! (docs/calibrator.md, "a learner on the record", where `examples/record_room.py` measures the learner on
+//! those three on `bcal calibrate` runs); the temperature input was added after the cold cell B0055 (4 C) showed
+//! its errors following the discharge's temperature ("the temperature on the record"), the current input after a
+//! blind cell cycled at 1, 2 and 4 A in no order showed the joint UKF's end erring by the current of the discharge
+//! before (what it carries over holds that current's model error; "the current on the record"). On NASA cells its
+//! gain is on the capacity, from the rest before the discharge on some cells (a cell regains charge over a rest,
+//! by more than the lifetime model's long-rest jump carries for the rests it sees most) and from a persistent bias
+//! on others, and on the cold cell's end of discharge, from its temperature. `bcal calibrate`
+//! (`bcal_realcell::tune::learn_on_record`) blends its capacity and end with the joint UKF's as [`crate::blend`]
+//! weighs any two and delivers that as a method of its own, `ukf_learned`. Pure arithmetic: nothing here reads or
+//! prints.
 
 use crate::widening::EOD_FRACTIONS_PCT;
 use nalgebra::{Matrix6, Vector6};
@@ -42,7 +42,8 @@ pub const MIN_TEMPERATURE_SPREAD_K: f64 = 0.1;
 /// record is not carried far past what the record held (a sensor that shifts, a discharge far colder).
 pub const MAX_TEMPERATURE_INPUT: f64 = 3.0;
 /// Two discharges whose mean currents' ratio lies between 1 / (1 + this) and 1 + this ran at a like current:
-/// the current input is 0 (a cell cycled at one current, whose means differ by the cycler's noise, learns nothing of it).
+/// the current input is 0 (a cell cycled at one current, whose means differ by the cycler's noise, learns
+/// nothing of it).
 pub const LIKE_CURRENT: f64 = 0.2;
 /// The current input is held within the log of this ratio (NASA's protocols span 1-4 A; a current far
 /// outside the record's is not carried far down a line).

@@ -218,9 +218,9 @@ pub struct Estimate {
     /// The learner on the record's weight in the prediction (the `ukf_learned` kind): what the rules above
     /// deliver is moved by the signed error the learner expects of it from the discharges followed to the
     /// cut-off before, the rest before this one, how warm it runs against them and how far its current moved
-    /// from the last one's ([`crate::record_learner::EndRecord`]), and blended with the unmoved by the two's records; 0 where it
-    /// does not move it (other kinds, or before 11 discharges have been followed to the cut-off and 8 more
-    /// weighed). The flags and weights above tell how the rules gave the end before this move.
+    /// from the last one's ([`crate::record_learner::EndRecord`]), and blended with the unmoved by the two's
+    /// records; 0 where it does not move it (other kinds, or before 11 discharges have been followed to the
+    /// cut-off and 8 more weighed). The flags and weights above tell how the rules gave the end before this move.
     pub eod_learned_weight: f64,
     /// The discharge the reading belongs to, from 0 (a new one after a charge or a long gap; the readings of
     /// a charge take the number of the discharge after it).
@@ -1168,7 +1168,8 @@ impl<'a> Stream<'a> {
         let from_prior = matches!(bin, Some(b) if self.prior_serves[b] && eod_prior_s.is_some() && !long_rest);
         let rules_s = if from_prior { eod_prior_s } else { with_previous_s };
         // The learner on the record (the `ukf_learned` kind): its loaded readings' temperature and current from
-        // the load-on, and what the rules deliver moved by the error the record expects, blended with it by their records.
+        // the load-on, and what the rules deliver moved by the error the record expects, blended with it by
+        // their records.
         let counting = !self.joined_under_load && self.eod_track.ended_s.is_none();
         if let Some(rec) = self.end_record.as_mut().filter(|_| counting && loaded) {
             if self.eod_track.load_on_s.is_none() {

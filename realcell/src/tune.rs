@@ -352,17 +352,16 @@ pub struct LearnedWeights {
 /// share (as [`gate_capacity`] judges it, against the data's charge, Ah) and the end (at 10 / 50 / 90 %, in %
 /// of the discharge) over the discharges that ended before, with the rest before each, the mean temperature
 /// of its loaded readings up to there and their mean current against the discharge before it (`before_a`:
-/// per cycle, [`currents_before`]; [`bcal_calib::record_learner::current_switch`]), and moves each reading's prediction (value and bounds) in
-/// that share by the error it expects from the rest before this discharge and its loaded readings' mean
-/// temperature and current so far (no look-ahead). The moved and the delivered prediction are then blended
-/// ([`bcal_calib::blend`]) by their squared errors over the last discharges where the learner moved it: a
-/// learner that errs more gets little weight, before it has a record none. The temperature carries what an
-/// isothermal model misses on a cold cell (B0055 at 4 C: the warmer a discharge runs, the more it delivers
+/// per cycle, [`currents_before`]; [`bcal_calib::record_learner::current_switch`]), and moves each reading's
+/// prediction (value and bounds) in that share by the error it expects from the rest before this discharge and its
+/// loaded readings' mean temperature and current so far (no look-ahead). The moved and the delivered prediction
+/// are then blended ([`bcal_calib::blend`]) by their squared errors over the last discharges where the learner
+/// moved it: a learner that errs more gets little weight, before it has a record none. The temperature carries
+/// what an isothermal model misses on a cold cell (B0055 at 4 C: the warmer a discharge runs, the more it delivers
 /// and the later it ends; docs/calibrator.md, "the temperature on the record"); the current what the filter
-/// carries from a discharge at another current (a cell cycled at mixed currents; "the current on the record").
-/// A reading's share is the one
-/// `shares`' predicted end puts it at. `bcal calibrate` delivers the joint UKF so learned as a method of its
-/// own (`ukf_learned`) beside it.
+/// carries from a discharge at another current (a cell cycled at mixed currents; "the current on the record"). A
+/// reading's share is the one `shares`' predicted end puts it at. `bcal calibrate` delivers the joint UKF so
+/// learned as a method of its own (`ukf_learned`) beside it.
 pub fn learn_on_record(
     delivered: &Runs,
     shares: &Runs,
