@@ -321,6 +321,7 @@ impl CellHistory {
         for r in train.iter_mut() {
             r.rest_before_s = rests.get(&r.cycle).copied();
         }
+        crate::record::set_currents_before(train.iter_mut());
         let life = lifetime_model(train_ds, starts, cutoff_v);
         let tuning = life.as_ref().map(|l| &l.tuning);
         let carrying = Carrying::end_fits(spec, tuning, train, train_fits, neutral, &rests, cutoff_v);
@@ -528,6 +529,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     for r in train.iter_mut().chain(judged.iter_mut()) {
         r.rest_before_s = rests.get(&r.cycle).copied();
     }
+    crate::record::set_currents_before(train.iter_mut().chain(judged.iter_mut()));
     summary.records = judged.len();
     summary.reaching_cutoff = judged.iter().filter(|r| r.eod_s.is_some()).count();
     summary.cut_short = judged.iter().filter(|r| r.eod_s.is_none()).map(|r| r.cycle).collect();
@@ -730,8 +732,6 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // Every choice of the streaming calibrators is made on the last training cycles.
     let validation_idx = tune::validation_records(&train);
     let validation: Vec<CellRecord> = validation_idx.iter().map(|&k| train[k].clone()).collect();
-    // What the learner on the record compares each discharge's current with: the record before it.
-    let before_a = tune::currents_before(train.iter().chain(&judged));
     let validation_before: Vec<Before> = validation_idx.iter().map(|&k| train_before[k].clone()).collect();
     let validation_ref_before: Vec<Before> = validation_idx.iter().map(|&k| train_ref_before[k].clone()).collect();
     if (input.ukf || input.adaptive_ukf || !input.policies.is_empty()) && validation.is_empty() {
@@ -853,7 +853,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             learned_entry["recentred"] = entry["recentred"].clone();
             learned_entry["blended"] = entry["blended"].clone();
             let without = MethodEntry::new(learned_key, score(&judged, &held.judged));
-            let (learned_runs, weights) = tune::learn_on_record(&held, &r, &validation, &judged, &before_a);
+            let (learned_runs, weights) = tune::learn_on_record(&held, &r, &validation, &judged);
             let learner = format!(
                 "a learner on this calibrator's record: least squares refitted before each \
                 discharge on its signed errors where the scores take them in that share of the discharge over the \

@@ -149,6 +149,7 @@ mod tests {
                 stated_capacity_ah: Some(1.8),
                 ambient_k: 297.15,
                 rest_before_s: None,
+                current_before_a: None,
                 partial_start: false,
                 samples,
             }

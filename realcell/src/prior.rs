@@ -193,6 +193,7 @@ mod tests {
             stated_capacity_ah: None,
             ambient_k: 297.15,
             rest_before_s: rest_s,
+            current_before_a: None,
             partial_start: false,
             samples: Vec::new(),
         }

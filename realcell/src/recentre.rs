@@ -9,27 +9,29 @@ use crate::record::CellRecord;
 use crate::run::CycleRun;
 use crate::tune::{self, Runs, Served};
 use bcal_calib::recentre::{
-    biases, regressed_shift_s, shift_s, voltage_regressions, Outcome, Previous, Start, VoltageChange,
+    biases_alike, regressed_shift_s, shift_s, voltage_regressions, Outcome, Previous, Start, Transition, VoltageChange,
 };
 
 /// `runs` along `records` (in order) with every predicted end of discharge, and its interval, moved by the
-/// bias of the discharges before it in the sequence.
+/// bias of the discharges before it in the sequence that moved their current as this one has so far
+/// ([`biases_alike`]: its loaded readings' mean current up to the reading against the record before's).
 fn recentred_along(records: &[&CellRecord], runs: &[&CycleRun]) -> Vec<CycleRun> {
-    let mut ended: Vec<Vec<Outcome>> = Vec::new();
+    let mut ended: Vec<(Transition, Vec<Outcome>)> = Vec::new();
     records
         .iter()
         .zip(runs)
         .map(|(r, run)| {
-            let b = biases(&ended);
+            let current = r.loaded_current();
             let mut out = (*run).clone();
             for s in &mut out.steps {
                 if let Some(v) = s.eod.value {
-                    s.eod = s.eod.shifted(shift_s(&b, r.load_on_s, s.t_s, v));
+                    let now = Transition { before_a: r.current_before_a, now_a: current.at(s.t_s - r.load_on_s) };
+                    s.eod = s.eod.shifted(shift_s(&biases_alike(&ended, &now), r.load_on_s, s.t_s, v));
                 }
             }
             let (eod, _) = outcomes(r, run);
             if !eod.is_empty() {
-                ended.push(eod);
+                ended.push((Transition { before_a: r.current_before_a, now_a: current.whole() }, eod));
             }
             out
         })
@@ -165,6 +167,34 @@ mod tests {
         // every share, except the one after the long rest.
         for g in &gates {
             assert!(g.iter().enumerate().all(|(k, s)| *s == (k != 5)), "{g:?}");
+        }
+    }
+
+    /// A cell at 4 A with every third discharge at 1 A whose method ends 4 s late after a move up, 3 s early
+    /// after a move down and 1 s late at 4 A after 4 A (a median over every discharge takes 1 s off each,
+    /// which leaves the moves 3 and 4 s off): each discharge is recentred on its twins, the discharges that
+    /// moved their current as it does, and served so, on the measured end (the gate opens within the
+    /// validation cycles).
+    #[test]
+    fn each_discharge_is_recentred_on_the_discharges_that_moved_their_current_alike() {
+        let current_a = |k: usize| if k % 3 == 2 { 1.0 } else { 4.0 };
+        let late_s = |k: usize| match (k.checked_sub(1).map(current_a), current_a(k)) {
+            (Some(1.0), 4.0) => 4.0,
+            (Some(4.0), 1.0) => -3.0,
+            _ => 1.0,
+        };
+        let (mut records, runs) = sequence(45, late_s);
+        for (k, r) in records.iter_mut().enumerate() {
+            r.samples.iter_mut().for_each(|s| s.current_a = current_a(k));
+        }
+        crate::record::set_currents_before(records.iter_mut());
+        let (val, judged) = records.split_at(15);
+        let runs = Runs { validation: runs.judged[..15].to_vec(), judged: runs.judged[15..].to_vec() };
+        let (served, gates, _) = serve(&runs, val, judged);
+        assert!(gates[1].iter().all(|&g| g), "served at half: {:?}", gates[1]);
+        for (k, run) in served.judged.iter().enumerate() {
+            let v = eod_at_half(run).value.unwrap();
+            assert!((v - 100.0).abs() < 1e-9, "judged {k}: {v}, erred {}", late_s(15 + k));
         }
     }
 

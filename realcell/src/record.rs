@@ -38,10 +38,25 @@ pub struct CellRecord {
     pub ambient_k: f64,
     /// The rest before the discharge (from the end of the record before it), s; None when unknown.
     pub rest_before_s: Option<f64>,
+    /// The mean current of the loaded readings of the record before it, A ([`set_currents_before`]; None for
+    /// the first): what a discharge's current is compared with (the learner on the record, the twins by
+    /// current).
+    pub current_before_a: Option<f64>,
     /// Whether it started from a partial charge, as its neighbours' rest voltages show (records after it
     /// among them: for the scores only). The charge it delivered is not the cell's capacity, so its
     /// capacity is not scored; its end of discharge is.
     pub partial_start: bool,
+}
+
+/// Sets each record's [`CellRecord::current_before_a`] from the one before it in `records` (in order: every
+/// record prepared, training and judged, cut short or not, as a stream counts every discharge that ran a
+/// while).
+pub fn set_currents_before<'r>(records: impl IntoIterator<Item = &'r mut CellRecord>) {
+    let mut last: Option<f64> = None;
+    for r in records {
+        r.current_before_a = last;
+        last = r.loaded_current().whole().or(last);
+    }
 }
 
 /// The discharge's load as its predictions assume it at its end (`bcal_calib::LoadMean`): the mean current
@@ -56,6 +71,20 @@ pub(crate) fn load_mean(samples: &[Sample]) -> bcal_calib::LoadMean {
 }
 
 impl CellRecord {
+    /// The running mean current of its loaded readings from the load-on, A (against the time after it, s).
+    pub fn loaded_current(&self) -> bcal_calib::record_learner::LoadedMean {
+        self.loaded_mean(|s| s.current_a)
+    }
+
+    /// The running mean of `of` (a loaded reading's temperature, its current) from the load-on.
+    pub fn loaded_mean(&self, of: impl Fn(&Sample) -> f64) -> bcal_calib::record_learner::LoadedMean {
+        let mut mean = bcal_calib::record_learner::LoadedMean::default();
+        for s in self.samples.iter().filter(|s| s.t_s >= self.load_on_s && s.current_a > LOAD_THRESHOLD_A) {
+            mean.push(s.t_s - self.load_on_s, of(s));
+        }
+        mean
+    }
+
     /// The load its predictions assume at its end ([`load_mean`]; a current of 0 A with no loaded reading).
     pub fn load(&self) -> Load {
         load_mean(&self.samples).load().unwrap_or(Load::CurrentA(0.0))
@@ -156,6 +185,7 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
         stated_capacity_ah: d.stated_capacity_ah,
         ambient_k: d.ambient_k,
         rest_before_s: None,
+        current_before_a: None,
         partial_start: false,
         samples,
     })
@@ -306,6 +336,7 @@ pub(crate) fn test_discharge(
         stated_capacity_ah: None,
         ambient_k: 297.0,
         rest_before_s: None,
+        current_before_a: None,
         partial_start: false,
         samples,
     };

@@ -90,6 +90,7 @@ mod tests {
             stated_capacity_ah: None,
             ambient_k: 297.0,
             rest_before_s: None,
+            current_before_a: None,
             partial_start: false,
             samples,
         };

@@ -250,6 +250,7 @@ mod tests {
             stated_capacity_ah: Some(1.1),
             ambient_k: 298.0,
             rest_before_s: Some(2.0 * 86_400.0),
+            current_before_a: None,
             partial_start: false,
         };
         // Predicts an end 50 s late with an interval of +-100 s and a capacity of 1.2 Ah within [1.1, 1.3].

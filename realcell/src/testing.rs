@@ -65,6 +65,7 @@ pub fn simulated_record_under(
         stated_capacity_ah: None,
         ambient_k,
         rest_before_s: None,
+        current_before_a: None,
         partial_start: false,
         samples,
     }

@@ -11,7 +11,6 @@ use crate::run::{run_sequence, Before, CycleRun, Step, Streaming};
 use crate::score::{score, share_bin, CAPACITY_FRACTIONS_PCT, EOD_FRACTIONS_PCT};
 use rayon::prelude::*;
 use serde::Serialize;
-use std::collections::BTreeMap;
 
 /// Share of the training cycles (the last ones) held out for validation, and the least count.
 pub const VALIDATION_SHARE: f64 = 0.25;
@@ -351,8 +350,8 @@ pub struct LearnedWeights {
 /// (validation cycles first) the learner fits the signed errors where the scores take the capacity in that
 /// share (as [`gate_capacity`] judges it, against the data's charge, Ah) and the end (at 10 / 50 / 90 %, in %
 /// of the discharge) over the discharges that ended before, with the rest before each, the mean temperature
-/// of its loaded readings up to there and their mean current against the discharge before it (`before_a`:
-/// per cycle, [`currents_before`]; [`bcal_calib::record_learner::current_switch`]), and moves each reading's
+/// of its loaded readings up to there and their mean current against the discharge before it
+/// ([`CellRecord::current_before_a`]; [`bcal_calib::record_learner::current_switch`]), and moves each reading's
 /// prediction (value and bounds) in that share by the error it expects from the rest before this discharge and its
 /// loaded readings' mean temperature and current so far (no look-ahead). The moved and the delivered prediction
 /// are then blended ([`bcal_calib::blend`]) by their squared errors over the last discharges where the learner
@@ -367,20 +366,18 @@ pub fn learn_on_record(
     shares: &Runs,
     validation: &[CellRecord],
     judged: &[CellRecord],
-    before_a: &BTreeMap<u32, f64>,
 ) -> (Runs, LearnedWeights) {
     use bcal_calib::record_learner::{
         current_switch, fit, warmth_k, Entry, Learned, LoadedMean, RECORD_WINDOW, SAME_AMBIENT_K,
     };
     let records: Vec<&CellRecord> = validation.iter().chain(judged).collect();
     let n_val = validation.len();
-    let heat: Vec<LoadedMean> = records.iter().map(|r| loaded_mean(r, |s| s.temperature_k)).collect();
-    let current: Vec<LoadedMean> = records.iter().map(|r| loaded_mean(r, |s| s.current_a)).collect();
+    let heat: Vec<LoadedMean> = records.iter().map(|r| r.loaded_mean(|s| s.temperature_k)).collect();
+    let current: Vec<LoadedMean> = records.iter().map(|r| r.loaded_current()).collect();
     // The current input of discharge `j` at `tau_s` after its load-on, against the whole of the discharge
     // before it, both the mean of loaded readings, as a stream takes them.
-    let switch = |j: usize, tau_s: f64| -> Option<f64> {
-        current_switch(current[j].at(tau_s)?, *before_a.get(&records[j].cycle)?)
-    };
+    let switch =
+        |j: usize, tau_s: f64| -> Option<f64> { current_switch(current[j].at(tau_s)?, records[j].current_before_a?) };
     // The temperature input of discharge `j` at `tau_s` after its load-on ([`warmth_k`]), against the
     // discharges before it in a learner's window run at the same ambient.
     let anomaly = |j: usize, tau_s: f64| -> Option<f64> {
@@ -472,33 +469,6 @@ pub fn learn_on_record(
         std::array::from_fn(|b| per[b][n_val..].iter().map(|x| x.as_ref().map(|x| x.1)).collect())
     };
     (runs, LearnedWeights { capacity: weights(&capacity), eod: weights(&eod) })
-}
-
-/// Per record of `records` (in order: every record prepared, training and judged, cut short or not, as a
-/// stream counts every discharge that ran a while), the mean current of the loaded readings of the record
-/// before it, A: what [`learn_on_record`]'s current input compares a discharge with.
-pub fn currents_before<'r>(records: impl IntoIterator<Item = &'r CellRecord>) -> BTreeMap<u32, f64> {
-    let mut out = BTreeMap::new();
-    let mut last: Option<f64> = None;
-    for r in records {
-        if let Some(a) = last {
-            out.insert(r.cycle, a);
-        }
-        last = loaded_mean(r, |s| s.current_a).whole().or(last);
-    }
-    out
-}
-
-/// A discharge's loaded readings' running mean of `of` (their temperature, their current) from its load-on.
-fn loaded_mean(
-    r: &CellRecord,
-    of: impl Fn(&bcal_common::measured::scenario::Sample) -> f64,
-) -> bcal_calib::record_learner::LoadedMean {
-    let mut mean = bcal_calib::record_learner::LoadedMean::default();
-    for s in r.samples.iter().filter(|s| s.t_s >= r.load_on_s && s.current_a > crate::record::LOAD_THRESHOLD_A) {
-        mean.push(s.t_s - r.load_on_s, of(s));
-    }
-    mean
 }
 
 /// Per discharge, the signed error of `runs`' end of discharge at `fraction_pct` of it, % of the discharge
@@ -1131,7 +1101,7 @@ mod tests {
 
     /// [`learn_on_record`] with `delivered` its own shares, each record's current compared with the one before.
     fn learn_on_own_runs(delivered: &Runs, validation: &[CellRecord], judged: &[CellRecord]) -> (Runs, LearnedWeights) {
-        learn_on_record(delivered, delivered, validation, judged, &currents_before(validation.iter().chain(judged)))
+        learn_on_record(delivered, delivered, validation, judged)
     }
 
     /// A life of 30 validation and 20 judged discharges (the blend's last 15 discharges then hold the
@@ -1155,8 +1125,9 @@ mod tests {
                 })
                 .unzip()
         };
-        let (validation, v) = build(1..31);
-        let (judged, j) = build(31..51);
+        let (mut validation, v) = build(1..31);
+        let (mut judged, j) = build(31..51);
+        crate::record::set_currents_before(validation.iter_mut().chain(judged.iter_mut()));
         let delivered = Runs { validation: v, judged: j };
         let (runs, weights) = learn_on_own_runs(&delivered, &validation, &judged);
         (validation, judged, delivered, runs, weights)
@@ -1254,13 +1225,12 @@ mod tests {
         let mut changed = judged.clone();
         changed[last].samples[half..].iter_mut().for_each(|s| s.current_a = 8.0);
         let (again, _) = learn_on_own_runs(&delivered, &validation, &changed);
-        let before_a = currents_before(validation.iter().chain(&changed));
         let eod = |r: &Runs, i: usize| r.judged[last].steps[i].eod.value.unwrap();
         assert!((0..half).all(|i| eod(&again, i) == eod(&runs, i)), "a reading before half moved");
         assert!(eod(&again, half + 20) != eod(&runs, half + 20), "a reading after half did not move");
         // Each record is compared with the one before it, training or judged.
-        assert_eq!(before_a[&judged[0].cycle], current_a(validation.last().unwrap().cycle));
-        assert!(!before_a.contains_key(&validation[0].cycle));
+        assert_eq!(judged[0].current_before_a, Some(current_a(validation.last().unwrap().cycle)));
+        assert_eq!(validation[0].current_before_a, None);
     }
 
     /// The prior alone is judged against what it would replace, the method as delivered, blended with it:
