@@ -57,11 +57,11 @@ impl Transition {
     }
 }
 
-/// The bias at each share, as [`biases`], from the discharges among the last [`TWIN_SPAN`] that ended that
-/// moved their current as this one does (`now`; [`Transition::alike`]), where at least [`MIN_TWINS`] did;
-/// else, and before the discharge's load (its current not known), from every one (a median of one or two
-/// is noise: a cell cycled at three currents in no order repeats each of its nine moves rarely). On a cell cycled at one current every discharge is alike, and
-/// the bias is [`biases`]'.
+/// The bias at each share, as [`biases`] (the last [`WINDOW`] count), from the discharges among the last
+/// [`TWIN_SPAN`] that ended that moved their current as this one does (`now`; [`Transition::alike`]), where
+/// at least [`MIN_TWINS`] did; else, and before the discharge's load (its current not known), from every one
+/// (a median of one or two is noise: a cell cycled at three currents in no order repeats each of its nine
+/// moves rarely). On a cell cycled at one current every discharge is alike, and the bias is [`biases`]'.
 pub fn biases_alike(ended: &[(Transition, Vec<Outcome>)], now: &Transition) -> [Option<f64>; 3] {
     let span = &ended[ended.len().saturating_sub(TWIN_SPAN)..];
     let twins = span.iter().filter(|(t, _)| t.alike(now));
@@ -393,6 +393,17 @@ mod tests {
         assert_eq!(biases_alike(two, &move_of(1.0, 4.0)), biases(&two_all));
         // Before the load, the current is not known: every discharge.
         assert_eq!(biases_alike(&ended, &Transition { before_a: Some(1.0), now_a: None }), biases(&all));
+        // A long record: the twins are looked for among the last TWIN_SPAN discharges only, and the last
+        // WINDOW of them count. Forty-one discharges: ten 1 -> 4 A ones 3 % late, then thirty holding four
+        // 1.5 % late, then one 5 % late. The last thirty hold four twins (median 1.5 %); without the span the
+        // last ten twins would reach the 3 % ones, and the first ten are those alone.
+        let mut long: Vec<(Transition, Vec<Outcome>)> = (0..10).map(|_| (move_of(1.0, 4.0), late(3.0))).collect();
+        for k in 0..30 {
+            long.push(if k % 8 == 0 { (move_of(1.0, 4.0), late(1.5)) } else { (move_of(4.0, 4.0), late(0.0)) });
+        }
+        long.push((move_of(1.0, 4.0), late(5.0)));
+        let b = biases_alike(&long, &move_of(1.0, 4.0))[1].unwrap();
+        assert!((b - 0.015 / 1.015).abs() < 1e-12, "{b}");
         // One current: every discharge is a twin, and the bias is the plain one to the bit.
         let one: Vec<(Transition, Vec<Outcome>)> =
             (0..14).map(|k| (move_of(2.0, 2.0 + 0.01 * f64::from(k % 3)), late(f64::from(k % 5) - 1.0))).collect();

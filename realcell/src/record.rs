@@ -49,8 +49,8 @@ pub struct CellRecord {
 }
 
 /// Sets each record's [`CellRecord::current_before_a`] from the one before it in `records` (in order: every
-/// record prepared, training and judged, cut short or not, as a stream counts every discharge that ran a
-/// while).
+/// record kept, training and judged, cut short or not, as a stream counts every discharge that ran a while;
+/// a record refused as unfittable is not among them, where a stream would count its discharge).
 pub fn set_currents_before<'r>(records: impl IntoIterator<Item = &'r mut CellRecord>) {
     let mut last: Option<f64> = None;
     for r in records {
