@@ -46,6 +46,11 @@ pub struct Transition {
 }
 
 impl Transition {
+    /// The current input of a discharge that moved its current so ([`crate::record_learner::current_switch`]).
+    pub fn switch(&self) -> Option<f64> {
+        crate::record_learner::current_switch(self.now_a?, self.before_a?)
+    }
+
     /// Whether two discharges moved their current alike: each current like the other's
     /// ([`crate::record_learner::current_switch`] gives 0) where both are known; one not known is alike to any.
     pub fn alike(&self, other: &Transition) -> bool {

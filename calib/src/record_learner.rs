@@ -264,10 +264,6 @@ pub struct EndRecord {
     started: bool,
     heat: LoadedMean,
     start_k: Option<f64>,
-    /// ... its running current, A (the mean of its loaded readings so far), and the last counted discharge's
-    /// mean current, A (None: none yet) ...
-    current: LoadedMean,
-    last_current_a: Option<f64>,
     /// ... and, once it has been followed to its cut-off, its signed error per share, % of the discharge, and
     /// the time after its load-on the error was taken at, s.
     scored: Option<[Option<(f64, f64)>; EOD_FRACTIONS_PCT.len()]>,
@@ -285,25 +281,18 @@ impl EndRecord {
         self.started = true;
         self.heat = LoadedMean::default();
         self.start_k = None;
-        self.current = LoadedMean::default();
     }
 
     /// A loaded reading of the current discharge, `tau_s` after its load-on, at a cell temperature of
-    /// `temperature_k` (NaN: the reading gave none), drawing `current_a`.
-    pub fn push(&mut self, tau_s: f64, temperature_k: f64, current_a: f64) {
+    /// `temperature_k` (NaN: the reading gave none).
+    pub fn push(&mut self, tau_s: f64, temperature_k: f64) {
         if !self.started {
             return;
         }
-        self.current.push(tau_s, current_a);
         if temperature_k.is_finite() {
             self.heat.push(tau_s, temperature_k);
             self.start_k.get_or_insert(temperature_k);
         }
-    }
-
-    /// The current input of the current discharge at `tau_s` after its load-on ([`current_switch`]).
-    fn switch(&self, tau_s: f64) -> Option<f64> {
-        current_switch(self.current.at(tau_s)?, self.last_current_a?)
     }
 
     /// The temperature input of the current discharge at `tau_s` after its load-on ([`warmth_k`]) against the
@@ -319,8 +308,9 @@ impl EndRecord {
     }
 
     /// The end delivered at share index `b` of a discharge loaded at `load_on_s` and `tau_s` into it, after a
-    /// rest of `rest_before_s`, where the stream's rules give `eod_s`, and the moved end's weight in it; None
-    /// where the learner does not move it (too short a record, or too few discharges to weigh it by).
+    /// rest of `rest_before_s`, its current input `switch` by then ([`current_switch`]; the stream tracks the
+    /// currents, for its twins too), where the stream's rules give `eod_s`, and the moved end's weight in it;
+    /// None where the learner does not move it (too short a record, or too few discharges to weigh it by).
     pub fn moved(
         &self,
         b: usize,
@@ -328,9 +318,10 @@ impl EndRecord {
         load_on_s: f64,
         tau_s: f64,
         rest_before_s: Option<f64>,
+        switch: Option<f64>,
     ) -> Option<(f64, f64)> {
         let (learned, w) = (self.fitted[b].as_ref()?, self.weights[b]?);
-        let x = learned.expected(rest_before_s, self.warmth(tau_s), self.switch(tau_s))?;
+        let x = learned.expected(rest_before_s, self.warmth(tau_s), switch)?;
         // An error in % of the discharge, the predicted one standing for it.
         let shift_s = x / 100.0 * (eod_s - load_on_s).max(0.0);
         Some((crate::blend::blended(w, eod_s - shift_s, eod_s), w))
@@ -343,10 +334,11 @@ impl EndRecord {
         self.scored = Some(errors);
     }
 
-    /// The current discharge is over (the rest before it `rest_before_s`): it joins the record where its load
+    /// The current discharge is over (the rest before it `rest_before_s`, its loaded readings' running
+    /// `current`, the last counted discharge's mean current `before_a`): it joins the record where its load
     /// came on, and the learner is fitted again; a discharge that `counted` not (a load too short, a piece
     /// whose start is unseen) leaves the record as it was.
-    pub fn close(&mut self, counted: bool, rest_before_s: Option<f64>) {
+    pub fn close(&mut self, counted: bool, rest_before_s: Option<f64>, current: &LoadedMean, before_a: Option<f64>) {
         let scored = self.scored.take();
         let heat = std::mem::take(&mut self.heat);
         let start_k = self.start_k.take();
@@ -356,7 +348,7 @@ impl EndRecord {
         for b in 0..EOD_FRACTIONS_PCT.len() {
             let at = scored.and_then(|s| s[b]);
             let temperature_k = at.zip(start_k).and_then(|((_, tau_s), k)| self.warmth_of(&heat, k, tau_s));
-            let current_switch = at.and_then(|(_, tau_s)| self.switch(tau_s));
+            let current_switch = at.and_then(|(_, tau_s)| current_switch(current.at(tau_s)?, before_a?));
             let error = at.map_or(f64::NAN, |(e, _)| e);
             let expected =
                 self.fitted[b].as_ref().and_then(|l| l.expected(rest_before_s, temperature_k, current_switch));
@@ -366,10 +358,6 @@ impl EndRecord {
             self.entries[b].push(Entry { error, rest_before_s, temperature_k, current_switch });
             self.fitted[b] = fit(&self.entries[b]);
             self.weights[b] = crate::blend::blend_weight(&self.pairs[b]);
-        }
-        // The next discharge's current is compared with this one's, however it ended.
-        if let Some(a) = std::mem::take(&mut self.current).whole() {
-            self.last_current_a = Some(a);
         }
         let Some(start_k) = start_k else { return };
         if self.past.len() == RECORD_WINDOW + 1 {
@@ -585,57 +573,52 @@ mod tests {
     }
 
     /// A stream's record at mixed currents ([`EndRecord`]): 25 discharges at 1, 2 or 4 A in no order, the
-    /// rules' error 0.2 + 1.5 times the current input. The next discharge, at 4 A after 1 A, is moved by the
-    /// error the line gives from its first loaded reading on (its current so far, no look-ahead), times the
-    /// moved end's weight; at a like current by the intercept alone; a discharge that did not count is not
-    /// the one compared with.
+    /// rules' error 0.2 + 1.5 times the current input (the stream hands each discharge's running current and
+    /// the last one's mean at the close). The next discharge, at 4 A after 1 A, is moved by the error the line
+    /// gives, times the moved end's weight; at a like current by the intercept alone. A discharge joins the
+    /// record with its current input where each share was taken, not its whole discharge's (no look-ahead).
     #[test]
     fn a_streams_record_moves_the_end_by_how_far_the_current_moved() {
         let amps = [1.0, 2.0, 4.0];
         let current = |k: usize| amps[(k * 7 + k / 3) % 3];
-        let feed = |rec: &mut EndRecord, a: f64| {
+        let feed = |rec: &mut EndRecord, a: &dyn Fn(f64) -> f64| {
             rec.load_on();
+            let mut mean = LoadedMean::default();
             for i in 0..=30 {
-                rec.push(100.0 * f64::from(i), 297.0, a);
+                let tau_s = 100.0 * f64::from(i);
+                rec.push(tau_s, 297.0);
+                mean.push(tau_s, a(tau_s));
             }
+            mean
         };
         let rest = Some(14_400.0);
         let mut rec = EndRecord::default();
         for k in 0..26 {
-            feed(&mut rec, current(k));
+            let mean = feed(&mut rec, &|_| current(k));
             let e = if k == 0 { 0.2 } else { 0.2 + 1.5 * current_switch(current(k), current(k - 1)).unwrap() };
             rec.score([Some((e, 300.0)), Some((e, 1500.0)), Some((e, 2700.0))]);
-            rec.close(true, rest);
+            rec.close(true, rest, &mean, k.checked_sub(1).map(current));
         }
-        assert_eq!(rec.last_current_a, Some(current(25)));
         assert!(rec.weights().iter().all(|w| w.is_some_and(|w| w > 0.9)), "{:?}", rec.weights());
         // (load-on 1000 s, the rules' end at 4000 s.)
-        let shift_of = |rec: &EndRecord, tau_s: f64| {
-            let (moved_s, w) = rec.moved(1, 4000.0, 1000.0, tau_s, rest).expect("a learner with a weight");
+        let shift_of = |switch: Option<f64>| {
+            let (moved_s, w) = rec.moved(1, 4000.0, 1000.0, 0.0, rest, switch).expect("a learner with a weight");
             (moved_s - 4000.0) / w
         };
-        let mut low = rec.clone();
-        feed(&mut low, 1.0);
-        low.score([Some((0.2, 300.0)); 3]);
-        low.close(true, rest);
-        let mut up = low.clone();
-        up.load_on();
-        up.push(0.0, 297.0, 4.0);
         let expected_s = -(0.2 + 1.5 * 4f64.ln()) / 100.0 * 3000.0;
-        let shift = shift_of(&up, 0.0);
+        let shift = shift_of(current_switch(4.0, 1.0));
         assert!((shift - expected_s).abs() < 0.05 * expected_s.abs(), "moved by {shift} s, not {expected_s}");
-        let mut like = low.clone();
-        like.load_on();
-        like.push(0.0, 297.0, 1.1);
-        let shift = shift_of(&like, 0.0);
+        let shift = shift_of(current_switch(1.1, 1.0));
         assert!((shift + 0.2 / 100.0 * 3000.0).abs() < 1.0, "{shift}");
-        // A 4 A load too short to count: the next is still compared with the 1 A discharge before it.
-        let mut blip = low.clone();
-        feed(&mut blip, 4.0);
-        blip.close(false, rest);
-        blip.load_on();
-        blip.push(0.0, 297.0, 4.0);
-        assert_eq!(shift_of(&blip, 0.0), shift_of(&up, 0.0));
+        // At 1 A until 1500 s, then 4 A, after 1 A: a like current at the first share, a moved one later.
+        let mut stepped = rec.clone();
+        let mean = feed(&mut stepped, &|tau_s| if tau_s < 1500.0 { 1.0 } else { 4.0 });
+        stepped.score([Some((0.2, 300.0)), Some((0.2, 1500.0)), Some((0.2, 2700.0))]);
+        stepped.close(true, rest, &mean, Some(1.0));
+        let taken: Vec<_> = stepped.entries.iter().map(|e| e.last().unwrap().current_switch).collect();
+        let late = current_switch((15.0 + 13.0 * 4.0) / 28.0, 1.0);
+        assert_eq!(taken, [Some(0.0), current_switch((15.0 + 4.0) / 16.0, 1.0), late]);
+        assert!(late.is_some_and(|x| x > 0.5), "{late:?}");
     }
 
     /// A stream's record ([`EndRecord`]): 25 discharges whose load comes on at 24 C plus 2 u K (u in -1..1, in
@@ -651,7 +634,7 @@ mod tests {
             rec.load_on();
             for i in 0..=30 {
                 let tau_s = 100.0 * f64::from(i);
-                rec.push(tau_s, start_k + 3.0 * tau_s / 3000.0, 2.0);
+                rec.push(tau_s, start_k + 3.0 * tau_s / 3000.0);
             }
         };
         let rest = Some(14_400.0);
@@ -660,14 +643,14 @@ mod tests {
             feed(&mut rec, 297.0 + 2.0 * u(k));
             let e = 0.2 - 1.5 * u(k);
             rec.score([Some((e, 300.0)), Some((e, 1500.0)), Some((e, 2700.0))]);
-            rec.close(true, rest);
+            rec.close(true, rest, &LoadedMean::default(), None);
         }
         assert!(rec.weights().iter().all(|w| w.is_some_and(|w| w > 0.5)), "{:?}", rec.weights());
         let mean_u = (0..25).map(u).sum::<f64>() / 25.0;
         let next_k = 297.0 + 2.0 * (mean_u + 0.8);
         // (load-on 1000 s, the rules' end at 4000 s, 1500 s in.)
         let shift_of = |rec: &EndRecord| {
-            let (moved_s, w) = rec.moved(1, 4000.0, 1000.0, 1500.0, rest).expect("a learner with a weight");
+            let (moved_s, w) = rec.moved(1, 4000.0, 1000.0, 1500.0, rest, None).expect("a learner with a weight");
             (moved_s - 4000.0) / w
         };
         let mut warm = rec.clone();
@@ -678,7 +661,7 @@ mod tests {
         let mut skipped = rec.clone();
         feed(&mut skipped, 299.0);
         skipped.score([Some((5.0, 300.0)); 3]);
-        skipped.close(false, rest);
+        skipped.close(false, rest, &LoadedMean::default(), None);
         feed(&mut skipped, next_k);
         assert_eq!(shift_of(&skipped), shift);
         // Another chamber: no reference, so the record's mean warmth.
@@ -696,9 +679,9 @@ mod tests {
         for i in 0..=30 {
             let tau_s = 100.0 * f64::from(i);
             let k = next_k + 3.0 * tau_s / 3000.0;
-            gap.push(tau_s, if i < 3 { f64::NAN } else { k }, 2.0);
+            gap.push(tau_s, if i < 3 { f64::NAN } else { k });
             if i >= 3 {
-                without.push(tau_s, k, 2.0);
+                without.push(tau_s, k);
             }
         }
         assert_eq!(gap.warmth(1500.0), without.warmth(1500.0));
@@ -708,10 +691,10 @@ mod tests {
         let mut cold = rec.clone();
         cold.load_on();
         for i in 0..=30 {
-            cold.push(100.0 * f64::from(i), f64::NAN, 2.0);
+            cold.push(100.0 * f64::from(i), f64::NAN);
         }
         cold.score([Some((0.2, 300.0)); 3]);
-        cold.close(true, rest);
+        cold.close(true, rest, &LoadedMean::default(), None);
         assert_eq!(cold.entries[1].len(), rec.entries[1].len() + 1);
         assert_eq!(cold.entries[1].last().unwrap().temperature_k, None);
         assert_eq!(cold.past, rec.past);

@@ -1206,11 +1206,11 @@ impl<'a> Stream<'a> {
                 rec.load_on();
             }
             // The reading's own temperature, not the ambient filled in for one without.
-            rec.push(r.time_s - load_on_s, r.temperature_c.map_or(f64::NAN, |c| c + KELVIN_0C), r.current_a);
+            rec.push(r.time_s - load_on_s, r.temperature_c.map_or(f64::NAN, |c| c + KELVIN_0C));
         }
         let learned = match (&self.end_record, rules_s, bin) {
             (Some(rec), Some(e), Some(b)) if counting && (loaded || self.eod_track.load_on_s.is_some()) => {
-                rec.moved(b, e, load_on_s, r.time_s - load_on_s, self.rest_before_s)
+                rec.moved(b, e, load_on_s, r.time_s - load_on_s, self.rest_before_s, now.switch())
             }
             _ => None,
         };
@@ -1308,7 +1308,7 @@ impl<'a> Stream<'a> {
             && self.eod_track.load_on_s.is_none_or(|on| off_s - on < MIN_DISCHARGE_S);
         let discharged = self.loaded_n > 0 && !blip;
         if let Some(rec) = self.end_record.as_mut() {
-            rec.close(discharged && !piece, self.rest_before_s);
+            rec.close(discharged && !piece, self.rest_before_s, &self.current_now, self.current_before_a);
         }
         // The next discharge's current is compared with this one's, however it ended (not a piece's).
         if let Some(a) = self.current_now.whole().filter(|_| discharged && !piece) {
