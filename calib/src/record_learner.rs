@@ -610,15 +610,16 @@ mod tests {
         assert!((shift - expected_s).abs() < 0.05 * expected_s.abs(), "moved by {shift} s, not {expected_s}");
         let shift = shift_of(current_switch(1.1, 1.0));
         assert!((shift + 0.2 / 100.0 * 3000.0).abs() < 1.0, "{shift}");
-        // At 1 A until 1500 s, then 4 A, after 1 A: a like current at the first share, a moved one later.
+        // At 1 A until 1000 s, then 4 A, after 1 A: a like current at the first share, the mean so far later
+        // (ten readings at 1 A, then six and eighteen at 4 A).
         let mut stepped = rec.clone();
-        let mean = feed(&mut stepped, &|tau_s| if tau_s < 1500.0 { 1.0 } else { 4.0 });
+        let mean = feed(&mut stepped, &|tau_s| if tau_s < 1000.0 { 1.0 } else { 4.0 });
         stepped.score([Some((0.2, 300.0)), Some((0.2, 1500.0)), Some((0.2, 2700.0))]);
         stepped.close(true, rest, &mean, Some(1.0));
         let taken: Vec<_> = stepped.entries.iter().map(|e| e.last().unwrap().current_switch).collect();
-        let late = current_switch((15.0 + 13.0 * 4.0) / 28.0, 1.0);
-        assert_eq!(taken, [Some(0.0), current_switch((15.0 + 4.0) / 16.0, 1.0), late]);
-        assert!(late.is_some_and(|x| x > 0.5), "{late:?}");
+        let (mid, late) = (current_switch(34.0 / 16.0, 1.0), current_switch(82.0 / 28.0, 1.0));
+        assert_eq!(taken, [Some(0.0), mid, late]);
+        assert!(mid.zip(late).is_some_and(|(m, l)| 0.5 < m && m < l), "{mid:?} {late:?}");
     }
 
     /// A stream's record ([`EndRecord`]): 25 discharges whose load comes on at 24 C plus 2 u K (u in -1..1, in

@@ -1197,9 +1197,9 @@ impl<'a> Stream<'a> {
         let bin = eod_method_s.or(eod_prior_s).map(|e| share_bin(load_on_s, r.time_s, e));
         let from_prior = matches!(bin, Some(b) if self.prior_serves[b] && eod_prior_s.is_some() && !long_rest);
         let rules_s = if from_prior { eod_prior_s } else { with_previous_s };
-        // The learner on the record (the `ukf_learned` kind): its loaded readings' temperature and current from
-        // the load-on, and what the rules deliver moved by the error the record expects, blended with it by
-        // their records.
+        // The learner on the record (the `ukf_learned` kind): its loaded readings' temperature from the load-on
+        // (their current is `now`'s), and what the rules deliver moved by the error the record expects,
+        // blended with it by their records.
         let counting = !self.joined_under_load && self.eod_track.ended_s.is_none();
         if let Some(rec) = self.end_record.as_mut().filter(|_| counting && loaded) {
             if self.eod_track.load_on_s.is_none() {
@@ -2817,7 +2817,7 @@ mod tests {
         let shift = second_at - readings[starts[1]].time_s;
         let second: Vec<Reading> =
             readings[starts[1]..].iter().map(|r| Reading { time_s: r.time_s + shift, ..*r }).collect();
-        let run = |with_spike: bool| -> Vec<Estimate> {
+        let run = |with_spike: bool| -> (Vec<Estimate>, Option<f64>) {
             let mut stream = fed(&setup, first);
             if with_spike {
                 stream.step(&spike).unwrap();
@@ -2825,10 +2825,14 @@ mod tests {
             for r in &charging {
                 stream.step(r).unwrap();
             }
-            second.iter().map(|r| stream.step(r).unwrap()).collect()
+            // The current the next discharge's is compared with (the twins', the learner's): the first's.
+            let before_a = stream.current_before_a;
+            (second.iter().map(|r| stream.step(r).unwrap()).collect(), before_a)
         };
-        let (plain, spiked) = (run(false), run(true));
+        let ((plain, plain_before_a), (spiked, spiked_before_a)) = (run(false), run(true));
         assert_eq!(plain[0].discharge, spiked[0].discharge, "the spike took a discharge number");
+        assert!(plain_before_a.is_some_and(|a| (a - spike.current_a).abs() > 0.5), "{plain_before_a:?}");
+        assert_eq!(spiked_before_a, plain_before_a, "the spike became the current before");
         for (a, b) in plain.iter().zip(&spiked) {
             assert_eq!((a.q_mobile, a.r_o, a.eod_s), (b.q_mobile, b.r_o, b.eod_s), "at {} s", a.time_s);
         }
