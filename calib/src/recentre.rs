@@ -60,46 +60,21 @@ impl Transition {
         };
         like(self.before_a, other.before_a) && like(self.now_a, other.now_a)
     }
-
-    /// Whether two discharges moved their current the same way: both up, both down or both to a like current
-    /// (the sign of [`Transition::switch`]) where both are known; one not known is alike to any. The bias
-    /// after a move up (down) is late (early) whatever the two currents were, so where too few discharges
-    /// made this move, those that moved the same way tell its bias better than every discharge does.
-    pub fn same_way(&self, other: &Transition) -> bool {
-        let way = |x: f64| {
-            if x == 0.0 {
-                0
-            } else if x > 0.0 {
-                1
-            } else {
-                -1
-            }
-        };
-        match (self.switch(), other.switch()) {
-            (Some(a), Some(b)) => way(a) == way(b),
-            _ => true,
-        }
-    }
 }
 
 /// The bias at each share, as [`biases`] (the last [`WINDOW`] count), from the discharges among the last
 /// [`TWIN_SPAN`] that ended that moved their current as this one does (`now`; [`Transition::alike`]), where
-/// at least [`MIN_TWINS`] did; else from those that moved it the same way ([`Transition::same_way`]: up, down
-/// or to a like current), where at least [`MIN_TWINS`] did; else, and before the discharge's load (its
-/// current not known), from every one (a median of one or two is noise: a cell cycled at three currents in
-/// no order repeats each of its nine moves rarely). On a cell cycled at one current every discharge is
-/// alike, and the bias is [`biases`]'.
+/// at least [`MIN_TWINS`] did; else, and before the discharge's load (its current not known), from every one
+/// (a median of one or two is noise: a cell cycled at three currents in no order repeats each of its nine
+/// moves rarely). On a cell cycled at one current every discharge is alike, and the bias is [`biases`]'.
 pub fn biases_alike(ended: &[(Transition, Vec<Outcome>)], now: &Transition) -> [Option<f64>; 3] {
     let span = &ended[ended.len().saturating_sub(TWIN_SPAN)..];
-    if now.now_a.is_some() {
-        for twin in [Transition::alike, Transition::same_way] {
-            let twins = span.iter().filter(|(t, _)| twin(t, now));
-            if twins.clone().count() >= MIN_TWINS {
-                return biases_of(twins.map(|(_, o)| o));
-            }
-        }
+    let twins = span.iter().filter(|(t, _)| t.alike(now));
+    if now.now_a.is_some() && twins.clone().count() >= MIN_TWINS {
+        biases_of(twins.map(|(_, o)| o))
+    } else {
+        biases_of(ended.iter().map(|(_, o)| o))
     }
-    biases_of(ended.iter().map(|(_, o)| o))
 }
 
 /// Fewest discharges alike in their move of current ([`Transition::alike`]) whose bias a discharge takes.
@@ -397,8 +372,7 @@ mod tests {
 
     /// A cell cycled at 1 and 4 A whose method ends 1.5 % late after a move up, 1 % early after a move down
     /// and on time at a like current: the bias a discharge takes is its twins' (the discharges that moved
-    /// their current as it does), from three of them on; with fewer, those that moved it the same way (up,
-    /// down, to a like current), from three of them on; with fewer, every discharge's; one whose current
+    /// their current as it does), from three of them on; with fewer, every discharge's; one whose current
     /// is not known yet (before its load) takes every discharge's. A cell at one current takes the bias of
     /// every discharge, as [`biases`] does.
     #[test]
@@ -415,17 +389,9 @@ mod tests {
         assert!((bias(move_of(1.0, 4.1)) - 0.015 / 1.015).abs() < 1e-12);
         assert!((bias(move_of(3.9, 1.05)) + 0.01 / 0.99).abs() < 1e-12);
         assert_eq!(bias(move_of(4.0, 4.0)), 0.0);
-        // No twin among them (2 A after 1 A, 1 A after 2 A, 1 A after 1 A where every like move was at 4 A):
-        // those that moved the same way, up, down or to a like current.
-        assert!((bias(move_of(1.0, 2.0)) - 0.015 / 1.015).abs() < 1e-12);
-        assert!((bias(move_of(2.0, 1.0)) + 0.01 / 0.99).abs() < 1e-12);
-        assert_eq!(bias(move_of(1.0, 1.0)), 0.0);
-        // None the same way either (a move down among moves up alone): the last WINDOW discharges'.
-        let ups: Vec<(Transition, Vec<Outcome>)> =
-            ended.iter().filter(|(t, _)| t.now_a > t.before_a).cloned().collect();
-        let ups_all: Vec<Vec<Outcome>> = ups.iter().map(|(_, o)| o.clone()).collect();
-        assert_eq!(biases_alike(&ups, &move_of(4.0, 1.0)), biases(&ups_all));
+        // No twin among them (2 A after 1 A): the last WINDOW discharges'.
         let all: Vec<Vec<Outcome>> = ended.iter().map(|(_, o)| o.clone()).collect();
+        assert_eq!(biases_alike(&ended, &move_of(1.0, 2.0)), biases(&all));
         // Two twins are too few.
         let two = &ended[..6];
         let two_all: Vec<Vec<Outcome>> = two.iter().map(|(_, o)| o.clone()).collect();
