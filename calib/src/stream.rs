@@ -79,6 +79,48 @@ pub const MIN_CHARGE_S: f64 = 60.0;
 /// counted. Measured from the first loaded reading to the first reading after the load, as a charge's
 /// ([`MIN_CHARGE_S`]), so a discharge read every few minutes still counts.
 pub const MIN_DISCHARGE_S: f64 = 60.0;
+/// How near an edge of its range, in z units (a share of the range), a discharge's fit sits to be at it
+/// ([`RangeEdges`]): a calibrator's estimate is held within its ranges, so a cell outside them is followed at
+/// their edge.
+pub const AT_EDGE_Z: f64 = 0.01;
+
+/// The discharges a stream has counted and those whose fit handed on sat at an edge of the setting's ranges
+/// ([`AT_EDGE_Z`]; [`Stream::range_edges`]). A cell outside the ranges (a cold cell of high resistance under
+/// the default ones, whose Ro of 0.45 ohm lies above their 0.25: every end at the top, the end of discharge
+/// at half 32 % off) is followed at their edge, and its ends are far off; the cell's own setting (`bcal
+/// cell-config`, ranges read off its records) holds it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RangeEdges {
+    /// Discharges counted (each hands a fit on) ...
+    pub discharges: usize,
+    /// ... those whose fit sat at an edge of either range ...
+    pub at_edge: usize,
+    /// ... and, per parameter (qMobile, Ro), how many sat at its floor and at its top.
+    pub by_edge: [[usize; 2]; 2],
+}
+
+impl RangeEdges {
+    /// Counts a discharge whose fit handed on is `end_z` (z units).
+    fn push(&mut self, end_z: [f64; 2]) {
+        self.discharges += 1;
+        let mut any = false;
+        for (k, z) in end_z.into_iter().enumerate() {
+            let edge = if z <= AT_EDGE_Z {
+                Some(0)
+            } else if z >= 1.0 - AT_EDGE_Z {
+                Some(1)
+            } else {
+                None
+            };
+            if let Some(j) = edge {
+                self.by_edge[k][j] += 1;
+                any = true;
+            }
+        }
+        self.at_edge += usize::from(any);
+    }
+}
+
 /// A reading later than the one before by more than this is refused as a clock error, s (a year): taken,
 /// one timestamp far in the future (a glitch, milliseconds since the epoch read as seconds) would have every
 /// later reading refused as not increasing.
@@ -443,8 +485,10 @@ pub struct Stream<'a> {
     /// How long the load has stayed on since it last came on, s, and the charge drawn meanwhile, Ah (across
     /// gaps in the readings, which a stream read in the wrong time unit is made of).
     loaded_run: (f64, f64),
-    /// Each finished discharge's carried value, the rest before it and the prior mean it started from.
+    /// Each finished discharge's carried value, the rest before it and the prior mean it started from ...
     ends: Vec<Carried>,
+    /// ... and how many of those values sat at an edge of the ranges.
+    range_edges: RangeEdges,
     /// What the last finished discharge hands on (its end fit, else its final estimate).
     carried: Option<Degradation>,
     /// That discharge's posterior standard deviations, z units (None: its calibrator gives no interval).
@@ -842,6 +886,7 @@ impl<'a> Stream<'a> {
             load_off_s: None,
             loaded_run: (0.0, 0.0),
             ends: Vec::new(),
+            range_edges: RangeEdges::default(),
             carried: None,
             carried_sd_z: None,
             prior_mean: None,
@@ -1343,6 +1388,7 @@ impl<'a> Stream<'a> {
             let end = self.end_fit.take().unwrap_or_else(|| self.cal.estimate());
             let mean_z = self.prior_mean.map(|m| spec.to_z(&m));
             self.ends.push(Carried { end_z: spec.to_z(&end), rest_s: self.rest_before_s, mean_z });
+            self.range_edges.push(spec.to_z(&end));
             self.carried = Some(end);
             // Its own posterior, read as 1.645 standard deviations of its 90 % interval: the width a
             // discharge after it carries while too few changes are known to learn one.
@@ -1613,6 +1659,12 @@ impl<'a> Stream<'a> {
     /// rising as the voltage falls).
     pub fn predict_eod_under_s(&self, load: Load) -> Option<f64> {
         self.predict_from(self.cal.as_ref(), load).map(|p| p.eod_s - self.clock_offset_s)
+    }
+
+    /// The discharges counted so far and those whose fit handed on sat at an edge of the setting's ranges
+    /// ([`RangeEdges`]).
+    pub fn range_edges(&self) -> RangeEdges {
+        self.range_edges
     }
 
     /// How many times the readings' clock went back and the stream took the new one ([`CLOCK_BACK_READINGS`]).
@@ -2313,6 +2365,30 @@ mod tests {
         assert!(blended_readings > 100, "readings of the tenth discharge blended with the fit: {blended_readings}");
         assert_eq!(fitted.load(std::sync::atomic::Ordering::SeqCst), 10, "one fit per discharge that ended");
         assert!(stream.previous_blend_weights().iter().all(Option::is_some), "{:?}", stream.previous_blend_weights());
+    }
+
+    /// A cell whose resistance, 0.4 ohm, lies above the default setting's range (0.05-0.25 ohm) hands on
+    /// its discharges' fits at the range's top, and the stream counts them ([`Stream::range_edges`]: what
+    /// `bcal calibrate --follow` warns of); a cell within the ranges hands on none there.
+    #[test]
+    fn a_cell_outside_the_ranges_is_followed_at_their_edge_and_counted() {
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        assert_eq!(setup.spec.tracker.r_o_range_ohm, [0.05, 0.25]);
+        let edges = |r_o_ohm: f64| {
+            let (readings, _) = cycler_life(4, |_, spec| EpisodeSpec {
+                truth: Degradation { r_o_ohm, ..spec.truth },
+                soc0: 1.0,
+                ..spec
+            });
+            fed(&setup, &readings).range_edges()
+        };
+        // The fourth discharge has not handed anything on yet (no reading after it); the first, started from
+        // the range's middle, may end short of the top.
+        let high = edges(0.4);
+        assert_eq!((high.discharges, high.by_edge), (3, [[0, 0], [0, high.at_edge]]), "{high:?}");
+        assert!(high.at_edge >= 2, "{high:?}");
+        let within = edges(0.15);
+        assert_eq!(within, RangeEdges { discharges: 3, ..Default::default() }, "{within:?}");
     }
 
     /// A stream handed a refit ([`Stream::with_refit`]) calls it once per discharge that reaches its cut-off

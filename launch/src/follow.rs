@@ -11,7 +11,9 @@
 //! while the reader is blocked in a read.
 
 use anyhow::{bail, Context};
-use bcal_calib::stream::{resolve, CalibratorKind, Estimate, Reading, Stream, WidthSource, LOAD_THRESHOLD_A};
+use bcal_calib::stream::{
+    resolve, CalibratorKind, Estimate, RangeEdges, Reading, Stream, WidthSource, LOAD_THRESHOLD_A,
+};
 use bcal_common::config::{Preset, TrainConfig};
 use bcal_common::measured::env::MeasuredSpec;
 use bcal_common::policy::PolicyFile;
@@ -372,7 +374,15 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     let mut last = None;
     let mut step_us: Vec<f64> = Vec::new();
     let mut last_line_at = Instant::now();
+    // Whether the fits at an edge of the ranges were said (once, as soon as a discharge hands one on).
+    let mut edges_said = false;
     let ended = loop {
+        if !edges_said {
+            if let Some(text) = at_edge_text(&stream) {
+                eprintln!("follow: {text}");
+                edges_said = true;
+            }
+        }
         if stop.load(Ordering::SeqCst) {
             break Ended::Signal;
         }
@@ -478,6 +488,36 @@ impl SignWatch {
             r.voltage_v
         ))
     }
+}
+
+/// What the discharges whose fit sat at an edge of the setting's ranges say ([`RangeEdges`]; None where none
+/// did): a cell outside the ranges is followed at their edge, and its ends are far off.
+fn at_edge_text(stream: &Stream) -> Option<String> {
+    let e: RangeEdges = stream.range_edges();
+    if e.at_edge == 0 {
+        return None;
+    }
+    let spec = stream.spec();
+    let mut parts = Vec::new();
+    for (k, (name, unit, range)) in
+        [("q_mobile", "C", spec.q_mobile_range_c), ("r_o", "ohm", spec.r_o_range_ohm)].into_iter().enumerate()
+    {
+        for (j, edge) in ["floor", "top"].into_iter().enumerate() {
+            let n = e.by_edge[k][j];
+            if n > 0 {
+                parts.push(format!("{name} at its {edge}, {} {unit}: {n}", range[j]));
+            }
+        }
+    }
+    Some(format!(
+        "{} of {} discharge{} handed on a fit at the edge of the setting's ranges ({}): a cell outside them is \
+         followed at their edge, its predictions off; where most discharges do, follow it on its own setting \
+         (bcal cell-config --data DIR --cell ID --out CELL.toml on its records, then --config CELL.toml)",
+        e.at_edge,
+        e.discharges,
+        if e.discharges == 1 { "" } else { "s" },
+        parts.join("; ")
+    ))
 }
 
 /// Parses and steps one data line: the estimate, or None (reported on standard error, counted in
@@ -642,6 +682,9 @@ fn summary(ended: &Ended, stream: &Stream, skipped: &[u64], last: Option<&Estima
             stream.clock_changes(),
             bcal_calib::stream::CLOCK_BACK_READINGS
         ));
+    }
+    if let Some(text) = at_edge_text(stream) {
+        s.push_str(&format!("; {text}"));
     }
     if let Some(e) = last {
         s.push_str(&format!(

@@ -269,6 +269,23 @@ impl Calibrator {
         Ok(self.with_stream(|s| s.predict_eod_under_s(load)))
     }
 
+    /// The discharges counted so far and those whose fit handed on sat at an edge of the setting's ranges:
+    /// a dict of `discharges`, `at_edge`, `q_mobile_floor`, `q_mobile_top`, `r_o_floor`, `r_o_top`. A cell
+    /// outside the ranges (a cold cell of high resistance under the default ones) is followed at their edge
+    /// and its predictions are far off: give it its own setting (`config=`, from `bcal cell-config`).
+    #[getter]
+    fn range_edges<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let e = self.with_stream(|s| s.range_edges());
+        let d = dict(py);
+        d.set_item("discharges", e.discharges)?;
+        d.set_item("at_edge", e.at_edge)?;
+        for (k, name) in ["q_mobile", "r_o"].into_iter().enumerate() {
+            d.set_item(format!("{name}_floor"), e.by_edge[k][0])?;
+            d.set_item(format!("{name}_top"), e.by_edge[k][1])?;
+        }
+        Ok(d)
+    }
+
     /// The calibrated model state now under progpy's state names (qpS, qpB, qnB, qnS in C; Vo, Vsn, Vsp in
     /// V; tb in K), or None before the first reading.
     fn state<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {

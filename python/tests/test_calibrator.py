@@ -124,6 +124,30 @@ def test_two_discharges_in_one_stream_are_counted_and_the_second_starts_from_the
     assert [b["discharge"] for b in theirs] == frame["discharge"].tolist()
     assert [b["q_mobile"] for b in theirs] == frame["q_mobile"].tolist()
     assert "; 2 discharges" in out.stderr
+    # A cell within the ranges: the first discharge's fit is handed on away from their edges.
+    cal = make("ukf")
+    cal.run(both)
+    assert cal.range_edges == {"discharges": 1, "at_edge": 0, "q_mobile_floor": 0, "q_mobile_top": 0,
+                               "r_o_floor": 0, "r_o_top": 0}
+    assert "at the edge of the setting's ranges" not in out.stderr
+
+
+def test_a_cell_outside_the_ranges_is_said_in_both_faces(bcal_cli):
+    # Resistance 0.4 ohm, above the default range's 0.25: the fits are handed on at its top.
+    one = generated_discharge(ro=0.4)
+    gap_s = one["time_s"].iloc[-1] + 3 * 3600.0
+    three = pd.concat([one.assign(time_s=one["time_s"] + k * gap_s) for k in range(3)], ignore_index=True)
+    cal = make("ukf")
+    cal.run(three)
+    edges = cal.range_edges
+    assert edges["discharges"] == 2 and edges["at_edge"] >= 1, edges
+    assert edges["r_o_top"] == edges["at_edge"] and edges["q_mobile_floor"] + edges["q_mobile_top"] == 0, edges
+    out = run_cli(bcal_cli, "calibrate", "--follow", "-", "--calibrator", "ukf",
+                  stdin=three.to_csv(index=False, float_format="%.17g"))
+    assert out.returncode == 0, out.stderr
+    n = edges["at_edge"]
+    said = f"{n} of 2 discharges handed on a fit at the edge of the setting's ranges (r_o at its top, 0.25 ohm: {n})"
+    assert said in out.stderr and "bcal cell-config" in out.stderr, out.stderr
 
 
 def test_run_names_a_missing_column_and_a_bad_row(discharge):
