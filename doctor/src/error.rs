@@ -33,6 +33,11 @@ pub enum DoctorError {
     )]
     VoltageOutOfRange { path: PathBuf, median_v: f64 },
     #[error(
+        "{path}, line {line}: voltage {voltage_v:?} V is outside a Li-ion cell's range (0.5-5 V) amid readings \
+         within it (a logger's glitch); fix or remove that row"
+    )]
+    VoltageGlitch { path: PathBuf, line: u64, voltage_v: f64 },
+    #[error(
         "{path}: cell temperature median {median_c:.1} deg C is outside where a Li-ion cell works (-60 to 120 deg C); \
          a column in kelvin must say so (temperature_k, or `Temperature / K`)"
     )]

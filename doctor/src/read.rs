@@ -473,6 +473,7 @@ fn nasa_record(
     let cs = column(&headers, "Time", path, hint)?;
     let mut d = empty(cell, cycle, path, ambient_k, true);
     let temps = d.temperature_k.as_mut().expect("allocated");
+    let mut line_of = Vec::new();
     for rec in rdr.records() {
         let rec = rec.map_err(|e| csv_error(path, e, &mut lines))?;
         let line = lines.of(&rec);
@@ -483,8 +484,38 @@ fn nasa_record(
         // As measured for now; the sign is decided on the whole record below.
         d.current_a.push(number(&rec, ci, "Current_measured", path, line)?);
         temps.push(number(&rec, ct, "Temperature_measured", path, line)? + CELSIUS_TO_KELVIN);
+        line_of.push(line);
     }
     let mut d = validate(d)?;
+    // One reading outside a cell's range amid readings within it (a 0 V sample) would be read as the
+    // cut-off, and end the discharge there.
+    if let Some(k) = d.voltage_v.iter().position(|v| !(CELL_VOLTAGE_V[0]..=CELL_VOLTAGE_V[1]).contains(v)) {
+        return Err(DoctorError::VoltageGlitch {
+            path: path.to_path_buf(),
+            line: line_of[k],
+            voltage_v: d.voltage_v[k],
+        });
+    }
+    // Units the layout does not have, whatever the sign (a current in mA reads as no sign at all): a current
+    // above what a cell carries, and time in ms (more charge than a cell holds, days under load).
+    let magnitude_a: Vec<f64> = d.current_a.iter().map(|i| i.abs()).collect();
+    let peak_a = magnitude_a.iter().copied().fold(0.0, f64::max);
+    if peak_a > MAX_CELL_CURRENT_A {
+        return Err(DoctorError::SuspectUnit {
+            path: path.to_path_buf(),
+            column: "Current_measured".into(),
+            why: format!("peaks at {} A, more than a cell carries ({MAX_CELL_CURRENT_A} A)", short(peak_a)),
+            hint: "NASA's layout gives current in A: if it is in mA, divide it by 1000".into(),
+        });
+    }
+    if let Some(why) = implausible(&d, &magnitude_a) {
+        return Err(DoctorError::SuspectUnit {
+            path: path.to_path_buf(),
+            column: "Time".into(),
+            why,
+            hint: "NASA's layout gives time in s: if it is in ms, divide it by 1000".into(),
+        });
+    }
     if opts.current_sign == CurrentSign::Auto && d.current_a.iter().all(|i| i.abs() <= opts.load_threshold_a) {
         return Err(no_current(path, opts));
     }
@@ -1207,31 +1238,37 @@ fn charge_drawn_ah(t: &[f64], i: &[f64]) -> f64 {
 /// Refuses a record that draws more charge than a cell holds, or stays under load for longer than any
 /// discharge lasts ([`MAX_LOADED_S`]): its time is most likely in milliseconds.
 fn plausible_charge(d: Discharge, time_header: &str) -> Result<Discharge, DoctorError> {
-    let q_ah = d.charge_ah(0, d.len());
-    let loaded_s: f64 =
-        d.time_s.windows(2).zip(&d.current_a).filter(|(_, i)| **i > LOADED_A).map(|(t, _)| t[1] - t[0]).sum();
-    let why = if q_ah > MAX_RECORD_CHARGE_AH {
-        format!(
-            "gives cycle {} a discharge of {} Ah, more than a cell holds ({MAX_RECORD_CHARGE_AH} Ah)",
-            d.cycle,
-            short(q_ah)
-        )
-    } else if loaded_s > MAX_LOADED_S {
-        format!(
-            "keeps cycle {} under load for {} days, longer than a discharge lasts ({} days)",
-            d.cycle,
-            short(loaded_s / 86_400.0),
-            short(MAX_LOADED_S / 86_400.0)
-        )
-    } else {
-        return Ok(d);
-    };
+    let Some(why) = implausible(&d, &d.current_a) else { return Ok(d) };
     Err(DoctorError::SuspectUnit {
         path: d.source.clone(),
         column: shown(time_header, 60),
         why,
         hint: "if time is in milliseconds, name the column time_ms (or `Test Time / ms`), or divide it by 1000".into(),
     })
+}
+
+/// Why a record drawing `current_a` (discharge positive) is no cell's discharge: more charge than a cell
+/// holds, or under load for longer than any discharge lasts ([`MAX_LOADED_S`]); None where it may be.
+fn implausible(d: &Discharge, current_a: &[f64]) -> Option<String> {
+    let q_ah = charge_drawn_ah(&d.time_s, current_a);
+    let loaded_s: f64 =
+        d.time_s.windows(2).zip(current_a).filter(|(_, i)| **i > LOADED_A).map(|(t, _)| t[1] - t[0]).sum();
+    if q_ah > MAX_RECORD_CHARGE_AH {
+        Some(format!(
+            "gives cycle {} a discharge of {} Ah, more than a cell holds ({MAX_RECORD_CHARGE_AH} Ah)",
+            d.cycle,
+            short(q_ah)
+        ))
+    } else if loaded_s > MAX_LOADED_S {
+        Some(format!(
+            "keeps cycle {} under load for {} days, longer than a discharge lasts ({} days)",
+            d.cycle,
+            short(loaded_s / 86_400.0),
+            short(MAX_LOADED_S / 86_400.0)
+        ))
+    } else {
+        None
+    }
 }
 
 /// A note on the gaps in a record's time (steps over `factor` times its median step), if any.
@@ -1412,6 +1449,9 @@ fn empty(cell: &str, cycle: u32, path: &Path, ambient_k: f64, with_temperature: 
 
 /// Whole-record checks: enough samples, voltage in volts, a cell temperature in degrees Celsius (a kelvin
 /// column read as Celsius would run the model 273 K too warm and still fit, to a wrong cause).
+/// A Li-ion cell's voltage lies within this range, V.
+const CELL_VOLTAGE_V: [f64; 2] = [0.5, 5.0];
+
 fn validate(d: Discharge) -> Result<Discharge, DoctorError> {
     if d.len() < MIN_SAMPLES {
         return Err(DoctorError::TooFewSamples { path: d.source.clone(), rows: d.len(), min: MIN_SAMPLES });
@@ -1422,7 +1462,7 @@ fn validate(d: Discharge) -> Result<Discharge, DoctorError> {
     if (500.0..=5000.0).contains(&median_v) {
         return Err(DoctorError::VoltageInMillivolts { path: d.source.clone(), median_v });
     }
-    if !(0.5..=5.0).contains(&median_v) {
+    if !(CELL_VOLTAGE_V[0]..=CELL_VOLTAGE_V[1]).contains(&median_v) {
         return Err(DoctorError::VoltageOutOfRange { path: d.source.clone(), median_v });
     }
     let mut t_c: Vec<f64> =

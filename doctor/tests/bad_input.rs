@@ -250,3 +250,47 @@ fn to_discharge(cycle: u32, ambient_c: f64, rows: &[(f64, f64, f64, f64)]) -> bc
         stated_capacity_ah: None,
     }
 }
+
+/// A NASA record in other units than its layout's (current in mA, time in ms: each reads as 1000 times the
+/// charge a cell holds) is refused naming both columns and what to do, whatever sign is asked; one reading
+/// at 0 V amid a discharge's (a logger's glitch, which would be read as the cut-off and end the discharge
+/// there) is refused naming its line.
+#[test]
+fn a_nasa_record_in_ma_or_ms_or_with_a_0_v_reading_is_refused_naming_it() {
+    use bcal_doctor::read::{read_nasa_record, read_nasa_record_with, ReadOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("05122.csv");
+    // Ten seconds at rest, 22 minutes under load at 2 A (0.72 Ah; in ms 720 Ah, more than a cell holds).
+    let good = nasa_record(134);
+    write(&rec, &good);
+    read_nasa_record(&rec, "B0005", 1, 297.15).unwrap();
+    let milli = |field: usize| -> String {
+        let mut lines = good.lines();
+        let mut out = format!("{}\n", lines.next().unwrap());
+        for l in lines {
+            let mut f: Vec<String> = l.split(',').map(str::to_string).collect();
+            f[field] = format!("{}", f[field].parse::<f64>().unwrap() * 1000.0);
+            out.push_str(&(f.join(",") + "\n"));
+        }
+        out
+    };
+    for (field, column, why) in
+        [(1, "Current_measured", "more than a cell carries"), (5, "Time", "more than a cell holds")]
+    {
+        write(&rec, &milli(field));
+        for err in [
+            read_nasa_record(&rec, "B0005", 1, 297.15).unwrap_err(),
+            read_nasa_record_with(&rec, "B0005", 1, 297.15, &ReadOptions::default()).unwrap_err(),
+        ] {
+            let msg = err.to_string();
+            assert!(matches!(err, DoctorError::SuspectUnit { .. }), "{column}: {msg}");
+            assert!(msg.contains("05122.csv") && msg.contains(&format!("column `{column}`")), "{msg}");
+            assert!(msg.contains(why) && msg.contains("divide it by 1000"), "{msg}");
+        }
+    }
+    // Row k = 5 (line 7, at 4.15 V) at 0 V.
+    write(&rec, &good.replacen("4.15,", "0.0,", 1));
+    let err = read_nasa_record(&rec, "B0005", 1, 297.15).unwrap_err();
+    assert!(matches!(err, DoctorError::VoltageGlitch { line: 7, .. }), "{err:?}");
+    assert!(err.to_string().contains("05122.csv, line 7") && err.to_string().contains("remove that row"), "{err}");
+}

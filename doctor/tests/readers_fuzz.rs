@@ -114,7 +114,9 @@ fn check_err(err: &DoctorError, path: &Path, bytes: &[u8]) -> Result<(), TestCas
                 );
             }
         }
-        DoctorError::TimeNotIncreasing { line, .. } | DoctorError::NotAFileName { line, .. } => {
+        DoctorError::TimeNotIncreasing { line, .. }
+        | DoctorError::NotAFileName { line, .. }
+        | DoctorError::VoltageGlitch { line, .. } => {
             prop_assert!(exists(*line), "line {line} of {} lines: {msg}", lines.len());
             prop_assert!(msg.contains(&format!("line {line}")), "{msg}");
         }
