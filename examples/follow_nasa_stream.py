@@ -230,9 +230,10 @@ def main() -> None:
 
     stream = follow(bcal, a.kind, [r for rows in followed for r in rows], a.cutoff_v, extra)
     timing = re.search(r"parse \+ step \+ predict per reading: [^;\n]*", LAST_SUMMARY[0])
-    # The discharges whose fit sat at an edge of the setting's ranges (a cell outside them), as the CLI counted.
-    edges = re.search(r"\d+ of \d+ discharges? handed on a fit at the edge of the setting's ranges \([^)]*\)",
-                      LAST_SUMMARY[0])
+    # The discharges whose fit sat at an edge of the setting's ranges (a cell outside them), as the CLI counted
+    # them over the whole stream: its closing summary's, the last (a warning at the first comes before it).
+    edges = re.findall(r"\d+ of \d+ discharges? handed on a fit at the edge of the setting's ranges \([^)]*\)",
+                       LAST_SUMMARY[0])
     # The history's estimates are not scored.
     joined, alone, k = [], [], sum(len(rows) for rows in followed[:first - history])
     delivered = []
@@ -271,7 +272,7 @@ def main() -> None:
               f"median |error| {statistics.median(abs(e) for e in d):.4f} Ah over {len(d)} discharges")
     if timing:
         print(f"  ({timing.group(0)}, as the CLI timed the one stream)")
-    at_edge = edges.group(0) if edges else "no discharge handed on a fit at the edge of the setting's ranges"
+    at_edge = edges[-1] if edges else "no discharge handed on a fit at the edge of the setting's ranges"
     print(f"  ({at_edge}, over the one stream)")
     summary(f"{a.cell} {a.cycles}, {a.kind}, each discharge alone", alone, alone_at)
 

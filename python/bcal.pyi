@@ -208,10 +208,11 @@ class Calibrator:
         """The calibrator's setting (ranges, prior, cut-off, model) as bcal's config writes it."""
     @property
     def range_edges(self) -> dict[str, int]:
-        """Discharges counted so far (`discharges`) and those whose fit handed on sat at an edge of the
-        setting's ranges (`at_edge`; per edge `q_mobile_floor`, `q_mobile_top`, `r_o_floor`, `r_o_top`): a
-        cell outside the ranges is followed at their edge and its predictions are far off; give it its own
-        setting (`config=`, from `bcal cell-config`)."""
+        """Discharges finished so far (`discharges`: each counts once it has handed its fit on, when the next
+        begins) and those whose fit sat at an edge of the setting's ranges (`at_edge`; per edge
+        `q_mobile_floor`, `q_mobile_top`, `r_o_floor`, `r_o_top`): a cell outside the ranges is followed at
+        their edge and its predictions are far off; give it its own setting (`config=`, from `bcal
+        cell-config`)."""
     def step(
         self,
         time_s: float,

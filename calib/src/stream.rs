@@ -85,13 +85,13 @@ pub const MIN_DISCHARGE_S: f64 = 60.0;
 pub const AT_EDGE_Z: f64 = 0.01;
 
 /// The discharges a stream has counted and those whose fit handed on sat at an edge of the setting's ranges
-/// ([`AT_EDGE_Z`]; [`Stream::range_edges`]). A cell outside the ranges (a cold cell of high resistance under
-/// the default ones, whose Ro of 0.45 ohm lies above their 0.25: every end at the top, the end of discharge
-/// at half 32 % off) is followed at their edge, and its ends are far off; the cell's own setting (`bcal
-/// cell-config`, ranges read off its records) holds it.
+/// ([`AT_EDGE_Z`]; [`Stream::range_edges`]). A cell outside the ranges (a blind cold cell of high resistance
+/// under the default ones, its Ro of 0.44-0.52 ohm above their 0.25: 59 of its 66 fits at the top, the end of
+/// discharge at half 32 % off) is followed at their edge, and its ends are far off; the cell's own setting
+/// (`bcal cell-config`, ranges read off its records) holds it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct RangeEdges {
-    /// Discharges counted (each hands a fit on) ...
+    /// Discharges finished (each counts once it has handed its fit on, when the next begins) ...
     pub discharges: usize,
     /// ... those whose fit sat at an edge of either range ...
     pub at_edge: usize,
@@ -1661,8 +1661,8 @@ impl<'a> Stream<'a> {
         self.predict_from(self.cal.as_ref(), load).map(|p| p.eod_s - self.clock_offset_s)
     }
 
-    /// The discharges counted so far and those whose fit handed on sat at an edge of the setting's ranges
-    /// ([`RangeEdges`]).
+    /// The discharges finished so far (each counts once it has handed its fit on, when the next begins) and
+    /// those whose fit sat at an edge of the setting's ranges ([`RangeEdges`]).
     pub fn range_edges(&self) -> RangeEdges {
         self.range_edges
     }

@@ -487,9 +487,14 @@ fn nasa_record(
         line_of.push(line);
     }
     let mut d = validate(d)?;
-    // One reading outside a cell's range amid readings within it (a 0 V sample) would be read as the
-    // cut-off, and end the discharge there.
-    if let Some(k) = d.voltage_v.iter().position(|v| !(CELL_VOLTAGE_V[0]..=CELL_VOLTAGE_V[1]).contains(v)) {
+    // One reading outside a cell's range while the load is on (from the first loaded reading to the last,
+    // whatever the sign; a 0 V sample) would be read as the cut-off, and end the discharge there. Readings at
+    // rest before or after the load (a record that starts before its cell is connected) are read as before.
+    let loaded = |i: &f64| i.abs() > LOADED_A;
+    let first = d.current_a.iter().position(loaded).unwrap_or(0);
+    let last = d.current_a.iter().rposition(loaded).map_or(0, |k| k + 1);
+    let outside = |v: &f64| !(CELL_VOLTAGE_V[0]..=CELL_VOLTAGE_V[1]).contains(v);
+    if let Some(k) = d.voltage_v[first..last.max(first)].iter().position(outside).map(|k| first + k) {
         return Err(DoctorError::VoltageGlitch {
             path: path.to_path_buf(),
             line: line_of[k],
@@ -1447,11 +1452,11 @@ fn empty(cell: &str, cycle: u32, path: &Path, ambient_k: f64, with_temperature: 
     }
 }
 
-/// Whole-record checks: enough samples, voltage in volts, a cell temperature in degrees Celsius (a kelvin
-/// column read as Celsius would run the model 273 K too warm and still fit, to a wrong cause).
 /// A Li-ion cell's voltage lies within this range, V.
 const CELL_VOLTAGE_V: [f64; 2] = [0.5, 5.0];
 
+/// Whole-record checks: enough samples, voltage in volts, a cell temperature in degrees Celsius (a kelvin
+/// column read as Celsius would run the model 273 K too warm and still fit, to a wrong cause).
 fn validate(d: Discharge) -> Result<Discharge, DoctorError> {
     if d.len() < MIN_SAMPLES {
         return Err(DoctorError::TooFewSamples { path: d.source.clone(), rows: d.len(), min: MIN_SAMPLES });

@@ -253,8 +253,8 @@ fn to_discharge(cycle: u32, ambient_c: f64, rows: &[(f64, f64, f64, f64)]) -> bc
 
 /// A NASA record in other units than its layout's (current in mA, time in ms: each reads as 1000 times the
 /// charge a cell holds) is refused naming both columns and what to do, whatever sign is asked; one reading
-/// at 0 V amid a discharge's (a logger's glitch, which would be read as the cut-off and end the discharge
-/// there) is refused naming its line.
+/// at 0 V while the load is on (a logger's glitch, which would be read as the cut-off and end the discharge
+/// there) is refused naming its line; one at rest before the load is read as before.
 #[test]
 fn a_nasa_record_in_ma_or_ms_or_with_a_0_v_reading_is_refused_naming_it() {
     use bcal_doctor::read::{read_nasa_record, read_nasa_record_with, ReadOptions};
@@ -293,4 +293,7 @@ fn a_nasa_record_in_ma_or_ms_or_with_a_0_v_reading_is_refused_naming_it() {
     let err = read_nasa_record(&rec, "B0005", 1, 297.15).unwrap_err();
     assert!(matches!(err, DoctorError::VoltageGlitch { line: 7, .. }), "{err:?}");
     assert!(err.to_string().contains("05122.csv, line 7") && err.to_string().contains("remove that row"), "{err}");
+    // At rest before the load (a cell not yet connected reads near 0 V) the record is read as before.
+    write(&rec, &good.replacen("4.2,", "0.2,", 1));
+    assert_eq!(read_nasa_record(&rec, "B0005", 1, 297.15).unwrap().voltage_v[0], 0.2);
 }

@@ -269,7 +269,8 @@ impl Calibrator {
         Ok(self.with_stream(|s| s.predict_eod_under_s(load)))
     }
 
-    /// The discharges counted so far and those whose fit handed on sat at an edge of the setting's ranges:
+    /// The discharges finished so far (each counts once it has handed its fit on, when the next begins) and
+    /// those whose fit sat at an edge of the setting's ranges:
     /// a dict of `discharges`, `at_edge`, `q_mobile_floor`, `q_mobile_top`, `r_o_floor`, `r_o_top`. A cell
     /// outside the ranges (a cold cell of high resistance under the default ones) is followed at their edge
     /// and its predictions are far off: give it its own setting (`config=`, from `bcal cell-config`).
