@@ -22,6 +22,7 @@
 //! weighs any two and delivers that as a method of its own, `ukf_learned`. Pure arithmetic: nothing here reads or
 //! prints.
 
+use crate::recentre::Transition;
 use crate::widening::EOD_FRACTIONS_PCT;
 use nalgebra::{Matrix6, Vector6};
 use std::collections::VecDeque;
@@ -348,7 +349,7 @@ impl EndRecord {
         for b in 0..EOD_FRACTIONS_PCT.len() {
             let at = scored.and_then(|s| s[b]);
             let temperature_k = at.zip(start_k).and_then(|((_, tau_s), k)| self.warmth_of(&heat, k, tau_s));
-            let current_switch = at.and_then(|(_, tau_s)| current_switch(current.at(tau_s)?, before_a?));
+            let current_switch = at.and_then(|(_, tau_s)| Transition { before_a, now_a: current.at(tau_s) }.switch());
             let error = at.map_or(f64::NAN, |(e, _)| e);
             let expected =
                 self.fitted[b].as_ref().and_then(|l| l.expected(rest_before_s, temperature_k, current_switch));

@@ -1387,8 +1387,9 @@ impl<'a> Stream<'a> {
         if discharged && !piece {
             let end = self.end_fit.take().unwrap_or_else(|| self.cal.estimate());
             let mean_z = self.prior_mean.map(|m| spec.to_z(&m));
-            self.ends.push(Carried { end_z: spec.to_z(&end), rest_s: self.rest_before_s, mean_z });
-            self.range_edges.push(spec.to_z(&end));
+            let end_z = spec.to_z(&end);
+            self.ends.push(Carried { end_z, rest_s: self.rest_before_s, mean_z });
+            self.range_edges.push(end_z);
             self.carried = Some(end);
             // Its own posterior, read as 1.645 standard deviations of its 90 % interval: the width a
             // discharge after it carries while too few changes are known to learn one.

@@ -367,17 +367,17 @@ pub fn learn_on_record(
     validation: &[CellRecord],
     judged: &[CellRecord],
 ) -> (Runs, LearnedWeights) {
-    use bcal_calib::record_learner::{
-        current_switch, fit, warmth_k, Entry, Learned, LoadedMean, RECORD_WINDOW, SAME_AMBIENT_K,
-    };
+    use bcal_calib::recentre::Transition;
+    use bcal_calib::record_learner::{fit, warmth_k, Entry, Learned, LoadedMean, RECORD_WINDOW, SAME_AMBIENT_K};
     let records: Vec<&CellRecord> = validation.iter().chain(judged).collect();
     let n_val = validation.len();
     let heat: Vec<LoadedMean> = records.iter().map(|r| r.loaded_mean(|s| s.temperature_k)).collect();
     let current: Vec<LoadedMean> = records.iter().map(|r| r.loaded_current()).collect();
     // The current input of discharge `j` at `tau_s` after its load-on, against the whole of the discharge
     // before it, both the mean of loaded readings, as a stream takes them.
-    let switch =
-        |j: usize, tau_s: f64| -> Option<f64> { current_switch(current[j].at(tau_s)?, records[j].current_before_a?) };
+    let switch = |j: usize, tau_s: f64| {
+        Transition { before_a: records[j].current_before_a, now_a: current[j].at(tau_s) }.switch()
+    };
     // The temperature input of discharge `j` at `tau_s` after its load-on ([`warmth_k`]), against the
     // discharges before it in a learner's window run at the same ambient.
     let anomaly = |j: usize, tau_s: f64| -> Option<f64> {
