@@ -38,6 +38,11 @@ pub enum DoctorError {
     )]
     VoltageGlitch { path: PathBuf, line: u64, voltage_v: f64 },
     #[error(
+        "{path}, line {line}: from here the {readings} readings to the file's end repeat one reading to its last \
+         digit while the time runs on {span_s:.0} s under load (a logger that froze)"
+    )]
+    FrozenEnd { path: PathBuf, line: u64, readings: usize, span_s: f64 },
+    #[error(
         "{path}: cell temperature median {median_c:.1} deg C is outside where a Li-ion cell works (-60 to 120 deg C); \
          a column in kelvin must say so (temperature_k, or `Temperature / K`)"
     )]

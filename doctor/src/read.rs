@@ -406,17 +406,19 @@ fn nasa_folder(
             report.missing_cycles.push(cycle);
             continue;
         }
-        let read = nasa_record(&path, cell, cycle, ambient_c + CELSIUS_TO_KELVIN, opts).and_then(|(d, sign)| {
-            if !strict {
-                has_discharge(&d, opts, &sign)?;
+        let read = nasa_record(&path, cell, cycle, ambient_c + CELSIUS_TO_KELVIN, opts).and_then(|read| {
+            if strict {
+                return whole(read).map(|(d, sign)| (d, sign, RowsRead::default()));
             }
-            Ok((d, sign))
+            has_discharge(&read.0, opts, &read.1)?;
+            Ok(read)
         });
         match read {
-            Ok((mut d, sign)) => {
+            Ok((mut d, sign, rows)) => {
                 d.stated_capacity_ah = capacity_ah;
                 report.starts.extend(start_s.map(|start_s| RecordStart { cycle, start_s }));
                 if !strict {
+                    report.notes.extend(rows.notes());
                     report.notes.extend(gap_note(&d, opts.gap_factor));
                     report.signs.push(sign);
                 }
@@ -439,7 +441,7 @@ fn nasa_folder(
 /// `Temperature_measured` deg C, `Time` s).
 pub fn read_nasa_record(path: &Path, cell: &str, cycle: u32, ambient_k: f64) -> Result<Discharge, DoctorError> {
     let opts = ReadOptions { current_sign: CurrentSign::DischargeNegative, ..ReadOptions::default() };
-    nasa_record(path, cell, cycle, ambient_k, &opts).map(|(d, _)| d)
+    nasa_record(path, cell, cycle, ambient_k, &opts).and_then(whole).map(|(d, _)| d)
 }
 
 /// [`read_nasa_record`] with the sign from `opts` (reported), refusing a record without discharge.
@@ -450,10 +452,13 @@ pub fn read_nasa_record_with(
     ambient_k: f64,
     opts: &ReadOptions,
 ) -> Result<(Discharge, SignChoice), DoctorError> {
-    let (d, sign) = nasa_record(path, cell, cycle, ambient_k, opts)?;
+    let (d, sign) = whole(nasa_record(path, cell, cycle, ambient_k, opts)?)?;
     has_discharge(&d, opts, &sign)?;
     Ok((d, sign))
 }
+
+/// A NASA record and what [`read_rows`] met reading it.
+type NasaRecord = (Discharge, SignChoice, RowsRead);
 
 fn nasa_record(
     path: &Path,
@@ -461,7 +466,7 @@ fn nasa_record(
     cycle: u32,
     ambient_k: f64,
     opts: &ReadOptions,
-) -> Result<(Discharge, SignChoice), DoctorError> {
+) -> Result<NasaRecord, DoctorError> {
     let bytes = read_file(path)?;
     let mut lines = Lines::new(&bytes);
     let mut rdr = csv::Reader::from_reader(bytes.as_slice());
@@ -474,17 +479,29 @@ fn nasa_record(
     let mut d = empty(cell, cycle, path, ambient_k, true);
     let temps = d.temperature_k.as_mut().expect("allocated");
     let mut line_of = Vec::new();
-    for rec in rdr.records() {
-        let rec = rec.map_err(|e| csv_error(path, e, &mut lines))?;
-        let line = lines.of(&rec);
-        let time_s = number(&rec, cs, "Time", path, line)?;
-        check_time(&d.time_s, time_s, path, line)?;
-        d.time_s.push(time_s);
-        d.voltage_v.push(number(&rec, cv, "Voltage_measured", path, line)?);
+    let mut rows = read_rows(path, &mut rdr, &mut lines, |rec, line| {
+        let time_s = number(rec, cs, "Time", path, line)?;
+        let voltage_v = number(rec, cv, "Voltage_measured", path, line)?;
         // As measured for now; the sign is decided on the whole record below.
-        d.current_a.push(number(&rec, ci, "Current_measured", path, line)?);
-        temps.push(number(&rec, ct, "Temperature_measured", path, line)? + CELSIUS_TO_KELVIN);
+        let current_a = number(rec, ci, "Current_measured", path, line)?;
+        let temperature_k = number(rec, ct, "Temperature_measured", path, line)? + CELSIUS_TO_KELVIN;
+        if let Err(e) = check_time(&d.time_s, time_s, path, line) {
+            let same = |k: usize| (d.voltage_v[k], d.current_a[k], temps[k]) == (voltage_v, current_a, temperature_k);
+            return match d.time_s.binary_search_by(|t| t.total_cmp(&time_s)) {
+                Ok(k) if same(k) => Ok(Taken::Again(e)),
+                _ => Err(e),
+            };
+        }
+        d.time_s.push(time_s);
+        d.voltage_v.push(voltage_v);
+        d.current_a.push(current_a);
+        temps.push(temperature_k);
         line_of.push(line);
+        Ok(Taken::Kept)
+    })?;
+    if let Some(frozen) = frozen_end(&mut d, &line_of) {
+        let after = rows.damaged_end.as_ref().map_or(0, |e| e.records);
+        rows.damaged_end = Some(DamagedEnd { records: frozen.records + after, ..frozen });
     }
     let mut d = validate(d)?;
     // One reading outside a cell's range while the load is on (from the first loaded reading to the last,
@@ -530,8 +547,43 @@ fn nasa_record(
     if !sign.discharge_positive {
         d.current_a.iter_mut().for_each(|i| *i = -*i);
     }
-    Ok((d, sign))
+    Ok((d, sign, rows))
 }
+
+/// One record read strictly: a damaged end or a reading written twice fails it as a bad record anywhere does.
+fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
+    match read {
+        (d, sign, RowsRead { damaged_end: None, first_again: None, .. }) => Ok((d, sign)),
+        (_, _, RowsRead { damaged_end, first_again, .. }) => {
+            Err(damaged_end.map_or_else(|| first_again.expect("matched above"), |damage| damage.error))
+        }
+    }
+}
+
+/// Readings a NASA logger that froze leaves at a record's end: the same reading, to the last of the layout's
+/// sixteen digits, over and over under load while the time runs on (a live cell's noise never repeats so).
+/// The record keeps the first of them; the rest is returned as its damaged end.
+fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
+    let n = d.len();
+    let temps = d.temperature_k.as_ref()?;
+    let same =
+        |k: usize| (d.voltage_v[k], d.current_a[k], temps[k]) == (d.voltage_v[k - 1], d.current_a[k - 1], temps[k - 1]);
+    let first = (1..n).rev().take_while(|&k| same(k)).last()?;
+    let readings = n - first;
+    if readings < FROZEN_READINGS || d.current_a[first].abs() <= LOADED_A {
+        return None;
+    }
+    let span_s = d.time_s[n - 1] - d.time_s[first - 1];
+    let error = DoctorError::FrozenEnd { path: d.source.clone(), line: line_of[first], readings, span_s };
+    d.time_s.truncate(first);
+    d.voltage_v.truncate(first);
+    d.current_a.truncate(first);
+    d.temperature_k.as_mut().expect("checked above").truncate(first);
+    Some(DamagedEnd { error, records: readings })
+}
+
+/// Repeats of one reading at a record's end that [`frozen_end`] reads as a frozen logger.
+const FROZEN_READINGS: usize = 10;
 
 /// Refuses a record in which no sample discharges.
 fn has_discharge(d: &Discharge, opts: &ReadOptions, sign: &SignChoice) -> Result<(), DoctorError> {
@@ -698,13 +750,10 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     let headers = rdr.headers().map_err(|e| csv_error(path, e, &mut lines))?.clone();
     let cols = Columns::find(&headers, path)?;
     let mut groups: BTreeMap<u32, Vec<Row>> = BTreeMap::new();
-    let mut last_time: BTreeMap<u32, f64> = BTreeMap::new();
-    for rec in rdr.records() {
-        let rec = rec.map_err(|e| csv_error(path, e, &mut lines))?;
-        let line = lines.of(&rec);
+    let rows_read = read_rows(path, &mut rdr, &mut lines, |rec, line| {
         let cycle = match &cols.cycle {
             Some(c) => {
-                let v = number(&rec, c.index, &c.header, path, line)?;
+                let v = number(rec, c.index, &c.header, path, line)?;
                 // Beyond u32 the cast would saturate and merge distinct cycles.
                 if v < 0.0 || v.fract() != 0.0 || v > f64::from(u32::MAX) {
                     return Err(bad_field(path, line, &c.header, rec.get(c.index).unwrap_or("")));
@@ -713,22 +762,24 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             }
             None => 0,
         };
-        let time_s = cols.time.value(&rec, path, line)?;
-        if let Some(&previous_s) = last_time.get(&cycle) {
-            if time_s <= previous_s {
-                return Err(DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s, previous_s });
-            }
-        }
-        last_time.insert(cycle, time_s);
         let row = Row {
-            time_s,
-            voltage_v: cols.voltage.value(&rec, path, line)?,
-            current_a: cols.current.value(&rec, path, line)?,
-            temperature_c: cols.temperature.as_ref().map(|c| c.value(&rec, path, line)).transpose()?,
-            ambient_c: cols.ambient.as_ref().map(|c| c.value(&rec, path, line)).transpose()?,
+            time_s: cols.time.value(rec, path, line)?,
+            voltage_v: cols.voltage.value(rec, path, line)?,
+            current_a: cols.current.value(rec, path, line)?,
+            temperature_c: cols.temperature.as_ref().map(|c| c.value(rec, path, line)).transpose()?,
+            ambient_c: cols.ambient.as_ref().map(|c| c.value(rec, path, line)).transpose()?,
         };
-        groups.entry(cycle).or_default().push(row);
-    }
+        let rows = groups.entry(cycle).or_default();
+        if let Some(previous_s) = rows.last().map(|r| r.time_s).filter(|p| row.time_s <= *p) {
+            let e = DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s: row.time_s, previous_s };
+            return match rows.binary_search_by(|r| r.time_s.total_cmp(&row.time_s)) {
+                Ok(k) if rows[k] == row => Ok(Taken::Again(e)),
+                _ => Err(e),
+            };
+        }
+        rows.push(row);
+        Ok(Taken::Kept)
+    })?;
     if groups.is_empty() {
         return Err(DoctorError::TooFewSamples { path: path.to_path_buf(), rows: 0, min: MIN_SAMPLES });
     }
@@ -759,6 +810,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
         evidence.add_record(&v, &i, opts);
     }
     let sign = decide_sign(path, evidence, opts.current_sign)?;
+    report.notes.extend(rows_read.notes());
     report.notes.extend(convention_note(path, cols.format, &sign));
     let flip = if sign.discharge_positive { 1.0 } else { -1.0 };
     let cell = cell_name(path);
@@ -841,7 +893,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
 }
 
 /// One sample of a CSV in the doctor's units, current with the file's sign.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 struct Row {
     time_s: f64,
     voltage_v: f64,
@@ -1478,6 +1530,110 @@ fn validate(d: Discharge) -> Result<Discharge, DoctorError> {
         }
     }
     Ok(d)
+}
+
+/// The damaged end of a file a logger stopped writing mid-way: the first bad record's error and how many
+/// records from it on were left out.
+#[derive(Debug)]
+struct DamagedEnd {
+    error: DoctorError,
+    records: usize,
+}
+
+/// What a reader of [`read_rows`] made of one record.
+enum Taken {
+    Kept,
+    /// The same reading, at the same time, as one already kept (a row copied, a logger's buffer written
+    /// again): read once. The error is the one a strict reader refuses it with.
+    Again(DoctorError),
+}
+
+/// What [`read_rows`] met beside the records it kept.
+#[derive(Debug, Default)]
+struct RowsRead {
+    damaged_end: Option<DamagedEnd>,
+    /// Readings written twice and read once, and the first of them.
+    again: usize,
+    first_again: Option<DoctorError>,
+}
+
+impl RowsRead {
+    /// What a person reading the data is told of it.
+    fn notes(&self) -> Vec<String> {
+        let plural = |n: usize| if n == 1 { "" } else { "s" };
+        let mut out = Vec::new();
+        if let Some(DoctorError::TimeNotIncreasing { path, line, time_s, .. }) = &self.first_again {
+            out.push(format!(
+                "{}, line {line}: the reading at {time_s:?} s once more, to its last digit (a row copied, a logger's \
+                 buffer written again); {} such reading{} read once",
+                path.display(),
+                self.again,
+                plural(self.again)
+            ));
+        }
+        match &self.damaged_end {
+            Some(DamagedEnd { error: error @ DoctorError::FrozenEnd { .. }, .. }) => {
+                out.push(format!("{error}: read up to it, as a record cut short"));
+            }
+            Some(DamagedEnd { error, records }) => out.push(format!(
+                "{error}; nothing after it reads ({records} record{} to the file's end, as a logger that stopped \
+                 mid-write leaves them): read up to it, as a record cut short",
+                plural(*records)
+            )),
+            None => {}
+        }
+        out
+    }
+}
+
+/// Reads a CSV's records in order with `read`, which checks one and keeps it, or keeps nothing and fails.
+/// A logger that stops mid-write (power lost, a crash) leaves a damaged end: a half line, NUL padding, a
+/// buffer written again (its time steps back). Where no record after the first bad one reads, the file is
+/// read up to it and the damage returned for the caller to say; a bad record that a good one follows fails
+/// the read naming it, as does a damaged end with fewer than [`MIN_SAMPLES`] records before it.
+fn read_rows(
+    path: &Path,
+    rdr: &mut csv::Reader<&[u8]>,
+    lines: &mut Lines,
+    mut read: impl FnMut(&csv::StringRecord, u64) -> Result<Taken, DoctorError>,
+) -> Result<RowsRead, DoctorError> {
+    let mut out = RowsRead::default();
+    let mut kept = 0;
+    let mut records = rdr.records();
+    while let Some(rec) = records.next() {
+        let outcome = rec.map_err(|e| csv_error(path, e, lines)).and_then(|rec| {
+            let line = lines.of(&rec);
+            read(&rec, line)
+        });
+        let error = match outcome {
+            Ok(Taken::Kept) => {
+                kept += 1;
+                continue;
+            }
+            Ok(Taken::Again(e)) => {
+                out.again += 1;
+                out.first_again.get_or_insert(e);
+                continue;
+            }
+            Err(error) => error,
+        };
+        let mut left_out = 1;
+        for rec in records.by_ref() {
+            left_out += 1;
+            if let Ok(rec) = rec {
+                let line = lines.of(&rec);
+                if matches!(read(&rec, line), Ok(Taken::Kept)) {
+                    return Err(error);
+                }
+            }
+        }
+        if kept < MIN_SAMPLES {
+            return Err(error);
+        }
+        out.damaged_end = Some(DamagedEnd { error, records: left_out });
+        break;
+    }
+    Ok(out)
 }
 
 fn check_time(times: &[f64], time_s: f64, path: &Path, line: u64) -> Result<(), DoctorError> {

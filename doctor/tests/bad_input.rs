@@ -297,3 +297,82 @@ fn a_nasa_record_in_ma_or_ms_or_with_a_0_v_reading_is_refused_naming_it() {
     write(&rec, &good.replacen("4.2,", "0.2,", 1));
     assert_eq!(read_nasa_record(&rec, "B0005", 1, 297.15).unwrap().voltage_v[0], 0.2);
 }
+
+/// A logger that stops mid-write (NASA's B0049-B0052 hold such files) leaves a damaged end: a half line, NUL
+/// padding, a clock that restarts, a reading frozen while the time runs on. The record is read up to the
+/// damage, said in a note naming file and line, and ends under load as a record cut short does. Readings
+/// written twice (a buffer written again) are read once and said. Damage that good readings follow still
+/// refuses the record naming its line, and the strict reader refuses what the others read and say.
+#[test]
+fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
+    use bcal_doctor::read::{read_csv, read_nasa_with, ReadOptions};
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("data")).unwrap();
+    write(
+        &dir.path().join("metadata.csv"),
+        "type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n\
+         discharge,[2008 4 2 15 25 41],24,B0005,1,2,00002.csv,1.85,,\n",
+    );
+    // The first 40 of 60 readings (header on line 1): the logger stopped under load at line 41.
+    let whole = nasa_record(60);
+    let written: String = whole.lines().take(41).map(|l| format!("{l}\n")).collect();
+    let path = dir.path().join("data/00002.csv");
+    write(&path, &whole);
+    let clean = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap().0.remove(0);
+    for (damage, end) in [
+        ("half line", "3.8,-2.0,24.5,-2."),
+        ("NUL padding", &"\0".repeat(512)),
+        ("clock restarted", "4.1,-2.0,24.5,-2.0,3.0,0\n4.0,-2.0,24.5,-2.0,3.0,10\n"),
+    ] {
+        write(&path, &format!("{written}{end}"));
+        let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+        assert!(report.skipped.is_empty(), "{damage}: {:?}", report.skipped);
+        let d = &records[0];
+        assert_eq!(d.len(), 40, "{damage}");
+        assert!((d.current_a[39] - 2.0).abs() < 1e-12, "{damage}: ends under load");
+        let note = report.notes.iter().find(|n| n.contains("read up to it")).expect(damage);
+        assert!(note.contains("00002.csv") && note.contains("line 42") && note.contains("cut short"), "{note}");
+        // The strict reader refuses it, naming the same line.
+        let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
+        assert!(err.contains("00002.csv") && err.contains("line 42"), "{damage}: {err}");
+    }
+    // A logger that froze: its last reading repeated under load while the time runs on.
+    let stuck = written.lines().last().unwrap().rsplit_once(',').unwrap().0;
+    let frozen: String = (40..55).map(|k| format!("{stuck},{}\n", 10 * k)).collect();
+    write(&path, &format!("{written}{frozen}"));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].len(), 40);
+    let note = report.notes.iter().find(|n| n.contains("froze")).expect("a frozen end is said");
+    assert!(note.contains("00002.csv, line 42") && note.contains("15 readings") && note.contains("150 s"), "{note}");
+    // Readings written twice (a buffer written again mid-file, a row copied) are read once, and said.
+    let lines: Vec<&str> = whole.lines().collect();
+    let again = [&lines[..31], &lines[25..31], &lines[31..], &lines[59..]].concat().join("\n") + "\n";
+    write(&path, &again);
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!((&records[0].time_s, &records[0].voltage_v), (&clean.time_s, &clean.voltage_v));
+    let note = report.notes.iter().find(|n| n.contains("read once")).expect("readings written twice are said");
+    assert!(note.contains("00002.csv, line 32") && note.contains("8 such readings"), "{note}");
+    assert!(read_nasa(dir.path(), "B0005", None).unwrap_err().to_string().contains("line 32"));
+    // Damage that good readings follow is not an end: the record is refused, named.
+    let middle: Vec<&str> = whole.lines().collect();
+    write(&path, &format!("{}\n3.9,-2.0,24\n{}\n", middle[..21].join("\n"), middle[21..].join("\n")));
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("00002.csv") && err.contains("line 22") && err.contains("fields where"), "{err}");
+    // The generic reader reads up to a damaged end too, and says so.
+    let csv = dir.path().join("cell.csv");
+    let rows: String = (0..30).map(|k| format!("{},{},2.0\n", 10 * k, 4.1 - 0.01 * k as f64)).collect();
+    write(&csv, &format!("time_s,voltage_v,current_a\n{rows}290,3.8"));
+    let (records, report) = read_csv(&csv, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].len(), 30);
+    assert!(report.notes.iter().any(|n| n.contains("cell.csv") && n.contains("line 32")), "{:?}", report.notes);
+    // And reads a row copied once.
+    let copied: String = rows.lines().take(12).chain(rows.lines().skip(11)).map(|l| format!("{l}\n")).collect();
+    write(&csv, &format!("time_s,voltage_v,current_a\n{copied}"));
+    let (records, report) = read_csv(&csv, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].len(), 30);
+    assert!(
+        report.notes.iter().any(|n| n.contains("cell.csv, line 14") && n.contains("read once")),
+        "{:?}",
+        report.notes
+    );
+}

@@ -116,7 +116,8 @@ fn check_err(err: &DoctorError, path: &Path, bytes: &[u8]) -> Result<(), TestCas
         }
         DoctorError::TimeNotIncreasing { line, .. }
         | DoctorError::NotAFileName { line, .. }
-        | DoctorError::VoltageGlitch { line, .. } => {
+        | DoctorError::VoltageGlitch { line, .. }
+        | DoctorError::FrozenEnd { line, .. } => {
             prop_assert!(exists(*line), "line {line} of {} lines: {msg}", lines.len());
             prop_assert!(msg.contains(&format!("line {line}")), "{msg}");
         }
