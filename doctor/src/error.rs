@@ -38,6 +38,12 @@ pub enum DoctorError {
     )]
     VoltageGlitch { path: PathBuf, line: u64, voltage_v: f64 },
     #[error(
+        "{path}, line {line}: current {current_a:?} A for one reading between {before_a:?} and {after_a:?} A, the \
+         voltage moving {moved_mv:.1} mV with it (a cell drawing that would move it by far more: a logger's glitch); \
+         fix or remove that row"
+    )]
+    CurrentGlitch { path: PathBuf, line: u64, current_a: f64, before_a: f64, after_a: f64, moved_mv: f64 },
+    #[error(
         "{path}, line {line}: from here the {readings} readings to the file's end repeat one reading to its last \
          digit while the time runs on {span_s:.0} s under load (a logger that froze)"
     )]

@@ -504,20 +504,7 @@ fn nasa_record(
         rows.damaged_end = Some(DamagedEnd { records: frozen.records + after, ..frozen });
     }
     let mut d = validate(d)?;
-    // One reading outside a cell's range while the load is on (from the first loaded reading to the last,
-    // whatever the sign; a 0 V sample) would be read as the cut-off, and end the discharge there. Readings at
-    // rest before or after the load (a record that starts before its cell is connected) are read as before.
-    let loaded = |i: &f64| i.abs() > LOADED_A;
-    let first = d.current_a.iter().position(loaded).unwrap_or(0);
-    let last = d.current_a.iter().rposition(loaded).map_or(0, |k| k + 1);
-    let outside = |v: &f64| !(CELL_VOLTAGE_V[0]..=CELL_VOLTAGE_V[1]).contains(v);
-    if let Some(k) = d.voltage_v[first..last.max(first)].iter().position(outside).map(|k| first + k) {
-        return Err(DoctorError::VoltageGlitch {
-            path: path.to_path_buf(),
-            line: line_of[k],
-            voltage_v: d.voltage_v[k],
-        });
-    }
+    glitch(&d, &line_of)?;
     // Units the layout does not have, whatever the sign (a current in mA reads as no sign at all): a current
     // above what a cell carries, and time in ms (more charge than a cell holds, days under load).
     let magnitude_a: Vec<f64> = d.current_a.iter().map(|i| i.abs()).collect();
@@ -581,6 +568,44 @@ fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
     d.temperature_k.as_mut().expect("checked above").truncate(first);
     Some(DamagedEnd { error, records: readings })
 }
+
+/// Refuses a reading a logger got wrong while the load is on (from the first loaded reading to the last,
+/// whatever the sign), naming its line: a voltage outside a cell's (a 0 V sample, which would be read as the
+/// cut-off and end the discharge there), or a current far off both its neighbours while the voltage does not
+/// move with it (a -40 A sample amid 2 A adds 0.11 Ah at 10 s sampling; a cell drawing it would move the
+/// voltage by volts). Readings at rest before or after the load (a record that starts before its cell is
+/// connected) are read as they are.
+fn glitch(d: &Discharge, line_of: &[u64]) -> Result<(), DoctorError> {
+    let (v, i) = (&d.voltage_v, &d.current_a);
+    let loaded = |i: &f64| i.abs() > LOADED_A;
+    let first = i.iter().position(loaded).unwrap_or(0);
+    let last = i.iter().rposition(loaded).map_or(0, |k| k + 1);
+    let outside = |v: &f64| !(CELL_VOLTAGE_V[0]..=CELL_VOLTAGE_V[1]).contains(v);
+    if let Some(k) = v[first..last.max(first)].iter().position(outside).map(|k| first + k) {
+        return Err(DoctorError::VoltageGlitch { path: d.source.clone(), line: line_of[k], voltage_v: v[k] });
+    }
+    for k in first.max(1)..last.min(i.len() - 1) {
+        let off_a = i[k] - 0.5 * (i[k - 1] + i[k + 1]);
+        let moved_v = v[k] - 0.5 * (v[k - 1] + v[k + 1]);
+        let lone = (i[k - 1] - i[k + 1]).abs() < 0.2 * off_a.abs();
+        if off_a.abs() >= CURRENT_GLITCH_A && lone && moved_v.abs() < GLITCH_OHM * off_a.abs() {
+            return Err(DoctorError::CurrentGlitch {
+                path: d.source.clone(),
+                line: line_of[k],
+                current_a: i[k],
+                before_a: i[k - 1],
+                after_a: i[k + 1],
+                moved_mv: 1e3 * moved_v.abs(),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// A lone current reading this far off its neighbours, A, with the voltage moving less than [`GLITCH_OHM`]
+/// times it, is a glitch: a cell of this model (18650-like, Ro 0.05-0.25 ohm) would move it 25-125 times more.
+const CURRENT_GLITCH_A: f64 = 5.0;
+const GLITCH_OHM: f64 = 0.002;
 
 /// Repeats of one reading at a record's end that [`frozen_end`] reads as a frozen logger.
 const FROZEN_READINGS: usize = 10;
@@ -750,6 +775,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     let headers = rdr.headers().map_err(|e| csv_error(path, e, &mut lines))?.clone();
     let cols = Columns::find(&headers, path)?;
     let mut groups: BTreeMap<u32, Vec<Row>> = BTreeMap::new();
+    let mut line_of: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
     let rows_read = read_rows(path, &mut rdr, &mut lines, |rec, line| {
         let cycle = match &cols.cycle {
             Some(c) => {
@@ -778,6 +804,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             };
         }
         rows.push(row);
+        line_of.entry(cycle).or_default().push(line);
         Ok(Taken::Kept)
     })?;
     if groups.is_empty() {
@@ -850,6 +877,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
         for seg in segments {
             let number = if with_cycle { *cycle } else { next_number };
             next_number += 1;
+            let lines = &line_of[cycle][seg.clone()];
             let rows = &rows[seg.clone()];
             let t0 = rows[0].time_s;
             let mut d = empty(&cell, number, path, f64::NAN, cols.temperature.is_some());
@@ -861,7 +889,8 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             }
             d.ambient_k = CELSIUS_TO_KELVIN
                 + opts.ambient_c.or(rows[0].ambient_c).or(rows[0].temperature_c).unwrap_or(DEFAULT_AMBIENT_C);
-            match validate(d).and_then(|d| plausible_charge(d, &cols.time.header)) {
+            let checked = validate(d).and_then(|d| glitch(&d, lines).map(|()| d));
+            match checked.and_then(|d| plausible_charge(d, &cols.time.header)) {
                 Ok(d) => {
                     report.notes.extend(gap_note(&d, opts.gap_factor));
                     report.starts.push(RecordStart { cycle: number, start_s: t0 });

@@ -296,6 +296,40 @@ fn a_nasa_record_in_ma_or_ms_or_with_a_0_v_reading_is_refused_naming_it() {
     // At rest before the load (a cell not yet connected reads near 0 V) the record is read as before.
     write(&rec, &good.replacen("4.2,", "0.2,", 1));
     assert_eq!(read_nasa_record(&rec, "B0005", 1, 297.15).unwrap().voltage_v[0], 0.2);
+    // A lone -40 A reading amid 2 A (row 50, line 52) with the voltage unmoved is a glitch; a 20 A pulse that
+    // moves the voltage as a cell's resistance would (2 V, 0.11 ohm) is read.
+    write(&rec, &good.replacen(",-2,24.5,-2.0,3.0,500\n", ",-40.0,24.5,-2.0,3.0,500\n", 1));
+    let err = read_nasa_record(&rec, "B0005", 1, 297.15).unwrap_err();
+    assert!(matches!(err, DoctorError::CurrentGlitch { line: 52, .. }), "{err:?}");
+    assert!(
+        err.to_string().contains("05122.csv, line 52: current -40.0 A") && err.to_string().contains("remove"),
+        "{err}"
+    );
+    let mut lines: Vec<String> = good.lines().map(str::to_string).collect();
+    lines[51] = format!("{},-20.0,24.5,-2.0,3.0,500", 4.2 - 0.5 - 2.0);
+    write(&rec, &(lines.join("\n") + "\n"));
+    assert_eq!(read_nasa_record(&rec, "B0005", 1, 297.15).unwrap().current_a[50], 20.0);
+}
+
+/// The general CSV reader refuses the same glitches in a discharge (a 0 V sample, a lone current spike the
+/// voltage does not follow), naming the line, as the NASA reader does.
+#[test]
+fn a_glitch_in_a_generic_csv_discharge_is_refused_naming_its_line() {
+    use bcal_doctor::read::{read_csv, ReadOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("g.csv");
+    let row = |k: usize, v: f64, i: f64| format!("{},{v},{i}\n", 10 * k);
+    let text = |glitch: &dyn Fn(usize) -> Option<String>| -> String {
+        let rows: String = (0..40).map(|k| glitch(k).unwrap_or_else(|| row(k, 4.1 - 0.01 * k as f64, 2.0))).collect();
+        format!("time_s,voltage_v,current_a\n{rows}")
+    };
+    write(&path, &text(&|_| None));
+    assert_eq!(read_csv(&path, &ReadOptions::default()).unwrap().0[0].len(), 40);
+    for (glitch, want) in [(row(20, 0.0, 2.0), "voltage 0.0 V"), (row(20, 3.9, 40.0), "current 40.0 A")] {
+        write(&path, &text(&|k| (k == 20).then(|| glitch.clone())));
+        let msg = read_csv(&path, &ReadOptions::default()).unwrap_err().to_string();
+        assert!(msg.contains("g.csv, line 22") && msg.contains(want), "{msg}");
+    }
 }
 
 /// A logger that stops mid-write (NASA's B0049-B0052 hold such files) leaves a damaged end: a half line, NUL
