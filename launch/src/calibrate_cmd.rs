@@ -145,13 +145,13 @@ pub struct CellConfigArgs {
 /// Reads the discharges of `cycles` (all when None): a NASA folder, else any CSV the doctor reads (the
 /// generic layout, the Battery Data Format, units and current sign as `opts` say), with when each record
 /// started (the rests between discharges, for the prior across them); what the reader decided or skipped
-/// goes to stderr.
+/// goes to stderr, and what it could not read or read with a note to the report.
 pub fn read_with_starts(
     data: &Path,
     cell: &str,
     cycles: Option<&RangeInclusive<u32>>,
     opts: &ReadOptions,
-) -> anyhow::Result<(Vec<Discharge>, Vec<RecordStart>, Vec<Unread>)> {
+) -> anyhow::Result<(Vec<Discharge>, Vec<RecordStart>, Said)> {
     let (ds, rep) = bcal_doctor::input::read_any(data, cell, cycles, opts).with_context(|| {
         if data.is_dir() {
             format!("reading cell {cell} from {}", data.display())
@@ -174,7 +174,15 @@ pub fn read_with_starts(
         })
         .collect();
     unread.extend(rep.skipped.iter().map(|s| Unread { cycle: s.cycle, why: s.reason.clone() }));
-    Ok((ds, rep.starts, unread))
+    Ok((ds, rep.starts, Said { unread, notes: rep.notes }))
+}
+
+/// What the reader said beside the records it gave: the ones it could not read, and its notes on the ones it
+/// read (a damaged end read up to, readings written twice, a gap), each naming the file.
+#[derive(Default)]
+pub struct Said {
+    pub unread: Vec<Unread>,
+    pub notes: Vec<String>,
 }
 
 /// A record the reader could not read: its cycle where known, and why (naming the file).
@@ -191,7 +199,7 @@ fn train_cycles(
     data: &Path,
     cell: &str,
     opts: &ReadOptions,
-) -> anyhow::Result<(RangeInclusive<u32>, Option<(Vec<Discharge>, Vec<RecordStart>, Vec<Unread>)>)> {
+) -> anyhow::Result<(RangeInclusive<u32>, Option<(Vec<Discharge>, Vec<RecordStart>, Said)>)> {
     if let Some(t) = given {
         return Ok((parse_cycle_range(t)?, None));
     }
@@ -346,24 +354,26 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
             shown(&train_range)
         );
     }
-    let (train, mut judged, starts, unread) = match everything {
+    let (train, mut judged, starts, said) = match everything {
         // Read once already; the starts of records outside both ranges are never looked up.
-        Some((all, starts, unread)) => {
+        Some((all, starts, said)) => {
             let (train, rest): (Vec<Discharge>, Vec<Discharge>) =
                 all.into_iter().partition(|d| train_range.contains(&d.cycle));
             let judged = rest.into_iter().filter(|d| judged_range.contains(&d.cycle)).collect();
             let within = |u: &Unread| u.cycle.is_none_or(|c| train_range.contains(&c) || judged_range.contains(&c));
-            (train, judged, starts, unread.into_iter().filter(within).collect())
+            let unread = said.unread.into_iter().filter(within).collect();
+            (train, judged, starts, Said { unread, notes: said.notes })
         }
         None => {
-            let (train, mut starts, mut unread) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
-            let (judged, judged_starts, judged_unread) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
+            let (train, mut starts, mut said) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
+            let (judged, judged_starts, judged_said) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
             starts.extend(judged_starts);
-            unread.extend(judged_unread);
-            (train, judged, starts, unread)
+            said.unread.extend(judged_said.unread);
+            said.notes.extend(judged_said.notes);
+            (train, judged, starts, said)
         }
     };
-    let unread: Vec<String> = unread.into_iter().map(|u| u.why).collect();
+    let unread: Vec<String> = said.unread.into_iter().map(|u| u.why).collect();
     if train.is_empty() && judged.is_empty() {
         bail!(
             "{cell}: no discharge read from {} in cycles {} or {} (the reader's lines above say what was missing \
@@ -444,6 +454,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         starts,
         rests: Some(rests),
         unread,
+        noted: said.notes,
     };
     let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
     cal.report.seconds = started.elapsed().as_secs_f64();

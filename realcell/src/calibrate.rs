@@ -72,6 +72,9 @@ pub struct CalibrateInput<'a> {
     /// Records of the selected cycles the reader could not read, each with why (naming the file): said in
     /// the report beside the ones refused here.
     pub unread: Vec<String>,
+    /// The reader's notes on records it read (a damaged end read up to, readings written twice, a gap), each
+    /// naming the file: said in the report.
+    pub noted: Vec<String>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -504,6 +507,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     }
     summary.partial_start = judged.iter().filter(|r| r.partial_start).map(|r| r.cycle).collect();
     summary.unread = input.unread.clone();
+    summary.noted = input.noted.clone();
     // What the stated capacity measures, read before any discharge is judged (it names a definition, it
     // moves no prediction).
     summary.stated_capacity = crate::record::stated_capacity(&train, cut);

@@ -202,6 +202,8 @@ pub struct RecordSummary {
     /// Records of the selected cycles the reader could not read (a file missing, empty or malformed), with
     /// the reason.
     pub unread: Vec<String>,
+    /// The reader's notes on records it read (a damaged end read up to, readings written twice, a gap).
+    pub noted: Vec<String>,
     /// Judged discharges that started from a partial charge ([`CellRecord::partial_start`]): their end of
     /// discharge is scored, their capacity is not.
     pub partial_start: Vec<u32>,

@@ -110,6 +110,9 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
     for unread in &r.records.unread {
         let _ = writeln!(s, "- not read: {unread}");
     }
+    for note in &r.records.noted {
+        let _ = writeln!(s, "- read with a note: {note}");
+    }
     if !r.records.partial_start.is_empty() {
         let _ = writeln!(
             s,

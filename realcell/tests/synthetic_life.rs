@@ -124,6 +124,7 @@ fn calibrate_life(all: &[(Discharge, f64)]) -> bcal_realcell::calibrate::Calibra
         starts: Vec::new(),
         rests: None,
         unread: Vec::new(),
+        noted: Vec::new(),
     };
     calibrate(&input, &mut |m| eprintln!("{m}")).expect("the synthetic life calibrates")
 }

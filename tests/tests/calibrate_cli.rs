@@ -315,13 +315,18 @@ fn stride_keeps_the_rest_before_each_kept_discharge() {
 
 /// Records the reader could not read (a file the metadata names that is not on disk, an empty one: NASA's
 /// B0049-B0052, whose software crashed) are named in the report beside the ones calibrated, not only on
-/// stderr.
+/// stderr, and so is the reader's note on a record it read up to a damaged end.
 #[test]
 fn records_not_read_are_named_in_the_report() {
     let dir = tempfile::tempdir().unwrap();
     let nasa = write_nasa(dir.path());
     std::fs::remove_file(nasa.join("data").join("00011.csv")).unwrap();
     std::fs::write(nasa.join("data").join("00012.csv"), "").unwrap();
+    // A logger that stopped mid-write: half a line ends cycle 10's record, which is read up to it and said.
+    let ten = nasa.join("data").join("00010.csv");
+    let mut text = std::fs::read_to_string(&ten).unwrap();
+    text.push_str("3.61,-2.0,24");
+    std::fs::write(&ten, text).unwrap();
     let out = dir.path().join("out");
     let report = calibrate_nasa(&nasa, &out, &[]);
     assert_eq!(report["cycles_judged"], serde_json::json!([7, 8, 9, 10]));
@@ -329,8 +334,11 @@ fn records_not_read_are_named_in_the_report() {
     assert_eq!(unread.len(), 2, "{unread:?}");
     assert!(unread.iter().any(|u| u.contains("00011.csv") && u.contains("not on disk")), "{unread:?}");
     assert!(unread.iter().any(|u| u.contains("00012.csv: empty")), "{unread:?}");
+    let noted: Vec<String> = serde_json::from_value(report["records"]["noted"].clone()).unwrap();
+    assert!(noted.len() == 1 && noted[0].contains("00010.csv") && noted[0].contains("read up to it"), "{noted:?}");
     let md = std::fs::read_to_string(out.join("calibration.md")).unwrap();
     assert!(md.contains("- not read: 00011.csv"), "{md}");
+    assert!(md.contains("- read with a note: ") && md.contains("00010.csv"), "{md}");
 }
 
 /// A cell with few readable discharges (NASA's B0052: 4 of 25 files hold data, the software crashed) still
