@@ -222,8 +222,9 @@ class Calibrator:
     ) -> Estimate:
         """Takes the next reading (time order; current positive while discharging) and returns the
         estimate. A temperature of None or NaN (pandas' missing value) reads as the ambient. A reading
-        that is not finite, not a cell's voltage or not later than the last raises ValueError and leaves
-        the calibrator as it was."""
+        that is not finite, not a cell's voltage, not later than the last or a current glitch (a step of
+        5 A or more that the voltage does not follow) raises ValueError and leaves the calibrator as it
+        was."""
     def predict_eod_s(self, current_a: Optional[float] = None, *, power_w: Optional[float] = None) -> Optional[float]:
         """End of discharge (absolute time, s) if the cell now draws `current_a` (A), or `power_w` (W: the
         current P / V rising as the voltage falls), to the cut-off; exactly one of them. None before the first

@@ -53,7 +53,9 @@ use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{Request, Sample, KELVIN_0C};
 use bcal_common::measured::tracker::TrackerSpec;
-use bcal_common::measured::{LoadMean, LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH};
+use bcal_common::measured::{
+    current_glitch, LoadMean, LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH,
+};
 use bcal_common::policy::PolicyNet;
 use bcal_common::task::Task;
 use serde::{Deserialize, Serialize};
@@ -188,6 +190,13 @@ pub enum ReadingError {
         MAX_RECORD_CHARGE_AH
     )]
     LoadTooLong { time_s: f64, loaded_s: f64, drawn_ah: f64 },
+    #[error(
+        "current_a = {current_a} steps {:.1} A from the previous reading's {previous_a} A while the voltage moves \
+         {:.1} mV (a cell drawing it would move it by far more): a logger's glitch",
+        (current_a - previous_a).abs(),
+        1e3 * moved_v.abs()
+    )]
+    CurrentGlitch { current_a: f64, previous_a: f64, moved_v: f64 },
 }
 
 /// What the stream answers at each reading. Interval bounds and the prediction are None while the
@@ -1072,6 +1081,14 @@ impl<'a> Stream<'a> {
         if let Some(previous_s) = self.last_t_s.filter(|p| r.time_s - *p > MAX_GAP_S) {
             return Err(ReadingError::TimeJump { time_s: r.time_s, previous_s });
         }
+        // Against the last reading taken: a lone spike is refused and the reading after it, back where the
+        // current was, meets no step.
+        if let Some(p) = self.last_sample {
+            let moved_v = r.voltage_v - p.voltage_v;
+            if current_glitch(r.current_a - p.current_a, moved_v) {
+                return Err(ReadingError::CurrentGlitch { current_a: r.current_a, previous_a: p.current_a, moved_v });
+            }
+        }
         // Milliseconds read as seconds stretch every interval a thousandfold: the load then seems to stay on
         // for days and to draw more than a cell holds (the readers refuse such a record the same way).
         let loaded_run = match self.last_sample {
@@ -1800,6 +1817,11 @@ mod tests {
                 // One timestamp in milliseconds since the epoch: refused, and the readings after it go on.
                 let far = Reading { time_s: 1.7e12, ..*r };
                 assert!(matches!(stream.step(&far), Err(ReadingError::TimeJump { .. })));
+                // A lone current spike the voltage does not follow (40 A, the voltage as it was): refused, and
+                // the reading after it meets no step.
+                let spike = Reading { current_a: r.current_a + 40.0, ..*r };
+                let e = stream.step(&spike).unwrap_err();
+                assert!(matches!(e, ReadingError::CurrentGlitch { .. }) && e.to_string().contains("glitch"), "{e}");
             }
             let s = Sample {
                 t_s: r.time_s,

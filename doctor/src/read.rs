@@ -41,7 +41,7 @@ pub const MIN_SAMPLES: usize = 10;
 /// Ambient temperature assumed for a generic CSV without a temperature column, deg C.
 pub const DEFAULT_AMBIENT_C: f64 = 25.0;
 
-use bcal_common::measured::{CELL_TEMPERATURE_RANGE_C, LOADED_A, NEW_DISCHARGE_GAP_S};
+use bcal_common::measured::{current_glitch, CELL_TEMPERATURE_RANGE_C, LOADED_A, NEW_DISCHARGE_GAP_S};
 pub use bcal_common::measured::{MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH};
 
 /// Least evidence the sign decision needs, V of voltage change (see [`SignEvidence`]).
@@ -572,9 +572,8 @@ fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
 /// Refuses a reading a logger got wrong while the load is on (from the first loaded reading to the last,
 /// whatever the sign), naming its line: a voltage outside a cell's (a 0 V sample, which would be read as the
 /// cut-off and end the discharge there), or a current far off both its neighbours while the voltage does not
-/// move with it (a -40 A sample amid 2 A adds 0.11 Ah at 10 s sampling; a cell drawing it would move the
-/// voltage by volts). Readings at rest before or after the load (a record that starts before its cell is
-/// connected) are read as they are.
+/// move with it ([`current_glitch`]). Readings at rest before or after the load (a record that starts before
+/// its cell is connected) are read as they are.
 fn glitch(d: &Discharge, line_of: &[u64]) -> Result<(), DoctorError> {
     let (v, i) = (&d.voltage_v, &d.current_a);
     let loaded = |i: &f64| i.abs() > LOADED_A;
@@ -587,8 +586,9 @@ fn glitch(d: &Discharge, line_of: &[u64]) -> Result<(), DoctorError> {
     for k in first.max(1)..last.min(i.len() - 1) {
         let off_a = i[k] - 0.5 * (i[k - 1] + i[k + 1]);
         let moved_v = v[k] - 0.5 * (v[k - 1] + v[k + 1]);
+        // Both neighbours left: a step of the load that the voltage sample lags is not one.
         let lone = (i[k - 1] - i[k + 1]).abs() < 0.2 * off_a.abs();
-        if off_a.abs() >= CURRENT_GLITCH_A && lone && moved_v.abs() < GLITCH_OHM * off_a.abs() {
+        if lone && current_glitch(off_a, moved_v) {
             return Err(DoctorError::CurrentGlitch {
                 path: d.source.clone(),
                 line: line_of[k],
@@ -601,11 +601,6 @@ fn glitch(d: &Discharge, line_of: &[u64]) -> Result<(), DoctorError> {
     }
     Ok(())
 }
-
-/// A lone current reading this far off its neighbours, A, with the voltage moving less than [`GLITCH_OHM`]
-/// times it, is a glitch: a cell of this model (18650-like, Ro 0.05-0.25 ohm) would move it 25-125 times more.
-const CURRENT_GLITCH_A: f64 = 5.0;
-const GLITCH_OHM: f64 = 0.002;
 
 /// Repeats of one reading at a record's end that [`frozen_end`] reads as a frozen logger.
 const FROZEN_READINGS: usize = 10;

@@ -232,7 +232,8 @@ impl Calibrator {
     /// after a charge or a gap of more than half an hour, started from what the last one told: the charge its
     /// end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
-    /// A reading that is not finite, not a cell's voltage or not later than the last raises ValueError and
+    /// A reading that is not finite, not a cell's voltage, not later than the last or a current glitch (a step
+    /// of 5 A or more the voltage does not follow) raises ValueError and
     /// leaves the calibrator as it was (except that a third in a row more than half an hour behind, a clock
     /// that went back and stays there, is taken on the readings' new clock).
     #[pyo3(signature = (time_s, voltage_v, current_a, temperature_c=None))]

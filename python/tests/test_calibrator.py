@@ -174,6 +174,9 @@ def test_a_bad_reading_is_a_value_error_with_the_cli_s_message_and_changes_nothi
         cal.step(100.0, float("nan"), 2.0)
     with pytest.raises(ValueError, match="outside a Li-ion cell's range"):
         cal.step(100.0, 3900.0, 2.0)
+    # A lone spike the voltage does not follow (40 A more, the last voltage): a logger's glitch.
+    with pytest.raises(ValueError, match="a logger's glitch"):
+        cal.step(100.0, rows[4].voltage_v, rows[4].current_a + 40.0)
     assert cal.readings == 5
     # The CLI skips the same reading with the same words, naming its line.
     text = "time_s,voltage_v,current_a\n" + "".join(f"{r.time_s},{r.voltage_v},{r.current_a}\n" for r in rows[:5])

@@ -35,6 +35,17 @@ pub const MAX_RECORD_CHARGE_AH: f64 = 500.0;
 /// Longest time a cell stays under load (above [`LOADED_A`]) without a pause, s: two days, beyond a C/40
 /// discharge. A 10-minute partial discharge logged in milliseconds reads as a week.
 pub const MAX_LOADED_S: f64 = 172_800.0;
+/// Whether a change of current `step_a` with the voltage moving `moved_v` is a logger's glitch: at least
+/// [`CURRENT_GLITCH_A`] that the voltage follows by less than [`GLITCH_OHM`] per ampere. A cell of this model
+/// (18650-like, Ro 0.05-0.25 ohm) moves its voltage 25-125 times more at once (a -40 A sample amid 2 A,
+/// the voltage unmoved, would add 0.11 Ah at 10 s sampling). The readers refuse such a reading that both its
+/// neighbours leave, a live stream one that the last reading it took leaves.
+pub fn current_glitch(step_a: f64, moved_v: f64) -> bool {
+    step_a.abs() >= CURRENT_GLITCH_A && moved_v.abs() < GLITCH_OHM * step_a.abs()
+}
+/// See [`current_glitch`], A and ohm.
+pub const CURRENT_GLITCH_A: f64 = 5.0;
+pub const GLITCH_OHM: f64 = 0.002;
 /// Current above which a reading counts as loaded for [`MAX_LOADED_S`], A.
 pub const LOADED_A: f64 = 0.05;
 /// A change of current between two readings larger than this is a load step, A (the doctor's default).
