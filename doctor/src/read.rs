@@ -431,10 +431,35 @@ fn nasa_folder(
             }
         }
     }
+    report.notes.extend(sign_outliers(&report.signs));
     match first_error {
         Some(e) if out.is_empty() => Err(e),
         _ => Ok((out, report)),
     }
+}
+
+/// A note naming the files of a folder whose current sign the data decided against most of the others' (a
+/// file exported with the other convention, or one whose evidence misled: worth a look either way).
+fn sign_outliers(signs: &[SignChoice]) -> Option<String> {
+    let positive: Vec<&SignChoice> = signs.iter().filter(|s| s.discharge_positive).collect();
+    let negative: Vec<&SignChoice> = signs.iter().filter(|s| !s.discharge_positive).collect();
+    let (few, most) = if positive.len() <= negative.len() { (positive, negative) } else { (negative, positive) };
+    if few.is_empty() || few.len() == most.len() || !few.iter().all(|s| s.from_data) {
+        return None;
+    }
+    let shown: Vec<String> = few.iter().take(5).map(|s| s.file.display().to_string()).collect();
+    Some(format!(
+        "current sign: {} of the cell's {} files read as {} from their data, the other {} as {}: {}{}; check \
+         {} export (--current-sign sets one sign for all)",
+        few.len(),
+        signs.len(),
+        CurrentSign::of(few[0].discharge_positive).name(),
+        most.len(),
+        CurrentSign::of(most[0].discharge_positive).name(),
+        shown.join(", "),
+        if few.len() > shown.len() { ", ..." } else { "" },
+        if few.len() == 1 { "that file's" } else { "those files'" }
+    ))
 }
 
 /// Reads one NASA discharge file (`Voltage_measured`, `Current_measured` negative while discharging,

@@ -554,6 +554,17 @@ fn a_bad_nasa_record_is_skipped_and_the_other_cycles_and_cells_read() {
     assert!(report.skipped[0].reason.contains("00002.csv") && report.skipped[0].reason.contains("--current-sign"));
     let (b6, _) = read_nasa_with(dir.path(), "B0006", None, &ReadOptions::default()).unwrap();
     assert_eq!(b6.len(), 1);
+    // One file of three exported with the other sign: read from its data, and named in a note.
+    let flipped = nasa(&|k| -loaded(k), &|k| if k == 0 || k >= 27 { 4.2 } else { 4.0 - 0.02 * k as f64 });
+    std::fs::write(dir.path().join("data/00002.csv"), flipped).unwrap();
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert!(records.len() == 3 && records.iter().all(|d| d.current_a[5] > 1.9), "{report:?}");
+    let note = report.notes.iter().find(|n| n.starts_with("current sign:")).expect("the odd file is named");
+    assert!(
+        note.contains("1 of the cell's 3 files read as discharge-positive") && note.contains("00002.csv"),
+        "{note}"
+    );
+    assert!(!report.notes.iter().any(|n| n.contains("00001.csv")), "{:?}", report.notes);
 }
 
 /// The independent generator's cells (RK4 physics with relaxation, piecewise loads with rests, sensor
