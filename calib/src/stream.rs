@@ -54,7 +54,7 @@ use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{Request, Sample, KELVIN_0C};
 use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::measured::{
-    current_glitch, LoadMean, LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH,
+    current_glitch, LoadMean, CURRENT_GLITCH_A, LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH,
 };
 use bcal_common::policy::PolicyNet;
 use bcal_common::task::Task;
@@ -191,8 +191,8 @@ pub enum ReadingError {
     )]
     LoadTooLong { time_s: f64, loaded_s: f64, drawn_ah: f64 },
     #[error(
-        "current_a = {current_a} steps {:.1} A from the previous reading's {previous_a} A while the voltage moves \
-         {:.1} mV (a cell drawing it would move it by far more): a logger's glitch",
+        "current_a = {current_a} steps {:.1} A from the last reading taken ({previous_a} A) while the voltage \
+         moves {:.1} mV (a cell drawing it would move it by far more): a logger's glitch",
         (current_a - previous_a).abs(),
         1e3 * moved_v.abs()
     )]
@@ -479,6 +479,8 @@ pub struct Stream<'a> {
     /// The last reading, as the calibrator took it: a discharge whose load comes on long after it was
     /// built starts again from the rest reading before the load ([`Stream::step`]).
     last_sample: Option<Sample>,
+    /// The current of the reading just refused as a glitch ([`current_glitch`]), A.
+    glitch_a: Option<f64>,
     /// Whether the current discharge began under load (after a gap in the readings): a piece of a
     /// discharge, whose start is unseen. It is neither scored nor measured nor end-fitted.
     joined_under_load: bool,
@@ -889,6 +891,7 @@ impl<'a> Stream<'a> {
             charge_started_s: None,
             discharge_start_s: None,
             last_sample: None,
+            glitch_a: None,
             joined_under_load: false,
             last_loaded_t_s: None,
             counted_last_loaded_t_s: None,
@@ -1081,14 +1084,18 @@ impl<'a> Stream<'a> {
         if let Some(previous_s) = self.last_t_s.filter(|p| r.time_s - *p > MAX_GAP_S) {
             return Err(ReadingError::TimeJump { time_s: r.time_s, previous_s });
         }
-        // Against the last reading taken: a lone spike is refused and the reading after it, back where the
-        // current was, meets no step.
-        if let Some(p) = self.last_sample {
+        // Against the last reading taken, within a discharge's sampling: a lone spike is refused and the
+        // reading after it, back where the current was, meets no step. A reading at the level of the one just
+        // refused is taken (a step the voltage sample lagged: its first reading is lost, not the stream).
+        if let Some(p) = self.last_sample.filter(|p| r.time_s - p.t_s <= NEW_DISCHARGE_GAP_S) {
             let moved_v = r.voltage_v - p.voltage_v;
-            if current_glitch(r.current_a - p.current_a, moved_v) {
+            let held = self.glitch_a.is_some_and(|g| (r.current_a - g).abs() < CURRENT_GLITCH_A);
+            if !held && current_glitch(r.current_a - p.current_a, moved_v) {
+                self.glitch_a = Some(r.current_a);
                 return Err(ReadingError::CurrentGlitch { current_a: r.current_a, previous_a: p.current_a, moved_v });
             }
         }
+        self.glitch_a = None;
         // Milliseconds read as seconds stretch every interval a thousandfold: the load then seems to stay on
         // for days and to draw more than a cell holds (the readers refuse such a record the same way).
         let loaded_run = match self.last_sample {
@@ -1787,6 +1794,27 @@ mod tests {
         let late = readings.iter().filter(|r| r.current_a > LOADED_A && r.time_s * 1000.0 - load_on_s > MAX_LOADED_S);
         assert!(refused > 0 && refused >= late.count(), "refused {refused}, taken {taken}");
         assert_eq!(taken + refused, readings.len());
+    }
+
+    /// A current step the voltage does not follow is refused once: the reading after it at the same level is
+    /// taken (a step whose voltage sample lagged), and after a gap of more than half an hour no step is
+    /// measured against the stale reading (a rest that resumes near the last loaded voltage).
+    #[test]
+    fn a_current_step_the_voltage_does_not_follow_is_refused_once() {
+        let spec = TrackerSpec::default();
+        let mut stream = Stream::new(Box::new(WindowFitCalibrator::new(&spec)), &spec, None);
+        let at =
+            |time_s: f64, voltage_v: f64, current_a: f64| Reading { time_s, voltage_v, current_a, temperature_c: None };
+        for k in 0..5 {
+            stream.step(&at(10.0 * k as f64, 3.9 - 0.001 * k as f64, 2.0)).unwrap();
+        }
+        let e = stream.step(&at(50.0, 3.895, 8.0)).unwrap_err();
+        assert!(matches!(e, ReadingError::CurrentGlitch { .. }), "{e}");
+        stream.step(&at(60.0, 3.894, 8.0)).unwrap();
+        stream.step(&at(70.0, 3.6, 8.0)).unwrap();
+        // Two days later, at rest 5 mV above the last loaded reading: no step against it.
+        stream.step(&at(70.0 + 2.0 * 86_400.0, 3.605, 0.0)).unwrap();
+        assert_eq!(stream.readings(), 8);
     }
 
     /// The stream gives what the calibrator alone gives, reading by reading, and refuses a bad reading

@@ -529,7 +529,8 @@ fn nasa_record(
         rows.damaged_end = Some(DamagedEnd { records: frozen.records + after, ..frozen });
     }
     let mut d = validate(d)?;
-    glitch(&d, &line_of)?;
+    // Before the sign is decided: as the file has it.
+    glitch(&d, &line_of, 1.0)?;
     // Units the layout does not have, whatever the sign (a current in mA reads as no sign at all): a current
     // above what a cell carries, and time in ms (more charge than a cell holds, days under load).
     let magnitude_a: Vec<f64> = d.current_a.iter().map(|i| i.abs()).collect();
@@ -566,8 +567,9 @@ fn nasa_record(
 fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
     match read {
         (d, sign, RowsRead { damaged_end: None, first_again: None, .. }) => Ok((d, sign)),
+        // The first bad line: readings written twice are met before the damage that ends the reading.
         (_, _, RowsRead { damaged_end, first_again, .. }) => {
-            Err(damaged_end.map_or_else(|| first_again.expect("matched above"), |damage| damage.error))
+            Err(first_again.unwrap_or_else(|| damaged_end.expect("matched above").error))
         }
     }
 }
@@ -582,7 +584,7 @@ fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
         |k: usize| (d.voltage_v[k], d.current_a[k], temps[k]) == (d.voltage_v[k - 1], d.current_a[k - 1], temps[k - 1]);
     let first = (1..n).rev().take_while(|&k| same(k)).last()?;
     let readings = n - first;
-    if readings < FROZEN_READINGS || d.current_a[first].abs() <= LOADED_A {
+    if readings < FROZEN_READINGS || first < MIN_SAMPLES || d.current_a[first].abs() <= LOADED_A {
         return None;
     }
     let span_s = d.time_s[n - 1] - d.time_s[first - 1];
@@ -599,7 +601,8 @@ fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
 /// cut-off and end the discharge there), or a current far off both its neighbours while the voltage does not
 /// move with it ([`current_glitch`]). Readings at rest before or after the load (a record that starts before
 /// its cell is connected) are read as they are.
-fn glitch(d: &Discharge, line_of: &[u64]) -> Result<(), DoctorError> {
+/// `sign` (+1 or -1) turns the record's current back into the file's for the message.
+fn glitch(d: &Discharge, line_of: &[u64], sign: f64) -> Result<(), DoctorError> {
     let (v, i) = (&d.voltage_v, &d.current_a);
     let loaded = |i: &f64| i.abs() > LOADED_A;
     let first = i.iter().position(loaded).unwrap_or(0);
@@ -617,9 +620,9 @@ fn glitch(d: &Discharge, line_of: &[u64]) -> Result<(), DoctorError> {
             return Err(DoctorError::CurrentGlitch {
                 path: d.source.clone(),
                 line: line_of[k],
-                current_a: i[k],
-                before_a: i[k - 1],
-                after_a: i[k + 1],
+                current_a: sign * i[k],
+                before_a: sign * i[k - 1],
+                after_a: sign * i[k + 1],
                 moved_mv: 1e3 * moved_v.abs(),
             });
         }
@@ -909,7 +912,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             }
             d.ambient_k = CELSIUS_TO_KELVIN
                 + opts.ambient_c.or(rows[0].ambient_c).or(rows[0].temperature_c).unwrap_or(DEFAULT_AMBIENT_C);
-            let checked = validate(d).and_then(|d| glitch(&d, lines).map(|()| d));
+            let checked = validate(d).and_then(|d| glitch(&d, lines, flip).map(|()| d));
             match checked.and_then(|d| plausible_charge(d, &cols.time.header)) {
                 Ok(d) => {
                     report.notes.extend(gap_note(&d, opts.gap_factor));
@@ -1622,11 +1625,12 @@ impl RowsRead {
         }
         match &self.damaged_end {
             Some(DamagedEnd { error: error @ DoctorError::FrozenEnd { .. }, .. }) => {
-                out.push(format!("{error}: read up to it, as a record cut short"));
+                out.push(format!("{error}; read as a record cut short there"));
             }
             Some(DamagedEnd { error, records }) => out.push(format!(
-                "{error}; nothing after it reads ({records} record{} to the file's end, as a logger that stopped \
-                 mid-write leaves them): read up to it, as a record cut short",
+                "read up to a damaged end, as a record cut short (a logger that stopped mid-write leaves one; {} \
+                 record{} from it to the file's end left out): {error}",
+                records,
                 plural(*records)
             )),
             None => {}
@@ -1676,7 +1680,12 @@ fn read_rows(
                 }
             }
         }
-        if kept < MIN_SAMPLES {
+        // What a stopped write leaves: a record that does not parse (a half line, NUL padding), or a last line
+        // without its line end, whatever it parses to (a time cut to its first digits). A clock that steps
+        // back or jumps ahead amid whole lines is no end: the readings after it would be lost.
+        let unparsed = matches!(error, DoctorError::Csv { .. } | DoctorError::BadField { .. });
+        let cut_line = left_out == 1 && !lines.bytes.ends_with(b"\n");
+        if kept < MIN_SAMPLES || !(unparsed || cut_line) {
             return Err(error);
         }
         out.damaged_end = Some(DamagedEnd { error, records: left_out });

@@ -356,7 +356,7 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
     for (damage, end) in [
         ("half line", "3.8,-2.0,24.5,-2."),
         ("NUL padding", &"\0".repeat(512)),
-        ("clock restarted", "4.1,-2.0,24.5,-2.0,3.0,0\n4.0,-2.0,24.5,-2.0,3.0,10\n"),
+        ("time cut to its first digit", "3.8,-2.0,24.5,-2.0,3.0,4"),
     ] {
         write(&path, &format!("{written}{end}"));
         let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
@@ -364,7 +364,7 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
         let d = &records[0];
         assert_eq!(d.len(), 40, "{damage}");
         assert!((d.current_a[39] - 2.0).abs() < 1e-12, "{damage}: ends under load");
-        let note = report.notes.iter().find(|n| n.contains("read up to it")).expect(damage);
+        let note = report.notes.iter().find(|n| n.contains("read up to a damaged end")).expect(damage);
         assert!(note.contains("00002.csv") && note.contains("line 42") && note.contains("cut short"), "{note}");
         // The strict reader refuses it, naming the same line.
         let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
@@ -376,7 +376,8 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
     write(&path, &format!("{written}{frozen}"));
     let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
     assert_eq!(records[0].len(), 40);
-    let note = report.notes.iter().find(|n| n.contains("froze")).expect("a frozen end is said");
+    let note =
+        report.notes.iter().find(|n| n.contains("froze") && n.contains("cut short")).expect("a frozen end is said");
     assert!(note.contains("00002.csv, line 42") && note.contains("15 readings") && note.contains("150 s"), "{note}");
     // Readings written twice (a buffer written again mid-file, a row copied) are read once, and said.
     let lines: Vec<&str> = whole.lines().collect();
@@ -387,6 +388,16 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
     let note = report.notes.iter().find(|n| n.contains("read once")).expect("readings written twice are said");
     assert!(note.contains("00002.csv, line 32") && note.contains("8 such readings"), "{note}");
     assert!(read_nasa(dir.path(), "B0005", None).unwrap_err().to_string().contains("line 32"));
+    // A clock that steps back or jumps ahead amid whole lines is no damaged end (the readings after it would
+    // be lost): refused, named.
+    write(&path, &format!("{written}4.1,-2.0,24.5,-2.0,3.0,0\n4.0,-2.0,24.5,-2.0,3.0,10\n"));
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("line 42") && err.contains("does not increase"), "{err}");
+    let mut ahead: Vec<String> = whole.lines().map(str::to_string).collect();
+    ahead[21] = ahead[21].replace(",200", ",5000");
+    write(&path, &(ahead.join("\n") + "\n"));
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("line 23") && err.contains("previous 5000"), "{err}");
     // Damage that good readings follow is not an end: the record is refused, named.
     let middle: Vec<&str> = whole.lines().collect();
     write(&path, &format!("{}\n3.9,-2.0,24\n{}\n", middle[..21].join("\n"), middle[21..].join("\n")));

@@ -145,7 +145,7 @@ pub struct CellConfigArgs {
 /// Reads the discharges of `cycles` (all when None): a NASA folder, else any CSV the doctor reads (the
 /// generic layout, the Battery Data Format, units and current sign as `opts` say), with when each record
 /// started (the rests between discharges, for the prior across them); what the reader decided or skipped
-/// goes to stderr, and what it could not read or read with a note to the report.
+/// goes to stderr, and what it could not read and its notes to the report.
 pub fn read_with_starts(
     data: &Path,
     cell: &str,
@@ -177,8 +177,9 @@ pub fn read_with_starts(
     Ok((ds, rep.starts, Said { unread, notes: rep.notes }))
 }
 
-/// What the reader said beside the records it gave: the ones it could not read, and its notes on the ones it
-/// read (a damaged end read up to, readings written twice, a gap), each naming the file.
+/// What the reader said beside the records it gave: the ones it could not read, and its notes (a damaged end
+/// read up to, readings written twice, a gap, a file read against its format's sign, a cycle without
+/// discharge), each naming the file.
 #[derive(Default)]
 pub struct Said {
     pub unread: Vec<Unread>,
@@ -203,7 +204,7 @@ fn train_cycles(
     if let Some(t) = given {
         return Ok((parse_cycle_range(t)?, None));
     }
-    let (all, starts, unread) = read_with_starts(data, cell, None, opts)?;
+    let (all, starts, said) = read_with_starts(data, cell, None, opts)?;
     let range = bcal_doctor::input::default_train_cycles(cell, &all)?;
     eprintln!(
         "training cycles {}..{} (the first third of {cell}'s {} discharges, at most {}, at least {}; --train-cycles \
@@ -214,7 +215,7 @@ fn train_cycles(
         bcal_doctor::input::DEFAULT_TRAIN_MAX,
         bcal_doctor::input::DEFAULT_TRAIN_MIN
     );
-    Ok((range, Some((all, starts, unread))))
+    Ok((range, Some((all, starts, said))))
 }
 
 /// The policy files of `rl:RUN`: a run folder's checkpoints (best and last by each criterion, duplicates
@@ -369,7 +370,12 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
             let (judged, judged_starts, judged_said) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
             starts.extend(judged_starts);
             said.unread.extend(judged_said.unread);
-            said.notes.extend(judged_said.notes);
+            // A CSV is read whole each time, and a folder's metadata notes come with each read: said once.
+            for note in judged_said.notes {
+                if !said.notes.contains(&note) {
+                    said.notes.push(note);
+                }
+            }
             (train, judged, starts, said)
         }
     };

@@ -72,8 +72,8 @@ pub struct CalibrateInput<'a> {
     /// Records of the selected cycles the reader could not read, each with why (naming the file): said in
     /// the report beside the ones refused here.
     pub unread: Vec<String>,
-    /// The reader's notes on records it read (a damaged end read up to, readings written twice, a gap), each
-    /// naming the file: said in the report.
+    /// The reader's notes (a damaged end read up to, readings written twice, a gap, a cycle without
+    /// discharge), each naming the file: said in the report.
     pub noted: Vec<String>,
 }
 

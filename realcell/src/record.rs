@@ -202,7 +202,7 @@ pub struct RecordSummary {
     /// Records of the selected cycles the reader could not read (a file missing, empty or malformed), with
     /// the reason.
     pub unread: Vec<String>,
-    /// The reader's notes on records it read (a damaged end read up to, readings written twice, a gap).
+    /// The reader's notes (a damaged end read up to, readings written twice, a gap, a cycle without discharge).
     pub noted: Vec<String>,
     /// Judged discharges that started from a partial charge ([`CellRecord::partial_start`]): their end of
     /// discharge is scored, their capacity is not.

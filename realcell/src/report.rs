@@ -111,7 +111,7 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
         let _ = writeln!(s, "- not read: {unread}");
     }
     for note in &r.records.noted {
-        let _ = writeln!(s, "- read with a note: {note}");
+        let _ = writeln!(s, "- the reader noted: {note}");
     }
     if !r.records.partial_start.is_empty() {
         let _ = writeln!(

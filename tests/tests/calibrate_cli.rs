@@ -335,10 +335,13 @@ fn records_not_read_are_named_in_the_report() {
     assert!(unread.iter().any(|u| u.contains("00011.csv") && u.contains("not on disk")), "{unread:?}");
     assert!(unread.iter().any(|u| u.contains("00012.csv: empty")), "{unread:?}");
     let noted: Vec<String> = serde_json::from_value(report["records"]["noted"].clone()).unwrap();
-    assert!(noted.len() == 1 && noted[0].contains("00010.csv") && noted[0].contains("read up to it"), "{noted:?}");
+    assert!(
+        noted.len() == 1 && noted[0].contains("00010.csv") && noted[0].contains("read up to a damaged end"),
+        "{noted:?}"
+    );
     let md = std::fs::read_to_string(out.join("calibration.md")).unwrap();
     assert!(md.contains("- not read: 00011.csv"), "{md}");
-    assert!(md.contains("- read with a note: ") && md.contains("00010.csv"), "{md}");
+    assert!(md.contains("- the reader noted: ") && md.contains("00010.csv"), "{md}");
 }
 
 /// A cell with few readable discharges (NASA's B0052: 4 of 25 files hold data, the software crashed) still
