@@ -479,7 +479,7 @@ pub struct Stream<'a> {
     /// The last reading, as the calibrator took it: a discharge whose load comes on long after it was
     /// built starts again from the rest reading before the load ([`Stream::step`]).
     last_sample: Option<Sample>,
-    /// The current of the reading just refused as a glitch ([`current_glitch`]), A.
+    /// The current of the attempt just before, if it was refused as a glitch ([`current_glitch`]), A.
     glitch_a: Option<f64>,
     /// Whether the current discharge began under load (after a gap in the readings): a piece of a
     /// discharge, whose start is unseen. It is neither scored nor measured nor end-fitted.
@@ -985,7 +985,8 @@ impl<'a> Stream<'a> {
         self.cal.as_ref()
     }
 
-    /// Checks `r`, steps the calibrator and answers; a refused reading changes nothing.
+    /// Checks `r`, steps the calibrator and answers; a refused reading changes nothing (but that a current
+    /// glitch's level is remembered for the next attempt: a step held there is taken).
     pub fn step(&mut self, r: &Reading) -> Result<Estimate, ReadingError> {
         // An error's times on the readings' clock, as the attempt that failed read them (`off`).
         let user = |e: ReadingError, off: f64| match e {
@@ -1001,6 +1002,7 @@ impl<'a> Stream<'a> {
             e => e,
         };
         let off = self.clock_offset_s;
+        let refused_a = self.glitch_a;
         let result = match self.step_on_clock(&Reading { time_s: r.time_s + off, ..*r }) {
             Err(ReadingError::TimeNotIncreasing { .. }) if self.clock_went_back(r.time_s) => {
                 // A clock that went back and stays there: its readings continue the stream after the last one.
@@ -1009,6 +1011,8 @@ impl<'a> Stream<'a> {
                 let interval_s = r.time_s - self.behind[self.behind.len() - 2];
                 let new_off = self.last_t_s.unwrap_or(r.time_s) + interval_s - r.time_s;
                 let run = std::mem::take(&mut self.loaded_run);
+                // The same attempt, again: as the first try met it.
+                self.glitch_a = refused_a;
                 match self.step_on_clock(&Reading { time_s: r.time_s + new_off, ..*r }) {
                     Ok(e) => {
                         self.clock_offset_s = new_off;
@@ -1059,6 +1063,8 @@ impl<'a> Stream<'a> {
 
     /// [`Self::step`] on the stream's own clock (the readings' plus [`Self::clock_offset_s`]).
     fn step_on_clock(&mut self, r: &Reading) -> Result<Estimate, ReadingError> {
+        // Only the attempt right after a glitch's refusal can hold its level ([`Self::glitch_a`]).
+        let refused_a = self.glitch_a.take();
         for (field, value) in [("time_s", r.time_s), ("voltage_v", r.voltage_v), ("current_a", r.current_a)]
             .into_iter()
             .chain(r.temperature_c.map(|c| ("temperature_c", c)))
@@ -1089,13 +1095,12 @@ impl<'a> Stream<'a> {
         // refused is taken (a step the voltage sample lagged: its first reading is lost, not the stream).
         if let Some(p) = self.last_sample.filter(|p| r.time_s - p.t_s <= NEW_DISCHARGE_GAP_S) {
             let moved_v = r.voltage_v - p.voltage_v;
-            let held = self.glitch_a.is_some_and(|g| (r.current_a - g).abs() < CURRENT_GLITCH_A);
+            let held = refused_a.is_some_and(|g| (r.current_a - g).abs() < CURRENT_GLITCH_A);
             if !held && current_glitch(r.current_a - p.current_a, moved_v) {
                 self.glitch_a = Some(r.current_a);
                 return Err(ReadingError::CurrentGlitch { current_a: r.current_a, previous_a: p.current_a, moved_v });
             }
         }
-        self.glitch_a = None;
         // Milliseconds read as seconds stretch every interval a thousandfold: the load then seems to stay on
         // for days and to draw more than a cell holds (the readers refuse such a record the same way).
         let loaded_run = match self.last_sample {
@@ -1810,6 +1815,9 @@ mod tests {
         }
         let e = stream.step(&at(50.0, 3.895, 8.0)).unwrap_err();
         assert!(matches!(e, ReadingError::CurrentGlitch { .. }), "{e}");
+        // Only the attempt right after it holds the level: after another refusal the step is refused again.
+        assert!(stream.step(&at(55.0, f64::NAN, 8.0)).is_err());
+        assert!(matches!(stream.step(&at(56.0, 3.895, 8.0)), Err(ReadingError::CurrentGlitch { .. })));
         stream.step(&at(60.0, 3.894, 8.0)).unwrap();
         stream.step(&at(70.0, 3.6, 8.0)).unwrap();
         // Two days later, at rest 5 mV above the last loaded reading: no step against it.

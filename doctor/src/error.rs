@@ -45,8 +45,7 @@ pub enum DoctorError {
     CurrentGlitch { path: PathBuf, line: u64, current_a: f64, before_a: f64, after_a: f64, moved_mv: f64 },
     #[error(
         "{path}, line {line}: from here the {readings} readings to the file's end repeat one reading to its last \
-         digit while the time runs on {span_s:.0} s under load (a logger that froze): the record ends where they \
-         begin"
+         digit while the time runs on {span_s:.0} s under load (a logger that froze)"
     )]
     FrozenEnd { path: PathBuf, line: u64, readings: usize, span_s: f64 },
     #[error(

@@ -525,6 +525,9 @@ fn nasa_record(
         Ok(Taken::Kept)
     })?;
     if let Some(frozen) = frozen_end(&mut d, &line_of) {
+        if d.len() < MIN_SAMPLES {
+            return Err(frozen.error);
+        }
         let after = rows.damaged_end.as_ref().map_or(0, |e| e.records);
         rows.damaged_end = Some(DamagedEnd { records: frozen.records + after, ..frozen });
     }
@@ -584,7 +587,7 @@ fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
         |k: usize| (d.voltage_v[k], d.current_a[k], temps[k]) == (d.voltage_v[k - 1], d.current_a[k - 1], temps[k - 1]);
     let first = (1..n).rev().take_while(|&k| same(k)).last()?;
     let readings = n - first;
-    if readings < FROZEN_READINGS || first < MIN_SAMPLES || d.current_a[first].abs() <= LOADED_A {
+    if readings < FROZEN_READINGS || d.current_a[first].abs() <= LOADED_A {
         return None;
     }
     let span_s = d.time_s[n - 1] - d.time_s[first - 1];
@@ -1625,7 +1628,7 @@ impl RowsRead {
         }
         match &self.damaged_end {
             Some(DamagedEnd { error: error @ DoctorError::FrozenEnd { .. }, .. }) => {
-                out.push(format!("{error}; read as a record cut short there"));
+                out.push(format!("{error}: read up to them, as a record cut short"));
             }
             Some(DamagedEnd { error, records }) => out.push(format!(
                 "read up to a damaged end, as a record cut short (a logger that stopped mid-write leaves one; {} \
@@ -1640,10 +1643,11 @@ impl RowsRead {
 }
 
 /// Reads a CSV's records in order with `read`, which checks one and keeps it, or keeps nothing and fails.
-/// A logger that stops mid-write (power lost, a crash) leaves a damaged end: a half line, NUL padding, a
-/// buffer written again (its time steps back). Where no record after the first bad one reads, the file is
-/// read up to it and the damage returned for the caller to say; a bad record that a good one follows fails
-/// the read naming it, as does a damaged end with fewer than [`MIN_SAMPLES`] records before it.
+/// A logger that stops mid-write (power lost, a crash) leaves a damaged end: a half line, NUL padding, a last
+/// line cut short. Where nothing after the first bad record is more data (see below), the file is read up to
+/// it and the damage returned for the caller to say; a bad record that data follows fails the read naming
+/// it, as does a damaged end with fewer than [`MIN_SAMPLES`] records before it. Readings written again
+/// (a buffer written twice) are read once wherever they are.
 fn read_rows(
     path: &Path,
     rdr: &mut csv::Reader<&[u8]>,
@@ -1670,22 +1674,26 @@ fn read_rows(
             }
             Err(error) => error,
         };
+        // What a stopped write leaves: records that do not parse (a half line, NUL padding) or repeat earlier
+        // ones to the file's end, or a last line without its line end, whatever it parses to (a time cut to its
+        // first digits). A record after it that parses and is no repeat (a session whose clock restarts) is
+        // more data, as is a clock that steps back or jumps ahead amid whole lines: the record is refused.
+        let unparsed = |e: &DoctorError| matches!(e, DoctorError::Csv { .. } | DoctorError::BadField { .. });
         let mut left_out = 1;
         for rec in records.by_ref() {
             left_out += 1;
-            if let Ok(rec) = rec {
+            let outcome = rec.map_err(|e| csv_error(path, e, lines)).and_then(|rec| {
                 let line = lines.of(&rec);
-                if matches!(read(&rec, line), Ok(Taken::Kept)) {
-                    return Err(error);
-                }
+                read(&rec, line)
+            });
+            match outcome {
+                Ok(Taken::Again(_)) => {}
+                Err(e) if unparsed(&e) => {}
+                _ => return Err(error),
             }
         }
-        // What a stopped write leaves: a record that does not parse (a half line, NUL padding), or a last line
-        // without its line end, whatever it parses to (a time cut to its first digits). A clock that steps
-        // back or jumps ahead amid whole lines is no end: the readings after it would be lost.
-        let unparsed = matches!(error, DoctorError::Csv { .. } | DoctorError::BadField { .. });
-        let cut_line = left_out == 1 && !lines.bytes.ends_with(b"\n");
-        if kept < MIN_SAMPLES || !(unparsed || cut_line) {
+        let cut_line = left_out == 1 && !lines.bytes.ends_with(b"\n") && !lines.bytes.ends_with(b"\r");
+        if kept < MIN_SAMPLES || !(unparsed(&error) || cut_line) {
             return Err(error);
         }
         out.damaged_end = Some(DamagedEnd { error, records: left_out });

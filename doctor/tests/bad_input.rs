@@ -333,7 +333,7 @@ fn a_glitch_in_a_generic_csv_discharge_is_refused_naming_its_line() {
 }
 
 /// A logger that stops mid-write (NASA's B0049-B0052 hold such files) leaves a damaged end: a half line, NUL
-/// padding, a clock that restarts, a reading frozen while the time runs on. The record is read up to the
+/// padding, a last line cut within its time, a reading frozen while the time runs on. The record is read up to the
 /// damage, said in a note naming file and line, and ends under load as a record cut short does. Readings
 /// written twice (a buffer written again) are read once and said. Damage that good readings follow still
 /// refuses the record naming its line, and the strict reader refuses what the others read and say.
@@ -379,6 +379,13 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
     let note =
         report.notes.iter().find(|n| n.contains("froze") && n.contains("cut short")).expect("a frozen end is said");
     assert!(note.contains("00002.csv, line 42") && note.contains("15 readings") && note.contains("150 s"), "{note}");
+    // Frozen after fewer readings than a record needs: refused, naming the freeze.
+    let short: String = whole.lines().take(9).map(|l| format!("{l}\n")).collect();
+    let stuck9 = short.lines().last().unwrap().rsplit_once(',').unwrap().0.to_string();
+    let frozen9: String = (8..20).map(|k| format!("{stuck9},{}\n", 10 * k)).collect();
+    write(&path, &format!("{short}{frozen9}"));
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("line 10") && err.contains("froze"), "{err}");
     // Readings written twice (a buffer written again mid-file, a row copied) are read once, and said.
     let lines: Vec<&str> = whole.lines().collect();
     let again = [&lines[..31], &lines[25..31], &lines[31..], &lines[59..]].concat().join("\n") + "\n";
@@ -389,7 +396,11 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
     assert!(note.contains("00002.csv, line 32") && note.contains("8 such readings"), "{note}");
     assert!(read_nasa(dir.path(), "B0005", None).unwrap_err().to_string().contains("line 32"));
     // A clock that steps back or jumps ahead amid whole lines is no damaged end (the readings after it would
-    // be lost): refused, named.
+    // be lost), nor is a half line a new session follows: refused, named.
+    let session: String = (0..12).map(|k| format!("{},-2,24.5,-2.0,3.0,{}\n", 4.1 - 0.01 * k as f64, 10 * k)).collect();
+    write(&path, &format!("{written}3.9,-2.0,24\n{session}"));
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("line 42") && err.contains("fields where"), "{err}");
     write(&path, &format!("{written}4.1,-2.0,24.5,-2.0,3.0,0\n4.0,-2.0,24.5,-2.0,3.0,10\n"));
     let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
     assert!(err.contains("line 42") && err.contains("does not increase"), "{err}");

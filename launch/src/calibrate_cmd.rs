@@ -361,25 +361,32 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
             let (train, rest): (Vec<Discharge>, Vec<Discharge>) =
                 all.into_iter().partition(|d| train_range.contains(&d.cycle));
             let judged = rest.into_iter().filter(|d| judged_range.contains(&d.cycle)).collect();
-            let within = |u: &Unread| u.cycle.is_none_or(|c| train_range.contains(&c) || judged_range.contains(&c));
-            let unread = said.unread.into_iter().filter(within).collect();
-            (train, judged, starts, Said { unread, notes: said.notes })
+            (train, judged, starts, said)
         }
         None => {
             let (train, mut starts, mut said) = read_with_starts(&data, &cell, Some(&train_range), &opts)?;
             let (judged, judged_starts, judged_said) = read_with_starts(&data, &cell, Some(&judged_range), &opts)?;
             starts.extend(judged_starts);
             said.unread.extend(judged_said.unread);
-            // A CSV is read whole each time, and a folder's metadata notes come with each read: said once.
-            for note in judged_said.notes {
-                if !said.notes.contains(&note) {
-                    said.notes.push(note);
-                }
-            }
+            said.notes.extend(judged_said.notes);
             (train, judged, starts, said)
         }
     };
-    let unread: Vec<String> = said.unread.into_iter().map(|u| u.why).collect();
+    // A CSV is read whole at each read, and a folder's metadata notes come with each: each said once, and
+    // what was not read only where it lies within the cycles asked for.
+    let within = |u: &Unread| u.cycle.is_none_or(|c| train_range.contains(&c) || judged_range.contains(&c));
+    let mut unread: Vec<String> = Vec::new();
+    for u in said.unread.into_iter().filter(within) {
+        if !unread.contains(&u.why) {
+            unread.push(u.why);
+        }
+    }
+    let mut noted: Vec<String> = Vec::new();
+    for note in said.notes {
+        if !noted.contains(&note) {
+            noted.push(note);
+        }
+    }
     if train.is_empty() && judged.is_empty() {
         bail!(
             "{cell}: no discharge read from {} in cycles {} or {} (the reader's lines above say what was missing \
@@ -460,7 +467,7 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         starts,
         rests: Some(rests),
         unread,
-        noted: said.notes,
+        noted,
     };
     let mut cal = calibrate(&input, &mut |m| println!("[{:6.1} s] {m}", started.elapsed().as_secs_f64()))?;
     cal.report.seconds = started.elapsed().as_secs_f64();

@@ -368,13 +368,19 @@ fn a_cell_of_few_readable_discharges_calibrates_and_says_its_choice_is_weak() {
 }
 
 /// Data that states no capacity (a generic CSV) has no capacity score against one: none in the report, not
-/// an RMSE of 0 that reads as a target met; the data's charge is the reference the reading states.
+/// an RMSE of 0 that reads as a target met; the data's charge is the reference the reading states. The
+/// file, read whole for the training and the judged cycles, has its damaged end said once.
 #[test]
 fn data_that_states_no_capacity_is_scored_against_its_own_charge_only() {
     let dir = tempfile::tempdir().unwrap();
     let csv = write_cycles(dir.path());
+    let mut text = std::fs::read_to_string(&csv).unwrap();
+    text.push_str("9,3.9");
+    std::fs::write(&csv, text).unwrap();
     let out = dir.path().join("out");
     let report = calibrate_ukf(&["--data", csv.to_str().unwrap(), "--train-cycles", "1..4"], &out, &[]);
+    let noted: Vec<String> = serde_json::from_value(report["records"]["noted"].clone()).unwrap();
+    assert!(noted.len() == 1 && noted[0].contains("damaged end"), "{noted:?}");
     let ukf = &report["methods"]["ukf"];
     assert_eq!(ukf["capacity_rmse_ah"], serde_json::json!({}), "{ukf}");
     let data_ah = ukf["capacity_rmse_ah_vs_data"]["50"].as_f64().unwrap();
