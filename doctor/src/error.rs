@@ -43,6 +43,9 @@ pub enum DoctorError {
          fix or remove that row"
     )]
     CurrentGlitch { path: PathBuf, line: u64, current_a: f64, before_a: f64, after_a: f64, moved_mv: f64 },
+    /// Values a strict reader refuses where the others fill them and say so (the note).
+    #[error("{why}")]
+    MissingValues { why: String },
     #[error(
         "{path}, line {line}: from here the {readings} readings to the file's end repeat one reading to its last \
          digit while the time runs on {span_s:.0} s under load (a logger that froze)"

@@ -509,7 +509,11 @@ fn nasa_record(
         let voltage_v = number(rec, cv, "Voltage_measured", path, line)?;
         // As measured for now; the sign is decided on the whole record below.
         let current_a = number(rec, ci, "Current_measured", path, line)?;
-        let temperature_k = number(rec, ct, "Temperature_measured", path, line)? + CELSIUS_TO_KELVIN;
+        // NaN while a sensor is out: filled below, and said.
+        let temperature_k = match missing(rec, ct) {
+            true => f64::NAN,
+            false => number(rec, ct, "Temperature_measured", path, line)? + CELSIUS_TO_KELVIN,
+        };
         if let Err(e) = check_time(&d.time_s, time_s, path, line) {
             let same = |k: usize| (d.voltage_v[k], d.current_a[k], temps[k]) == (voltage_v, current_a, temperature_k);
             return match d.time_s.binary_search_by(|t| t.total_cmp(&time_s)) {
@@ -524,6 +528,7 @@ fn nasa_record(
         line_of.push(line);
         Ok(Taken::Kept)
     })?;
+    rows.temperature_note = fill_missing(&mut d, &line_of, "Temperature_measured");
     if let Some(frozen) = frozen_end(&mut d, &line_of) {
         if d.len() < MIN_SAMPLES {
             return Err(frozen.error);
@@ -569,7 +574,10 @@ fn nasa_record(
 /// One record read strictly: a damaged end or a reading written twice fails it as a bad record anywhere does.
 fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
     match read {
-        (d, sign, RowsRead { damaged_end: None, first_again: None, .. }) => Ok((d, sign)),
+        (d, sign, RowsRead { damaged_end: None, first_again: None, temperature_note: None, .. }) => Ok((d, sign)),
+        (_, _, RowsRead { first_again: None, damaged_end: None, temperature_note: Some(note), .. }) => {
+            Err(DoctorError::MissingValues { why: note })
+        }
         // The first bad line: readings written twice are met before the damage that ends the reading.
         (_, _, RowsRead { damaged_end, first_again, .. }) => {
             Err(first_again.unwrap_or_else(|| damaged_end.expect("matched above").error))
@@ -818,7 +826,12 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             time_s: cols.time.value(rec, path, line)?,
             voltage_v: cols.voltage.value(rec, path, line)?,
             current_a: cols.current.value(rec, path, line)?,
-            temperature_c: cols.temperature.as_ref().map(|c| c.value(rec, path, line)).transpose()?,
+            // NaN while a sensor is out: filled per record, and said.
+            temperature_c: cols
+                .temperature
+                .as_ref()
+                .map(|c| if missing(rec, c.index) { Ok(f64::NAN) } else { c.value(rec, path, line) })
+                .transpose()?,
             ambient_c: cols.ambient.as_ref().map(|c| c.value(rec, path, line)).transpose()?,
         };
         let rows = groups.entry(cycle).or_default();
@@ -913,8 +926,11 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             if let Some(temps) = d.temperature_k.as_mut() {
                 *temps = rows.iter().map(|r| r.temperature_c.unwrap_or(f64::NAN) + CELSIUS_TO_KELVIN).collect();
             }
-            d.ambient_k = CELSIUS_TO_KELVIN
-                + opts.ambient_c.or(rows[0].ambient_c).or(rows[0].temperature_c).unwrap_or(DEFAULT_AMBIENT_C);
+            let first_c = rows.iter().filter_map(|r| r.temperature_c).find(|t| t.is_finite());
+            d.ambient_k =
+                CELSIUS_TO_KELVIN + opts.ambient_c.or(rows[0].ambient_c).or(first_c).unwrap_or(DEFAULT_AMBIENT_C);
+            let header = cols.temperature.as_ref().map_or("", |c| c.header.as_str());
+            report.notes.extend(fill_missing(&mut d, lines, header));
             let checked = validate(d).and_then(|d| glitch(&d, lines, flip).map(|()| d));
             match checked.and_then(|d| plausible_charge(d, &cols.time.header)) {
                 Ok(d) => {
@@ -1610,6 +1626,8 @@ struct RowsRead {
     /// Readings written twice and read once, and the first of them.
     again: usize,
     first_again: Option<DoctorError>,
+    /// Temperatures left empty and filled ([`fill_missing`]), said.
+    temperature_note: Option<String>,
 }
 
 impl RowsRead {
@@ -1626,6 +1644,7 @@ impl RowsRead {
                 plural(self.again)
             ));
         }
+        out.extend(self.temperature_note.clone());
         match &self.damaged_end {
             Some(DamagedEnd { error: error @ DoctorError::FrozenEnd { .. }, .. }) => {
                 out.push(format!("{error}: read up to them, as a record cut short"));
@@ -1700,6 +1719,46 @@ fn read_rows(
         break;
     }
     Ok(out)
+}
+
+/// Whether a field is left empty or NaN (a value the logger did not have).
+fn missing(rec: &csv::StringRecord, col: usize) -> bool {
+    let raw = rec.get(col).unwrap_or("").trim();
+    raw.is_empty() || raw.eq_ignore_ascii_case("nan")
+}
+
+/// Fills the temperatures a sensor left out (NaN) with the reading's before (those before the first read
+/// with it), as a cell's temperature moves slowly; with none read at all, with the record's ambient. The
+/// note says how many and where, or None when none was left out.
+fn fill_missing(d: &mut Discharge, line_of: &[u64], column: &str) -> Option<String> {
+    let ambient_k = d.ambient_k;
+    let temps = d.temperature_k.as_mut()?;
+    let left: Vec<usize> = (0..temps.len()).filter(|&k| !temps[k].is_finite()).collect();
+    let first = *left.first()?;
+    let place = format!("{}, line {}", d.source.display(), line_of[first]);
+    let Some(known) = temps.iter().copied().find(|t| t.is_finite()) else {
+        temps.iter_mut().for_each(|t| *t = ambient_k);
+        return Some(format!(
+            "{place}: field `{column}` is empty on all {} readings (a sensor that dropped out): each read as the \
+             ambient, {:.1} deg C",
+            left.len(),
+            ambient_k - CELSIUS_TO_KELVIN
+        ));
+    };
+    let mut last = known;
+    for t in temps.iter_mut() {
+        if t.is_finite() {
+            last = *t;
+        } else {
+            *t = last;
+        }
+    }
+    Some(format!(
+        "{place}: field `{column}` is empty on {} of {} readings from here (a sensor that dropped out): each read \
+         as the reading's before",
+        left.len(),
+        temps.len()
+    ))
 }
 
 fn check_time(times: &[f64], time_s: f64, path: &Path, line: u64) -> Result<(), DoctorError> {

@@ -432,3 +432,63 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
         report.notes
     );
 }
+
+/// A temperature sensor that drops out leaves fields empty or NaN: the readers fill each with the reading's
+/// before (a cell's temperature moves slowly) and say how many and where, in a NASA folder and a general
+/// CSV; with none read at all, the ambient; the strict reader refuses such a record. Before, one empty
+/// field refused the whole record.
+#[test]
+fn a_temperature_sensor_that_drops_out_is_filled_and_said() {
+    use bcal_doctor::read::{read_csv, read_nasa_with, ReadOptions};
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("data")).unwrap();
+    write(
+        &dir.path().join("metadata.csv"),
+        "type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n\
+         discharge,[2008 4 2 15 25 41],24,B0005,1,2,00002.csv,1.85,,\n",
+    );
+    // Rows 10-15 (lines 12-17) without a temperature, one of them NaN; the cell warms 0.1 deg C a reading.
+    let row = |k: usize, t: &str| {
+        let i = if k == 0 || k + 3 >= 60 { -0.001 } else { -2.0 };
+        format!("{},{i},{t},-2.0,3.0,{}\n", 4.2 - 0.01 * k as f64, 10 * k)
+    };
+    let header = "Voltage_measured,Current_measured,Temperature_measured,Current_load,Voltage_load,Time\n";
+    let text: String = (0..60)
+        .map(|k| match k {
+            12 => row(k, "NaN"),
+            10..=15 => row(k, ""),
+            _ => row(k, &format!("{}", 24.0 + 0.1 * k as f64)),
+        })
+        .collect();
+    write(&dir.path().join("data/00002.csv"), &format!("{header}{text}"));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    let t = records[0].temperature_k.as_ref().unwrap();
+    assert!(t[10..16].iter().all(|x| *x == t[9]) && t[16] > t[9], "{t:?}");
+    let note = report.notes.iter().find(|n| n.contains("Temperature_measured")).expect("the gap is said");
+    assert!(note.contains("00002.csv, line 12") && note.contains("6 of 60"), "{note}");
+    let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
+    assert!(err.contains("line 12") && err.contains("empty"), "{err}");
+    // None read at all: the ambient (the metadata's 24 deg C), said.
+    let blank: String = (0..60).map(|k| row(k, "")).collect();
+    write(&dir.path().join("data/00002.csv"), &format!("{header}{blank}"));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert!(records[0].temperature_k.as_ref().unwrap().iter().all(|t| (t - 297.15).abs() < 1e-9));
+    assert!(
+        report.notes.iter().any(|n| n.contains("all 60 readings") && n.contains("24.0 deg C")),
+        "{:?}",
+        report.notes
+    );
+    // The general CSV: the same.
+    let csv = dir.path().join("cell.csv");
+    let rows: String = (0..30)
+        .map(|k| {
+            let t = if (5..8).contains(&k) { String::new() } else { format!("{}", 25.0 + 0.1 * k as f64) };
+            format!("{},{},2.0,{t}\n", 10 * k, 4.1 - 0.01 * k as f64)
+        })
+        .collect();
+    write(&csv, &format!("time_s,voltage_v,current_a,temperature_c\n{rows}"));
+    let (records, report) = read_csv(&csv, &ReadOptions::default()).unwrap();
+    let t = records[0].temperature_k.as_ref().unwrap();
+    assert!(t[5..8].iter().all(|x| *x == t[4]), "{t:?}");
+    assert!(report.notes.iter().any(|n| n.contains("cell.csv, line 7") && n.contains("3 of 30")), "{:?}", report.notes);
+}

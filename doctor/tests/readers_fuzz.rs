@@ -132,6 +132,7 @@ fn check_err(err: &DoctorError, path: &Path, bytes: &[u8]) -> Result<(), TestCas
         | DoctorError::NoDischarge { .. }
         | DoctorError::SignUndecided { .. }
         | DoctorError::SuspectUnit { .. }
+        | DoctorError::MissingValues { .. }
         | DoctorError::UnknownUnit { .. } => {}
         other => prop_assert!(false, "unexpected error kind for a file read: {other:?}"),
     }
