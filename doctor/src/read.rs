@@ -515,7 +515,9 @@ fn nasa_record(
             false => number(rec, ct, "Temperature_measured", path, line)? + CELSIUS_TO_KELVIN,
         };
         if let Err(e) = check_time(&d.time_s, time_s, path, line) {
-            let same = |k: usize| (d.voltage_v[k], d.current_a[k], temps[k]) == (voltage_v, current_a, temperature_k);
+            let same = |k: usize| {
+                same_bits(&[d.voltage_v[k], d.current_a[k], temps[k]], &[voltage_v, current_a, temperature_k])
+            };
             return match d.time_s.binary_search_by(|t| t.total_cmp(&time_s)) {
                 Ok(k) if same(k) => Ok(Taken::Again(e)),
                 _ => Err(e),
@@ -528,7 +530,7 @@ fn nasa_record(
         line_of.push(line);
         Ok(Taken::Kept)
     })?;
-    rows.temperature_note = fill_missing(&mut d, &line_of, "Temperature_measured");
+    rows.temperature_note = fill_missing(&mut d, &line_of, "Temperature_measured")?;
     if let Some(frozen) = frozen_end(&mut d, &line_of) {
         if d.len() < MIN_SAMPLES {
             return Err(frozen.error);
@@ -576,7 +578,7 @@ fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
     match read {
         (d, sign, RowsRead { damaged_end: None, first_again: None, temperature_note: None, .. }) => Ok((d, sign)),
         (_, _, RowsRead { first_again: None, damaged_end: None, temperature_note: Some(note), .. }) => {
-            Err(DoctorError::MissingValues { why: note })
+            Err(DoctorError::MissingValues { why: format!("refused by the strict reader: {note}") })
         }
         // The first bad line: readings written twice are met before the damage that ends the reading.
         (_, _, RowsRead { damaged_end, first_again, .. }) => {
@@ -838,7 +840,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
         if let Some(previous_s) = rows.last().map(|r| r.time_s).filter(|p| row.time_s <= *p) {
             let e = DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s: row.time_s, previous_s };
             return match rows.binary_search_by(|r| r.time_s.total_cmp(&row.time_s)) {
-                Ok(k) if rows[k] == row => Ok(Taken::Again(e)),
+                Ok(k) if rows[k].same(&row) => Ok(Taken::Again(e)),
                 _ => Err(e),
             };
         }
@@ -930,10 +932,16 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             d.ambient_k =
                 CELSIUS_TO_KELVIN + opts.ambient_c.or(rows[0].ambient_c).or(first_c).unwrap_or(DEFAULT_AMBIENT_C);
             let header = cols.temperature.as_ref().map_or("", |c| c.header.as_str());
-            report.notes.extend(fill_missing(&mut d, lines, header));
-            let checked = validate(d).and_then(|d| glitch(&d, lines, flip).map(|()| d));
+            let mut filled = None;
+            let checked = fill_missing(&mut d, lines, header)
+                .and_then(|note| {
+                    filled = note;
+                    validate(d)
+                })
+                .and_then(|d| glitch(&d, lines, flip).map(|()| d));
             match checked.and_then(|d| plausible_charge(d, &cols.time.header)) {
                 Ok(d) => {
+                    report.notes.extend(filled);
                     report.notes.extend(gap_note(&d, opts.gap_factor));
                     report.starts.push(RecordStart { cycle: number, start_s: t0 });
                     out.push(d);
@@ -964,13 +972,24 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
 }
 
 /// One sample of a CSV in the doctor's units, current with the file's sign.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug)]
 struct Row {
     time_s: f64,
     voltage_v: f64,
     current_a: f64,
     temperature_c: Option<f64>,
     ambient_c: Option<f64>,
+}
+
+impl Row {
+    /// The same reading, a temperature left empty in both included.
+    fn same(&self, other: &Row) -> bool {
+        let values =
+            |r: &Row| [r.time_s, r.voltage_v, r.current_a, r.temperature_c.unwrap_or(0.0), r.ambient_c.unwrap_or(0.0)];
+        self.temperature_c.is_some() == other.temperature_c.is_some()
+            && self.ambient_c.is_some() == other.ambient_c.is_some()
+            && same_bits(&values(self), &values(other))
+    }
 }
 
 /// What a column holds.
@@ -1728,22 +1747,22 @@ fn missing(rec: &csv::StringRecord, col: usize) -> bool {
 }
 
 /// Fills the temperatures a sensor left out (NaN) with the reading's before (those before the first read
-/// with it), as a cell's temperature moves slowly; with none read at all, with the record's ambient. The
-/// note says how many and where, or None when none was left out.
-fn fill_missing(d: &mut Discharge, line_of: &[u64], column: &str) -> Option<String> {
-    let ambient_k = d.ambient_k;
-    let temps = d.temperature_k.as_mut()?;
+/// with it), as a cell's temperature moves slowly, and says how many and where (None when none was left
+/// out). A record with none read at all is refused: a temperature column promises measured ones (a model's
+/// thermal cause runs on them), and the ambient would pass for one.
+fn fill_missing(d: &mut Discharge, line_of: &[u64], column: &str) -> Result<Option<String>, DoctorError> {
+    let Some(temps) = d.temperature_k.as_mut() else { return Ok(None) };
     let left: Vec<usize> = (0..temps.len()).filter(|&k| !temps[k].is_finite()).collect();
-    let first = *left.first()?;
+    let Some(&first) = left.first() else { return Ok(None) };
     let place = format!("{}, line {}", d.source.display(), line_of[first]);
     let Some(known) = temps.iter().copied().find(|t| t.is_finite()) else {
-        temps.iter_mut().for_each(|t| *t = ambient_k);
-        return Some(format!(
-            "{place}: field `{column}` is empty on all {} readings (a sensor that dropped out): each read as the \
-             ambient, {:.1} deg C",
-            left.len(),
-            ambient_k - CELSIUS_TO_KELVIN
-        ));
+        return Err(DoctorError::MissingValues {
+            why: format!(
+                "{place}: field `{column}` is empty on all {} readings (a sensor that dropped out); give the \
+                 record without the column, or with its temperatures",
+                left.len()
+            ),
+        });
     };
     let mut last = known;
     for t in temps.iter_mut() {
@@ -1753,12 +1772,17 @@ fn fill_missing(d: &mut Discharge, line_of: &[u64], column: &str) -> Option<Stri
             *t = last;
         }
     }
-    Some(format!(
+    Ok(Some(format!(
         "{place}: field `{column}` is empty on {} of {} readings from here (a sensor that dropped out): each read \
          as the reading's before",
         left.len(),
         temps.len()
-    ))
+    )))
+}
+
+/// Equal bit for bit (a NaN equals a NaN: a value left empty twice is the same reading twice).
+fn same_bits(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
 }
 
 fn check_time(times: &[f64], time_s: f64, path: &Path, line: u64) -> Result<(), DoctorError> {

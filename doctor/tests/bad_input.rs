@@ -435,7 +435,7 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
 
 /// A temperature sensor that drops out leaves fields empty or NaN: the readers fill each with the reading's
 /// before (a cell's temperature moves slowly) and say how many and where, in a NASA folder and a general
-/// CSV; with none read at all, the ambient; the strict reader refuses such a record. Before, one empty
+/// CSV; a record with none read at all is refused, said; the strict reader refuses any. Before, one empty
 /// field refused the whole record.
 #[test]
 fn a_temperature_sensor_that_drops_out_is_filled_and_said() {
@@ -468,16 +468,29 @@ fn a_temperature_sensor_that_drops_out_is_filled_and_said() {
     assert!(note.contains("00002.csv, line 12") && note.contains("6 of 60"), "{note}");
     let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
     assert!(err.contains("line 12") && err.contains("empty"), "{err}");
-    // None read at all: the ambient (the metadata's 24 deg C), said.
+    // A reading written twice with its temperature left empty is still the same reading, read once; the
+    // voltage's NaN is still refused.
+    let twice: String = (0..60)
+        .map(|k| match k {
+            10 => row(10, ""),
+            11 => row(10, "") + &row(11, "24.5"),
+            _ => row(k, "24.5"),
+        })
+        .collect();
+    write(&dir.path().join("data/00002.csv"), &format!("{header}{twice}"));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].len(), 60);
+    assert!(report.notes.iter().any(|n| n.contains("read once")), "{:?}", report.notes);
+    let nan_v: String =
+        (0..60).map(|k| if k == 5 { "nan,-2,24.5,-2.0,3.0,50\n".into() } else { row(k, "24.5") }).collect();
+    write(&dir.path().join("data/00002.csv"), &format!("{header}{nan_v}"));
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("Voltage_measured") && err.contains("nan"), "{err}");
+    // None read at all: refused, said (a temperature column promises measured ones).
     let blank: String = (0..60).map(|k| row(k, "")).collect();
     write(&dir.path().join("data/00002.csv"), &format!("{header}{blank}"));
-    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
-    assert!(records[0].temperature_k.as_ref().unwrap().iter().all(|t| (t - 297.15).abs() < 1e-9));
-    assert!(
-        report.notes.iter().any(|n| n.contains("all 60 readings") && n.contains("24.0 deg C")),
-        "{:?}",
-        report.notes
-    );
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("empty on all 60 readings"), "{err}");
     // The general CSV: the same.
     let csv = dir.path().join("cell.csv");
     let rows: String = (0..30)
