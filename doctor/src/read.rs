@@ -354,27 +354,32 @@ fn nasa_folder(
     // (test_id, filename, ambient_c, capacity_ah, start, metadata line) of the cell's discharges.
     let mut rows = Vec::new();
     let mut bad_starts = Vec::new();
-    for rec in rdr.records() {
-        let rec = rec.map_err(|e| csv_error(&meta_path, e, &mut lines))?;
+    // A metadata file the logger stopped writing (a half row at its end) is read up to it, as a data file is.
+    let meta_read = read_rows(&meta_path, &mut rdr, &mut lines, 1, |rec, line| {
         if rec.get(c_type) != Some("discharge") || rec.get(c_cell) != Some(cell) {
-            continue;
+            return Ok(Taken::Kept);
         }
-        let line = lines.of(&rec);
-        let test_id = number(&rec, c_test, "test_id", &meta_path, line)?;
-        let ambient_c = number(&rec, c_amb, "ambient_temperature", &meta_path, line)?;
+        let test_id = number(rec, c_test, "test_id", &meta_path, line)?;
+        let ambient_c = number(rec, c_amb, "ambient_temperature", &meta_path, line)?;
         let capacity_ah =
             rec.get(c_cap).and_then(|s| s.trim().parse::<f64>().ok()).filter(|c| c.is_finite() && *c > 0.0);
         let file = rec.get(c_file).unwrap_or("");
         // A bare file name in `data/`: a path (`../x`, `/etc/x`, `sub/x`) would read outside the folder.
         let mut parts = Path::new(file).components();
         if !matches!((parts.next(), parts.next()), (Some(std::path::Component::Normal(_)), None)) {
-            return Err(DoctorError::NotAFileName { path: meta_path, line, value: shown(file, 80) });
+            return Err(DoctorError::NotAFileName { path: meta_path.clone(), line, value: shown(file, 80) });
         }
         let start_s = c_start.and_then(|c| rec.get(c)).and_then(parse_matlab_datevec);
         if let (Some(c), None) = (c_start, start_s) {
             bad_starts.push(format!("line {line}: `{}`", shown(rec.get(c).unwrap_or(""), 40)));
         }
         rows.push((test_id, file.to_string(), ambient_c, capacity_ah, start_s));
+        Ok(Taken::Kept)
+    })?;
+    if strict {
+        if let Some(damage) = meta_read.damaged_end {
+            return Err(damage.error);
+        }
     }
     if rows.is_empty() {
         return Err(DoctorError::NothingSelected {
@@ -383,6 +388,7 @@ fn nasa_folder(
     }
     rows.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut report = ReadReport { format: if strict { "" } else { "nasa" }, ..ReadReport::default() };
+    report.notes.extend(meta_read.notes());
     if !bad_starts.is_empty() {
         report.notes.push(format!(
             "{}: field `start_time` is not a date vector [Y M D h m s] on {} of the cell's discharge rows (first: {}); \
@@ -504,7 +510,7 @@ fn nasa_record(
     let mut d = empty(cell, cycle, path, ambient_k, true);
     let temps = d.temperature_k.as_mut().expect("allocated");
     let mut line_of = Vec::new();
-    let mut rows = read_rows(path, &mut rdr, &mut lines, |rec, line| {
+    let mut rows = read_rows(path, &mut rdr, &mut lines, MIN_SAMPLES, |rec, line| {
         let time_s = number(rec, cs, "Time", path, line)?;
         let voltage_v = number(rec, cv, "Voltage_measured", path, line)?;
         // As measured for now; the sign is decided on the whole record below.
@@ -812,7 +818,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     let cols = Columns::find(&headers, path)?;
     let mut groups: BTreeMap<u32, Vec<Row>> = BTreeMap::new();
     let mut line_of: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
-    let rows_read = read_rows(path, &mut rdr, &mut lines, |rec, line| {
+    let rows_read = read_rows(path, &mut rdr, &mut lines, MIN_SAMPLES, |rec, line| {
         let cycle = match &cols.cycle {
             Some(c) => {
                 let v = number(rec, c.index, &c.header, path, line)?;
@@ -1684,12 +1690,13 @@ impl RowsRead {
 /// A logger that stops mid-write (power lost, a crash) leaves a damaged end: a half line, NUL padding, a last
 /// line cut short. Where nothing after the first bad record is more data (see below), the file is read up to
 /// it and the damage returned for the caller to say; a bad record that data follows fails the read naming
-/// it, as does a damaged end with fewer than [`MIN_SAMPLES`] records before it. Readings written again
+/// it, as does a damaged end with fewer than `min_kept` records before it. Readings written again
 /// (a buffer written twice) are read once wherever they are.
 fn read_rows(
     path: &Path,
     rdr: &mut csv::Reader<&[u8]>,
     lines: &mut Lines,
+    min_kept: usize,
     mut read: impl FnMut(&csv::StringRecord, u64) -> Result<Taken, DoctorError>,
 ) -> Result<RowsRead, DoctorError> {
     let mut out = RowsRead::default();
@@ -1731,7 +1738,7 @@ fn read_rows(
             }
         }
         let cut_line = left_out == 1 && !lines.bytes.ends_with(b"\n") && !lines.bytes.ends_with(b"\r");
-        if kept < MIN_SAMPLES || !(unparsed(&error) || cut_line) {
+        if kept < min_kept || !(unparsed(&error) || cut_line) {
             return Err(error);
         }
         out.damaged_end = Some(DamagedEnd { error, records: left_out });

@@ -409,6 +409,18 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
     write(&path, &(ahead.join("\n") + "\n"));
     let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
     assert!(err.contains("line 23") && err.contains("previous 5000"), "{err}");
+    // The metadata a logger stopped writing (half a row at its end): read up to it, said; the strict reader
+    // refuses it.
+    write(&path, &whole);
+    let meta = dir.path().join("metadata.csv");
+    let mut text = std::fs::read_to_string(&meta).unwrap();
+    text.push_str("discharge,[2008 4 3 15 25 41],24,B0005,3,3,000");
+    write(&meta, &text);
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!(records.len(), 1);
+    assert!(report.notes.iter().any(|n| n.contains("metadata.csv") && n.contains("line 3")), "{:?}", report.notes);
+    assert!(read_nasa(dir.path(), "B0005", None).unwrap_err().to_string().contains("metadata.csv"));
+    write(&meta, &text[..text.rfind("discharge").unwrap()]);
     // Damage that good readings follow is not an end: the record is refused, named.
     let middle: Vec<&str> = whole.lines().collect();
     write(&path, &format!("{}\n3.9,-2.0,24\n{}\n", middle[..21].join("\n"), middle[21..].join("\n")));
