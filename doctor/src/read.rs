@@ -1675,8 +1675,8 @@ impl RowsRead {
                 out.push(format!("{error}: read up to them, as a record cut short"));
             }
             Some(DamagedEnd { error, records }) => out.push(format!(
-                "read up to a damaged end, as a record cut short (a logger that stopped mid-write leaves one; {} \
-                 record{} from it to the file's end left out): {error}",
+                "read up to a damaged end (a logger that stopped mid-write leaves one; {} record{} from it to the \
+                 file's end left out; a discharge so read is a record cut short): {error}",
                 records,
                 plural(*records)
             )),
