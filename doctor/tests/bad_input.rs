@@ -167,6 +167,18 @@ fn truncated_records_are_flagged_and_kept_out_of_the_fits() {
     assert!(full.capacity_ah.is_some_and(|c| c > 0.5), "{full:?}");
 }
 
+/// A NASA folder whose metadata names one B0005 discharge, `data/00002.csv` (not written).
+fn one_record_folder() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("data")).unwrap();
+    write(
+        &dir.path().join("metadata.csv"),
+        "type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n\
+         discharge,[2008 4 2 15 25 41],24,B0005,1,2,00002.csv,1.85,,\n",
+    );
+    dir
+}
+
 /// Four synthetic discharges of one cell (rest, constant load to 3.0 V, relaxation).
 fn four_cycles(seed: u64) -> Vec<bcal_doctor::Discharge> {
     let mut rng = StdRng::seed_from_u64(seed);
@@ -340,13 +352,7 @@ fn a_glitch_in_a_generic_csv_discharge_is_refused_naming_its_line() {
 #[test]
 fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
     use bcal_doctor::read::{read_csv, read_nasa_with, ReadOptions};
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::create_dir(dir.path().join("data")).unwrap();
-    write(
-        &dir.path().join("metadata.csv"),
-        "type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n\
-         discharge,[2008 4 2 15 25 41],24,B0005,1,2,00002.csv,1.85,,\n",
-    );
+    let dir = one_record_folder();
     // The first 40 of 60 readings (header on line 1): the logger stopped under load at line 41.
     let whole = nasa_record(60);
     let written: String = whole.lines().take(41).map(|l| format!("{l}\n")).collect();
@@ -452,13 +458,7 @@ fn a_crashed_loggers_damaged_end_is_read_up_to_it_and_said() {
 #[test]
 fn a_temperature_sensor_that_drops_out_is_filled_and_said() {
     use bcal_doctor::read::{read_csv, read_nasa_with, ReadOptions};
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::create_dir(dir.path().join("data")).unwrap();
-    write(
-        &dir.path().join("metadata.csv"),
-        "type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n\
-         discharge,[2008 4 2 15 25 41],24,B0005,1,2,00002.csv,1.85,,\n",
-    );
+    let dir = one_record_folder();
     // Rows 10-15 (lines 12-17) without a temperature, one of them NaN; the cell warms 0.1 deg C a reading.
     let row = |k: usize, t: &str| {
         let i = if k == 0 || k + 3 >= 60 { -0.001 } else { -2.0 };
