@@ -938,15 +938,13 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             d.ambient_k =
                 CELSIUS_TO_KELVIN + opts.ambient_c.or(rows[0].ambient_c).or(first_c).unwrap_or(DEFAULT_AMBIENT_C);
             let header = cols.temperature.as_ref().map_or("", |c| c.header.as_str());
-            let mut filled = None;
-            let checked = fill_missing(&mut d, lines, header)
-                .and_then(|note| {
-                    filled = note;
-                    validate(d)
-                })
-                .and_then(|d| glitch(&d, lines, flip).map(|()| d));
-            match checked.and_then(|d| plausible_charge(d, &cols.time.header)) {
-                Ok(d) => {
+            let checked = fill_missing(&mut d, lines, header).and_then(|filled| {
+                let d = validate(d)?;
+                glitch(&d, lines, flip)?;
+                Ok((plausible_charge(d, &cols.time.header)?, filled))
+            });
+            match checked {
+                Ok((d, filled)) => {
                     report.notes.extend(filled);
                     report.notes.extend(gap_note(&d, opts.gap_factor));
                     report.starts.push(RecordStart { cycle: number, start_s: t0 });

@@ -375,18 +375,16 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     // A CSV is read whole at each read, and a folder's metadata notes come with each: each said once, and
     // what was not read only where it lies within the cycles asked for.
     let within = |u: &Unread| u.cycle.is_none_or(|c| train_range.contains(&c) || judged_range.contains(&c));
-    let mut unread: Vec<String> = Vec::new();
-    for u in said.unread.into_iter().filter(within) {
-        if !unread.contains(&u.why) {
-            unread.push(u.why);
-        }
-    }
-    let mut noted: Vec<String> = Vec::new();
-    for note in said.notes {
-        if !noted.contains(&note) {
-            noted.push(note);
-        }
-    }
+    let once = |lines: Vec<String>| {
+        lines.into_iter().fold(Vec::new(), |mut out: Vec<String>, l| {
+            if !out.contains(&l) {
+                out.push(l);
+            }
+            out
+        })
+    };
+    let unread = once(said.unread.into_iter().filter(within).map(|u| u.why).collect());
+    let noted = once(said.notes);
     if train.is_empty() && judged.is_empty() {
         bail!(
             "{cell}: no discharge read from {} in cycles {} or {} (the reader's lines above say what was missing \
