@@ -19,7 +19,9 @@ same window would settle on. The settings were fixed before any figure was seen.
 
 `--against stated` puts the capacity the source states (`calibration.json`'s records.capacity_refs) where
 the data's charge stands, in what the learner sees and in its score: the two references differ where the
-source states the charge to another voltage than the cut-off (NASA: to 2.6-2.7 V on every cell).
+source states the charge to another voltage than the cut-off (NASA: to 2.6-2.7 V on every cell), and there,
+as `bcal calibrate` scores it since 2026-11-30, a prediction counts less the charge the discharges before it
+drew below that voltage (`stated_tail_ah`).
 
 Printed per run and quantity, over the discharges after the first `--min-pairs` + 1 (the record only):
 the method as delivered; recentred (the median of its last 10 signed errors taken off, the rule
@@ -201,10 +203,14 @@ def main():
             if refs is None:
                 raise SystemExit(f"{report}: no records.capacity_refs (a report of a bcal older than --against "
                                  "stated; run bcal calibrate again)")
-            # As `bcal calibrate` scores it: a discharge whose source states no capacity has none to score.
-            stated = {r["cycle"]: r["stated_ah"] for r in refs if (r.get("stated_ah") or 0.0) > 0.0}
+            # As `bcal calibrate` scores it: a discharge whose source states no capacity has none to score, and
+            # one stated to a voltage above the cut-off is scored less the tail below it (`stated_tail_ah`).
+            stated = {r["cycle"]: r["stated_ah"] + (r.get("stated_tail_ah") or 0.0) for r in refs
+                      if (r.get("stated_ah") or 0.0) > 0.0}
             # How the two references stand apart on the judged discharges, beside what the training ones showed.
             gaps = sorted(r["stated_ah"] - r["data_ah"] for r in refs
+                          if r["cycle"] in stated and r.get("data_ah") is not None and not r.get("partial_start"))
+            tailed = sorted(stated[r["cycle"]] - r["data_ah"] for r in refs
                           if r["cycle"] in stated and r.get("data_ah") is not None and not r.get("partial_start"))
             if gaps:
                 mean = sum(gaps) / len(gaps)
@@ -212,7 +218,9 @@ def main():
                 trained = (j["records"].get("stated_capacity") or {}).get("cutoff_median_gap_ah")
                 print(f"{run.name}: the stated capacity less the data's charge to the cut-off on {len(gaps)} judged "
                       f"discharges: median {median(gaps):+.4f} Ah, sd {sd:.4f}" +
-                      ("" if trained is None else f"; on the training discharges median {trained:+.4f} Ah"))
+                      ("" if trained is None else f"; on the training discharges median {trained:+.4f} Ah") +
+                      (f"; with the tail below the stated voltage added, median {median(tailed):+.4f} Ah"
+                       if tailed != gaps else ""))
         scored = ({}, {})
         for f in sorted((run / "readings" / a.method).glob("*.csv")):
             cycle = int(f.stem.rsplit("-", 1)[1])

@@ -86,12 +86,12 @@ def test_previous_discharge_signal_recovers_the_slope_it_was_made_with(tmp_path)
     assert carried > 0.2, out
 
 
-def record_room_run(tmp_path, stated_offset_ah=None):
+def record_room_run(tmp_path, stated_offset_ah=None, stated_tail_ah=None):
     """A hand-made `bcal calibrate --out` folder of 200 judged discharges for record_room.py: each discharge's
     capacity error at 50 % is -0.8 times the last one plus a fresh part (what a prior that carries one
     discharge's noise into the next gives), and every end comes 0.5 % late. With `stated_offset_ah` its
     report carries each discharge's capacity references (records.capacity_refs), the stated capacity that
-    much above the data's charge."""
+    much above the data's charge, and with `stated_tail_ah` the tail below the stated voltage each is scored less."""
     import json
     import random
 
@@ -107,7 +107,7 @@ def record_room_run(tmp_path, stated_offset_ah=None):
     records = {"partial_start": []}
     if stated_offset_ah is not None:
         records["capacity_refs"] = [{"cycle": c, "stated_ah": drawn_ah + stated_offset_ah, "data_ah": drawn_ah,
-                                     "partial_start": False} for c in judged]
+                                     "partial_start": False, "stated_tail_ah": stated_tail_ah} for c in judged]
     (run / "calibration.json").write_text(json.dumps({"cutoff_v": 2.5, "records": records, "settings": {
         "prior": {"judged": [{"cycle": c, "rest_before_s": 14000.0} for c in judged],
                   "width": {"usual_rest_s": 14000.0}}}}))
@@ -156,6 +156,13 @@ def test_record_room_against_the_stated_capacity(tmp_path):
     _, stated = capacity_figures(out)
     assert stated["delivered"] > 0.06 > 2.0 * data["delivered"], (out, data)
     assert stated["learner"] < 0.9 * data["delivered"] and stated["recentred"] < 0.5 * stated["delivered"], out
+    # Stated to a voltage above the cut-off (0.04 Ah below the data's charge) and scored, as bcal calibrate
+    # scores it, less the tail below that voltage: the errors are the data's again.
+    tailed = record_room_run(tmp_path / "tailed", stated_offset_ah=-0.04, stated_tail_ah=0.04)
+    out = run_example("record_room.py", "--against", "stated", str(tailed))
+    _, figure = capacity_figures(out)
+    assert abs(figure["delivered"] - data["delivered"]) < 1e-4, (out, data)
+    assert "with the tail below the stated voltage added, median +0.0000 Ah" in out, out
     bare = record_room_run(tmp_path / "bare")
     fail = subprocess.run([sys.executable, str(REPO / "examples" / "record_room.py"), "--against", "stated", str(bare)],
                           capture_output=True, text=True, timeout=300)

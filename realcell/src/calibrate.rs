@@ -508,15 +508,21 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     summary.partial_start = judged.iter().filter(|r| r.partial_start).map(|r| r.cycle).collect();
     summary.unread = input.unread.clone();
     summary.noted = input.noted.clone();
-    // What the stated capacity measures, read before any discharge is judged (it names a definition, it
-    // moves no prediction).
+    // What the stated capacity measures, read before any discharge is judged (it names a definition), and
+    // the charge below that voltage each discharge's capacity is taken down by before it is scored against it.
     summary.stated_capacity = crate::record::stated_capacity(&train, cut);
+    crate::record::set_stated_tails(train.iter_mut().chain(judged.iter_mut()), summary.stated_capacity.as_ref(), cut);
     if let Some(sc) = summary.stated_capacity.as_ref().filter(|sc| sc.differs_from_cutoff(cut)) {
         progress(&format!(
             "the stated capacities are the charge to about {:.1} V (median gap {:+.3} Ah over {} training records), not \
-             to the {cut} V cut-off ({:+.3} Ah): capacity errors against them carry that difference, against the \
-             data's charge they do not",
-            sc.voltage_v, sc.median_gap_ah, sc.records, sc.cutoff_median_gap_ah
+             to the {cut} V cut-off ({:+.3} Ah): capacities are scored against them less the charge the last {} \
+             discharges drew below {:.1} V",
+            sc.voltage_v,
+            sc.median_gap_ah,
+            sc.records,
+            sc.cutoff_median_gap_ah,
+            crate::record::STATED_TAIL_WINDOW,
+            sc.voltage_v
         ));
     }
     if judged.is_empty() {
@@ -544,6 +550,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             stated_ah: r.stated_capacity_ah,
             data_ah: r.data_capacity_ah,
             partial_start: r.partial_start,
+            stated_tail_ah: r.stated_tail_ah,
         })
         .collect();
     progress(&format!(

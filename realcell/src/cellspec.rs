@@ -151,6 +151,7 @@ mod tests {
                 rest_before_s: None,
                 current_before_a: None,
                 partial_start: false,
+                stated_tail_ah: None,
                 samples,
             }
         };

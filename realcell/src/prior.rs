@@ -195,6 +195,7 @@ mod tests {
             rest_before_s: rest_s,
             current_before_a: None,
             partial_start: false,
+            stated_tail_ah: None,
             samples: Vec::new(),
         }
     }

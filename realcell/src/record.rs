@@ -46,6 +46,10 @@ pub struct CellRecord {
     /// among them: for the scores only). The charge it delivered is not the cell's capacity, so its
     /// capacity is not scored; its end of discharge is.
     pub partial_start: bool,
+    /// The charge the discharges before it drew between the voltage the source's stated capacity is drawn to
+    /// and the cut-off, Ah ([`set_stated_tails`]; None where the stated capacity is the charge to the cut-off):
+    /// what a capacity predicted to the cut-off holds beyond the stated one.
+    pub stated_tail_ah: Option<f64>,
 }
 
 /// Sets each record's [`CellRecord::current_before_a`] from the one before it in `records` (in order: every
@@ -187,6 +191,7 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
         rest_before_s: None,
         current_before_a: None,
         partial_start: false,
+        stated_tail_ah: None,
         samples,
     })
 }
@@ -222,6 +227,9 @@ pub struct CapacityRefs {
     pub stated_ah: Option<f64>,
     /// The data's charge to the interpolated cut-off, Ah ([`CellRecord::data_capacity_ah`]).
     pub data_ah: Option<f64>,
+    /// What a capacity predicted to the cut-off is taken down by before it is scored against `stated_ah`, Ah
+    /// ([`CellRecord::stated_tail_ah`]).
+    pub stated_tail_ah: Option<f64>,
     /// Started from a partial charge: its capacity is not scored.
     pub partial_start: bool,
 }
@@ -298,6 +306,41 @@ pub fn stated_capacity(records: &[CellRecord], cutoff_v: f64) -> Option<StatedCa
     })
 }
 
+/// Discharges a stated-capacity tail is the median over ([`set_stated_tails`]): the latest, as the model's knee
+/// is taken ([`crate::run::KNEE_WINDOW`]); the tail grows as the cell ages and sags more under load.
+pub const STATED_TAIL_WINDOW: usize = crate::run::KNEE_WINDOW;
+
+/// Sets each record's [`CellRecord::stated_tail_ah`] where the source states its capacity to another voltage
+/// than the cut-off (`stated`, [`StatedCapacity::differs_from_cutoff`]): the median, over the last
+/// [`STATED_TAIL_WINDOW`] records before it (in order, training and judged) that reach the cut-off from a full
+/// charge, of the charge each drew between that voltage and the cut-off. A capacity predicted to the cut-off
+/// less that tail is a prediction of the quantity the source states (NASA's metadata: the charge to about 2.7
+/// V, whatever the cut-off), from what the discharges before it measured, no look-ahead. Before any such
+/// record, the training records' median (the stated capacity's two gaps) stands in.
+pub fn set_stated_tails<'r>(
+    records: impl IntoIterator<Item = &'r mut CellRecord>,
+    stated: Option<&StatedCapacity>,
+    cutoff_v: f64,
+) {
+    let Some(sc) = stated.filter(|sc| sc.differs_from_cutoff(cutoff_v)) else {
+        for r in records {
+            r.stated_tail_ah = None;
+        }
+        return;
+    };
+    let mut tails: Vec<f64> = Vec::new();
+    for r in records {
+        let mut last: Vec<f64> = tails[tails.len().saturating_sub(STATED_TAIL_WINDOW)..].to_vec();
+        r.stated_tail_ah = bcal_common::stats::median(&mut last).or(Some(sc.median_gap_ah - sc.cutoff_median_gap_ah));
+        if r.partial_start {
+            continue;
+        }
+        if let (Some(to_cutoff), Some(to_stated)) = (r.data_capacity_ah, r.charge_to_v_ah(sc.voltage_v)) {
+            tails.push(to_cutoff - to_stated);
+        }
+    }
+}
+
 /// Test records: a discharge of 100 readings, 1 s apart, at 2 A from t = 0 to the cut-off at 100 s, and one
 /// calibrator's run on it with the given end-of-discharge and capacity predictions at every reading.
 #[cfg(test)]
@@ -340,6 +383,7 @@ pub(crate) fn test_discharge(
         rest_before_s: None,
         current_before_a: None,
         partial_start: false,
+        stated_tail_ah: None,
         samples,
     };
     (record, crate::run::CycleRun { cycle, steps })
@@ -462,5 +506,34 @@ mod tests {
             r.partial_start = true;
         }
         assert_eq!(stated_capacity(&partial, 2.5), None);
+    }
+
+    #[test]
+    fn each_capacity_is_taken_down_by_the_tail_the_discharges_before_it_drew_below_the_stated_voltage() {
+        // Stated to 2.7 V, cut off at 2.5 V, on a cell that falls ever faster (its tail shrinks).
+        let at_2_7 = |stretch: f64| linear(stretch, linear(stretch, 0.0).charge_to_v_ah(2.7).unwrap());
+        let stretches = [1.4, 1.3, 1.2, 1.1, 1.0, 0.9];
+        let mut records: Vec<CellRecord> = stretches.iter().map(|&x| at_2_7(x)).collect();
+        let tail = |r: &CellRecord| r.data_capacity_ah.unwrap() - r.charge_to_v_ah(2.7).unwrap();
+        let tails: Vec<f64> = records.iter().map(tail).collect();
+        let sc = stated_capacity(&records[..3], 2.5).expect("three records state a capacity");
+        records[4].partial_start = true;
+        set_stated_tails(records.iter_mut(), Some(&sc), 2.5);
+        // The first has none before it: the training records' median gap stands in.
+        let first = records[0].stated_tail_ah.unwrap();
+        assert!((first - (sc.median_gap_ah - sc.cutoff_median_gap_ah)).abs() < 1e-12, "{first}");
+        // Then the median of the last three before it (never its own), a partial start left out.
+        assert!((records[1].stated_tail_ah.unwrap() - tails[0]).abs() < 1e-12);
+        assert!((records[3].stated_tail_ah.unwrap() - tails[1]).abs() < 1e-12, "median of 0, 1, 2");
+        assert!((records[4].stated_tail_ah.unwrap() - tails[2]).abs() < 1e-12, "median of 1, 2, 3");
+        assert!((records[5].stated_tail_ah.unwrap() - tails[2]).abs() < 1e-12, "4 was a partial start");
+        // The capacity to the cut-off less the tail is the stated one, up to how the tail moved since.
+        let r = &records[1];
+        let off = r.data_capacity_ah.unwrap() - r.stated_tail_ah.unwrap() - r.stated_capacity_ah.unwrap();
+        assert!(off.abs() < (tails[0] - tails[1]).abs() + 1e-12 && tails[0] > tails[1], "{off}");
+        // Stated to the cut-off: no tail anywhere.
+        let own = StatedCapacity { voltage_v: 2.5, median_gap_ah: 0.0, cutoff_median_gap_ah: 0.0, records: 3 };
+        set_stated_tails(records.iter_mut(), Some(&own), 2.5);
+        assert!(records.iter().all(|r| r.stated_tail_ah.is_none()));
     }
 }

@@ -92,6 +92,7 @@ mod tests {
             rest_before_s: None,
             current_before_a: None,
             partial_start: false,
+            stated_tail_ah: None,
             samples,
         };
         let prior = Degradation { q_mobile_c: 6000.0, r_o_ohm: 0.1 };

@@ -134,9 +134,16 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
         let _ = writeln!(
             s,
             "- the stated capacity is the data's charge to about {:.1} V (median gap {:+.3} Ah over {} training \
-             records), not to the {} V cut-off the capacities are predicted to ({:+.3} Ah): errors against it carry \
-             that difference, errors against the data's charge (in brackets) do not",
-            sc.voltage_v, sc.median_gap_ah, sc.records, r.cutoff_v, sc.cutoff_median_gap_ah
+             records), not to the {} V cut-off the capacities are predicted to ({:+.3} Ah): against it each \
+             capacity is scored less the charge the last {} discharges before it drew below {:.1} V \
+             (`records.capacity_refs`, `stated_tail_ah`); against the data's charge (in brackets) as predicted",
+            sc.voltage_v,
+            sc.median_gap_ah,
+            sc.records,
+            r.cutoff_v,
+            sc.cutoff_median_gap_ah,
+            crate::record::STATED_TAIL_WINDOW,
+            sc.voltage_v
         );
     }
     let _ = writeln!(s, "## Capacity (RMSE against the stated capacity, Ah; against the data's charge in brackets)\n");
@@ -206,8 +213,8 @@ pub fn reading(r: &CalibrationReport) -> Vec<String> {
     let mut out = Vec::new();
     let cap50 = |k: &str| r.methods.get(k).and_then(|m| m.capacity_rmse_ah.get("50").copied());
     let cap50_data = |k: &str| r.methods.get(k).and_then(|m| m.capacity_rmse_ah_vs_data.get("50").copied());
-    // Where the stated capacity is drawn to another voltage than the cut-off, the data's charge is the figure
-    // a calibrator answers for.
+    // Where the stated capacity is drawn to another voltage than the cut-off, the capacity is scored against it
+    // less the tail below that voltage, and the data's charge is said beside it.
     let stated_elsewhere = r.records.stated_capacity.as_ref().filter(|sc| sc.differs_from_cutoff(r.cutoff_v));
     let eod50 = |k: &str| r.methods.get(k).and_then(|m| m.eod_error_pct.get("50").copied());
     let met = |x: f64| if x <= TARGET_CAPACITY_RMSE_AH { "met" } else { "missed" };
@@ -227,7 +234,7 @@ pub fn reading(r: &CalibrationReport) -> Vec<String> {
             let data = match (stated_elsewhere, cap50_data(key)) {
                 (Some(sc), Some(d)) => format!(
                     "; against the data's charge to the cut-off {d:.3} Ah, target {} there (the stated capacity is the \
-                     charge to {:.1} V)",
+                     charge to {:.1} V, scored less the tail below it)",
                     met(d),
                     sc.voltage_v
                 ),

@@ -164,9 +164,11 @@ fn score_flat(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
                 after.cycles.push(r.cycle);
             }
             if let Some(m) = r.stated_capacity_ah.filter(|c| *c > 0.0) {
-                stated.push((v, m));
+                // The capacity to the voltage the source states it to, where that is not the cut-off.
+                let to_stated = v - r.stated_tail_ah.unwrap_or(0.0);
+                stated.push((to_stated, m));
                 if long_rest {
-                    after_stated.push((v, m));
+                    after_stated.push((to_stated, m));
                 }
             }
             if let Some(m) = r.data_capacity_ah {
@@ -252,6 +254,7 @@ mod tests {
             rest_before_s: Some(2.0 * 86_400.0),
             current_before_a: None,
             partial_start: false,
+            stated_tail_ah: None,
         };
         // Predicts an end 50 s late with an interval of +-100 s and a capacity of 1.2 Ah within [1.1, 1.3].
         let s_run = |r: &CellRecord| CycleRun {
@@ -298,5 +301,13 @@ mod tests {
         assert_eq!((both.capacity["50"].n, both.capacity_vs_data["50"].n), (1, 1));
         assert_eq!(both.eod_error_pct["50"].n, 2);
         assert_eq!(both.after_long_rest.as_ref().unwrap().cycles, vec![1]);
+        // Stated to a voltage above the cut-off: against the stated capacity the prediction counts less the
+        // tail below that voltage (1.2 - 0.15 Ah against 1.1 Ah stated), against the data's charge as it is.
+        let tailed = CellRecord { stated_tail_ah: Some(0.15), ..r.clone() };
+        let s = score(std::slice::from_ref(&tailed), &[s_run(&tailed)]);
+        assert!((s.capacity["50"].rmse - 0.05).abs() < 1e-12 && s.capacity["50"].bias < 0.0);
+        assert!((s.capacity_vs_data["50"].rmse - 0.2).abs() < 1e-12);
+        let after = s.after_long_rest.unwrap();
+        assert!((after.capacity_50.rmse - 0.05).abs() < 1e-12 && (after.capacity_50_vs_data.rmse - 0.2).abs() < 1e-12);
     }
 }

@@ -197,9 +197,14 @@ fn a_synthetic_life_is_calibrated_and_scored_against_its_known_capacity() {
     assert_eq!(r.records.capacity_refs.len(), cal.judged.len());
     for (refs, rec) in r.records.capacity_refs.iter().zip(&cal.judged) {
         assert_eq!(
-            (refs.cycle, refs.data_ah, refs.stated_ah),
-            (rec.cycle, rec.data_capacity_ah, rec.stated_capacity_ah)
+            (refs.cycle, refs.data_ah, refs.stated_ah, refs.stated_tail_ah),
+            (rec.cycle, rec.data_capacity_ah, rec.stated_capacity_ah, rec.stated_tail_ah)
         );
+        // Stated to 0.1 V above the cut-off: each is scored less the charge the discharges before it drew
+        // below that, about what the training records' two gaps differ by.
+        let tail = refs.stated_tail_ah.expect("a tail where the stated capacity is not the cut-off's");
+        let trained = sc.median_gap_ah - sc.cutoff_median_gap_ah;
+        assert!(tail > 0.0 && (tail - trained).abs() < 0.5 * trained, "{tail} against {trained}");
     }
     assert!(
         r.records.refused.iter().any(|why| why.contains("cycle 25") && why.contains("left out")),
