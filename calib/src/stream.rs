@@ -143,7 +143,7 @@ pub struct Reading {
     pub voltage_v: f64,
     /// Current, A, positive while discharging.
     pub current_a: f64,
-    /// Cell temperature, deg C (None: the stream's ambient).
+    /// Cell temperature, deg C (None: the last reading's, within half an hour; else the stream's ambient).
     #[serde(default)]
     pub temperature_c: Option<f64>,
 }
@@ -1117,7 +1117,15 @@ impl<'a> Stream<'a> {
             t_s: r.time_s,
             voltage_v: r.voltage_v,
             current_a: r.current_a,
-            temperature_k: r.temperature_c.map_or(self.ambient_k, |c| c + KELVIN_0C),
+            // A reading without a temperature takes the one before it (a cell's temperature moves slowly; the
+            // readers fill a record's the same way), the ambient where none came within half an hour.
+            temperature_k: r
+                .temperature_c
+                .map(|c| c + KELVIN_0C)
+                .or_else(|| {
+                    self.last_sample.filter(|p| r.time_s - p.t_s <= NEW_DISCHARGE_GAP_S).map(|p| p.temperature_k)
+                })
+                .unwrap_or(self.ambient_k),
             request: Request::Unknown,
         };
         let charging = r.current_a < -LOAD_THRESHOLD_A;
@@ -1748,6 +1756,37 @@ mod tests {
                 temperature_c: Some(s.temperature_k - KELVIN_0C),
             })
             .collect()
+    }
+
+    /// A reading without a temperature takes the last reading's, as the record readers fill one (a sensor that
+    /// drops out for a few readings is no jump to the ambient), and the ambient after half an hour without one.
+    #[test]
+    fn a_reading_without_a_temperature_takes_the_last_ones() {
+        let mut spec = MeasuredSpec::default();
+        // As a real cell's setting has it: the model runs at the measured temperature.
+        spec.tracker.use_measured_temperature = true;
+        let readings = episode();
+        let on = readings.iter().position(|r| r.current_a > LOADED_A).expect("a load");
+        let gap = on + 20..on + 30;
+        let run = |temps: &dyn Fn(usize, &Reading) -> Option<f64>, ambient_c: Option<f64>| {
+            let mut stream =
+                Stream::new(Box::new(JointUkf::new(spec.ukf_settings(), &spec.tracker)), &spec.tracker, ambient_c);
+            let mut out = Vec::new();
+            for (k, r) in readings.iter().enumerate() {
+                out.push(stream.step(&Reading { temperature_c: temps(k, r), ..*r }).expect("a plausible reading"));
+            }
+            // Then a reading an hour later, without a temperature.
+            let later =
+                Reading { time_s: readings.last().unwrap().time_s + 3600.0, temperature_c: None, ..readings[0] };
+            out.push(stream.step(&later).expect("a plausible reading"));
+            out.iter().map(|e| (e.q_mobile.to_bits(), e.r_o.to_bits())).collect::<Vec<_>>()
+        };
+        let held = readings[gap.start - 1].temperature_c;
+        let dropped = run(&|k, r| if gap.contains(&k) { None } else { r.temperature_c }, Some(5.0));
+        let filled = run(&|k, r| if gap.contains(&k) { held } else { r.temperature_c }, Some(5.0));
+        assert_eq!(dropped, filled, "the gap read at the reading before it, the hour later at the ambient");
+        let at_ambient = run(&|k, r| if gap.contains(&k) { Some(5.0) } else { r.temperature_c }, Some(5.0));
+        assert_ne!(dropped, at_ambient, "a cell at 5 C moves the estimate: the rule is seen");
     }
 
     /// A square wave read once per half-period (B0025's logger) is predicted at its mean current over time,

@@ -72,7 +72,10 @@ def test_run_on_a_dataframe_equals_stepping(discharge):
             assert got == want or (math.isnan(got) and math.isnan(want)), (f, got, want)
 
 
-def test_a_missing_temperature_is_the_ambient_as_in_the_cli(bcal_cli, discharge):
+def test_a_missing_temperature_is_read_as_in_the_cli(bcal_cli, discharge):
+    """A NaN temperature in a DataFrame and an empty CSV field on the CLI's stream are the same reading
+    without one (the last reading's temperature stands in, `stream::tests::a_reading_without_a_temperature_
+    takes_the_last_ones`), in `run` and in `step`."""
     gappy = discharge.copy()
     gappy.loc[3:9, "temperature_c"] = np.nan
     frame = make("ukf").run(gappy)
