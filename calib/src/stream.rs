@@ -54,7 +54,8 @@ use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{Request, Sample, KELVIN_0C};
 use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::measured::{
-    current_glitch, LoadMean, CURRENT_GLITCH_A, LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH,
+    current_glitch, LoadMean, CURRENT_GLITCH_A, GLITCH_RUN_READINGS, LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S,
+    MAX_RECORD_CHARGE_AH,
 };
 use bcal_common::policy::PolicyNet;
 use bcal_common::task::Task;
@@ -479,8 +480,9 @@ pub struct Stream<'a> {
     /// The last reading, as the calibrator took it: a discharge whose load comes on long after it was
     /// built starts again from the rest reading before the load ([`Stream::step`]).
     last_sample: Option<Sample>,
-    /// The current of the attempt just before, if it was refused as a glitch ([`current_glitch`]), A.
-    glitch_a: Option<f64>,
+    /// The current of the attempt just before, if it was refused as a glitch ([`current_glitch`]), A, and how
+    /// many attempts in a row were refused at that level.
+    glitch_a: Option<(f64, usize)>,
     /// Whether the current discharge began under load (after a gap in the readings): a piece of a
     /// discharge, whose start is unseen. It is neither scored nor measured nor end-fitted.
     joined_under_load: bool,
@@ -1090,14 +1092,16 @@ impl<'a> Stream<'a> {
         if let Some(previous_s) = self.last_t_s.filter(|p| r.time_s - *p > MAX_GAP_S) {
             return Err(ReadingError::TimeJump { time_s: r.time_s, previous_s });
         }
-        // Against the last reading taken, within a discharge's sampling: a lone spike is refused and the
-        // reading after it, back where the current was, meets no step. A reading at the level of the one just
-        // refused is taken (a step the voltage sample lagged: its first reading is lost, not the stream).
+        // Against the last reading taken, within a discharge's sampling: a spike of one or two readings is
+        // refused and the reading after it, back where the current was, meets no step. A step the voltage
+        // sample lagged meets a voltage that moved at its next reading. A level refused on
+        // GLITCH_RUN_READINGS attempts in a row is taken at the next (a load that stepped under a voltage
+        // sensor that never followed loses those readings, not the stream).
         if let Some(p) = self.last_sample.filter(|p| r.time_s - p.t_s <= NEW_DISCHARGE_GAP_S) {
             let moved_v = r.voltage_v - p.voltage_v;
-            let held = refused_a.is_some_and(|g| (r.current_a - g).abs() < CURRENT_GLITCH_A);
-            if !held && current_glitch(r.current_a - p.current_a, moved_v) {
-                self.glitch_a = Some(r.current_a);
+            let level = refused_a.filter(|(g, _)| (r.current_a - g).abs() < CURRENT_GLITCH_A).map_or(0, |(_, n)| n);
+            if level < GLITCH_RUN_READINGS && current_glitch(r.current_a - p.current_a, moved_v) {
+                self.glitch_a = Some((r.current_a, level + 1));
                 return Err(ReadingError::CurrentGlitch { current_a: r.current_a, previous_a: p.current_a, moved_v });
             }
         }
@@ -1840,11 +1844,12 @@ mod tests {
         assert_eq!(taken + refused, readings.len());
     }
 
-    /// A current step the voltage does not follow is refused once: the reading after it at the same level is
-    /// taken (a step whose voltage sample lagged), and after a gap of more than half an hour no step is
-    /// measured against the stale reading (a rest that resumes near the last loaded voltage).
+    /// A current step the voltage does not follow is refused, for up to two readings at its level (a spike
+    /// written twice); a step whose voltage sample lagged is taken at its next reading, and after a gap of
+    /// more than half an hour no step is measured against the stale reading (a rest that resumes near the
+    /// last loaded voltage).
     #[test]
-    fn a_current_step_the_voltage_does_not_follow_is_refused_once() {
+    fn a_current_step_the_voltage_does_not_follow_is_refused_for_two_readings() {
         let spec = TrackerSpec::default();
         let mut stream = Stream::new(Box::new(WindowFitCalibrator::new(&spec)), &spec, None);
         let at =
@@ -1854,9 +1859,24 @@ mod tests {
         }
         let e = stream.step(&at(50.0, 3.895, 8.0)).unwrap_err();
         assert!(matches!(e, ReadingError::CurrentGlitch { .. }), "{e}");
-        // Only the attempt right after it holds the level: after another refusal the step is refused again.
+        // A logger that wrote the bad value twice: the second is refused too, and the reading after, back at
+        // 2 A, meets no step.
+        assert!(matches!(stream.step(&at(51.0, 3.895, 8.0)), Err(ReadingError::CurrentGlitch { .. })));
+        stream.step(&at(52.0, 3.895, 2.0)).unwrap();
+        // A step of the load the voltage sample lags: its first reading is refused, the next, moved, taken.
+        assert!(matches!(stream.step(&at(53.0, 3.894, 8.0)), Err(ReadingError::CurrentGlitch { .. })));
+        stream.step(&at(54.0, 3.5, 8.0)).unwrap();
+        assert_eq!(stream.readings(), 7);
+        // A level the voltage never follows is taken at its third attempt in a row, and only in a row: after
+        // another refusal the count starts again.
+        let mut stream = Stream::new(Box::new(WindowFitCalibrator::new(&spec)), &spec, None);
+        for k in 0..5 {
+            stream.step(&at(10.0 * k as f64, 3.9 - 0.001 * k as f64, 2.0)).unwrap();
+        }
+        assert!(matches!(stream.step(&at(50.0, 3.895, 8.0)), Err(ReadingError::CurrentGlitch { .. })));
         assert!(stream.step(&at(55.0, f64::NAN, 8.0)).is_err());
         assert!(matches!(stream.step(&at(56.0, 3.895, 8.0)), Err(ReadingError::CurrentGlitch { .. })));
+        assert!(matches!(stream.step(&at(57.0, 3.895, 8.0)), Err(ReadingError::CurrentGlitch { .. })));
         stream.step(&at(60.0, 3.894, 8.0)).unwrap();
         stream.step(&at(70.0, 3.6, 8.0)).unwrap();
         // Two days later, at rest 5 mV above the last loaded reading: no step against it.

@@ -631,19 +631,27 @@ fn glitch(d: &Discharge, line_of: &[u64], sign: f64) -> Result<(), DoctorError> 
         return Err(DoctorError::VoltageGlitch { path: d.source.clone(), line: line_of[k], voltage_v: v[k] });
     }
     for k in first.max(1)..last.min(i.len() - 1) {
-        let off_a = i[k] - 0.5 * (i[k - 1] + i[k + 1]);
-        let moved_v = v[k] - 0.5 * (v[k - 1] + v[k + 1]);
-        // Both neighbours left: a step of the load that the voltage sample lags is not one.
-        let lone = (i[k - 1] - i[k + 1]).abs() < 0.2 * off_a.abs();
-        if lone && current_glitch(off_a, moved_v) {
-            return Err(DoctorError::CurrentGlitch {
-                path: d.source.clone(),
-                line: line_of[k],
-                current_a: sign * i[k],
-                before_a: sign * i[k - 1],
-                after_a: sign * i[k + 1],
-                moved_mv: 1e3 * moved_v.abs(),
+        // A glitch of one reading or of a few in a row, between neighbours that agree.
+        for n in 1..=bcal_common::measured::GLITCH_RUN_READINGS.min(i.len() - 1 - k) {
+            let (a, b) = (k - 1, k + n);
+            let off = |j: usize| (i[j] - 0.5 * (i[a] + i[b]), v[j] - 0.5 * (v[a] + v[b]));
+            let (off_a, moved_v) = off(k);
+            // Both neighbours left: a step of the load that the voltage sample lags is not one.
+            let lone = (i[a] - i[b]).abs() < 0.2 * off_a.abs();
+            let run = (k..b).all(|j| {
+                let (o, m) = off(j);
+                o * off_a > 0.0 && current_glitch(o, m)
             });
+            if lone && run {
+                return Err(DoctorError::CurrentGlitch {
+                    path: d.source.clone(),
+                    line: line_of[k],
+                    current_a: sign * i[k],
+                    before_a: sign * i[a],
+                    after_a: sign * i[b],
+                    moved_mv: 1e3 * moved_v.abs(),
+                });
+            }
         }
     }
     Ok(())

@@ -321,6 +321,22 @@ fn a_nasa_record_in_ma_or_ms_or_with_a_0_v_reading_is_refused_naming_it() {
     lines[51] = format!("{},-20.0,24.5,-2.0,3.0,500", 4.2 - 0.5 - 2.0);
     write(&rec, &(lines.join("\n") + "\n"));
     assert_eq!(read_nasa_record(&rec, "B0005", 1, 297.15).unwrap().current_a[50], 20.0);
+    // The same two readings in a row (a logger that wrote the value twice): the glitch is refused at its
+    // first line, the pulse is read.
+    let twice = |current_a: f64, drop_v: f64| {
+        let mut lines: Vec<String> = good.lines().map(str::to_string).collect();
+        for row in [51, 52] {
+            let mut f: Vec<String> = lines[row].split(',').map(str::to_string).collect();
+            f[0] = format!("{}", f[0].parse::<f64>().unwrap() - drop_v);
+            f[1] = format!("{current_a}");
+            lines[row] = f.join(",");
+        }
+        write(&rec, &(lines.join("\n") + "\n"));
+        read_nasa_record(&rec, "B0005", 1, 297.15)
+    };
+    let err = twice(-40.0, 0.0).unwrap_err();
+    assert!(matches!(err, DoctorError::CurrentGlitch { line: 52, .. }), "{err:?}");
+    assert_eq!(twice(-20.0, 2.0).unwrap().current_a[51], 20.0);
 }
 
 /// The general CSV reader refuses the same glitches in a discharge (a 0 V sample, a lone current spike the
@@ -342,6 +358,14 @@ fn a_glitch_in_a_generic_csv_discharge_is_refused_naming_its_line() {
         let msg = read_csv(&path, &ReadOptions::default()).unwrap_err().to_string();
         assert!(msg.contains("g.csv, line 22") && msg.contains(want), "{msg}");
     }
+    // Written twice (rows 20 and 21): refused at the first; three in a row is past what is taken for one glitch.
+    let spike =
+        |rows: std::ops::Range<usize>| text(&|k| rows.contains(&k).then(|| row(k, 4.1 - 0.01 * k as f64, 40.0)));
+    write(&path, &spike(20..22));
+    let msg = read_csv(&path, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(msg.contains("g.csv, line 22") && msg.contains("current 40.0 A"), "{msg}");
+    write(&path, &spike(20..23));
+    assert_eq!(read_csv(&path, &ReadOptions::default()).unwrap().0[0].len(), 40);
 }
 
 /// A logger that stops mid-write (NASA's B0049-B0052 hold such files) leaves a damaged end: a half line, NUL
