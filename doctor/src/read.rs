@@ -536,7 +536,8 @@ fn nasa_record(
         line_of.push(line);
         Ok(Taken::Kept)
     })?;
-    rows.temperature_note = fill_missing(&mut d, &line_of, "Temperature_measured")?;
+    // The frozen end first (a temperature left empty repeats as itself), so that the fill counts only the
+    // readings kept.
     if let Some(frozen) = frozen_end(&mut d, &line_of) {
         if d.len() < MIN_SAMPLES {
             return Err(frozen.error);
@@ -544,6 +545,7 @@ fn nasa_record(
         let after = rows.damaged_end.as_ref().map_or(0, |e| e.records);
         rows.damaged_end = Some(DamagedEnd { records: frozen.records + after, ..frozen });
     }
+    rows.temperature_note = fill_missing(&mut d, &line_of, "Temperature_measured")?;
     let mut d = validate(d)?;
     // Before the sign is decided: as the file has it.
     glitch(&d, &line_of, 1.0)?;
@@ -599,8 +601,8 @@ fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
 fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
     let n = d.len();
     let temps = d.temperature_k.as_ref()?;
-    let same =
-        |k: usize| (d.voltage_v[k], d.current_a[k], temps[k]) == (d.voltage_v[k - 1], d.current_a[k - 1], temps[k - 1]);
+    let reading = |k: usize| [d.voltage_v[k], d.current_a[k], temps[k]];
+    let same = |k: usize| same_bits(&reading(k), &reading(k - 1));
     let first = (1..n).rev().take_while(|&k| same(k)).last()?;
     let readings = n - first;
     if readings < FROZEN_READINGS || d.current_a[first].abs() <= LOADED_A {

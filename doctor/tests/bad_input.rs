@@ -522,6 +522,16 @@ fn a_temperature_sensor_that_drops_out_is_filled_and_said() {
     write(&dir.path().join("data/00002.csv"), &format!("{header}{nan_v}"));
     let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
     assert!(err.contains("Voltage_measured") && err.contains("nan"), "{err}");
+    // A logger that froze with its temperature left empty (rows 45-59, lines 47-61): the frozen end is cut and
+    // said, and the fill counts only the readings kept (the first frozen one, kept: 1 of 46, not 15 of 60).
+    let frozen: String =
+        (0..60).map(|k| if k >= 45 { format!("3.5,-2.0,,-2.0,3.0,{}\n", 10 * k) } else { row(k, "24.5") }).collect();
+    write(&dir.path().join("data/00002.csv"), &format!("{header}{frozen}"));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].len(), 46, "read to the first frozen reading");
+    assert!(report.notes.iter().any(|n| n.contains("line 48") && n.contains("froze")), "{:?}", report.notes);
+    let filled = report.notes.iter().find(|n| n.contains("Temperature_measured")).expect("the kept one is said");
+    assert!(filled.contains("line 47") && filled.contains("1 of 46"), "{filled}");
     // None read at all: refused, said (a temperature column promises measured ones).
     let blank: String = (0..60).map(|k| row(k, "")).collect();
     write(&dir.path().join("data/00002.csv"), &format!("{header}{blank}"));
