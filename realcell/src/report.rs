@@ -362,7 +362,8 @@ fn e2s<E: std::fmt::Display>(e: E) -> String {
 }
 
 /// Capacity over the cell's life: measured (stated and the data's) and each method's prediction from half
-/// of each discharge.
+/// of each discharge, to the voltage the stated capacity is drawn to, as it is scored against it
+/// ([`CellRecord::stated_tail_ah`]).
 fn draw_capacity<DB: DrawingBackend>(
     root: &DrawingArea<DB, plotters::coord::Shift>,
     records: &[CellRecord],
@@ -380,7 +381,7 @@ fn draw_capacity<DB: DrawingBackend>(
     b.margin(10);
     if text {
         b.caption(
-            "capacity over the cell's life: measured vs predicted from half of each discharge (Ah)",
+            "capacity over the cell's life: stated vs predicted from half of each discharge, to the stated voltage (Ah)",
             ("sans-serif", 15),
         )
         .x_label_area_size(35)
@@ -400,7 +401,7 @@ fn draw_capacity<DB: DrawingBackend>(
             .zip(method_runs.iter())
             .filter_map(|(r, run)| {
                 let k = r.reading_at_fraction(0.5)?;
-                run.steps.get(k)?.capacity.value.map(|c| (f64::from(r.cycle), c))
+                run.steps.get(k)?.capacity.value.map(|c| (f64::from(r.cycle), c - r.stated_tail_ah.unwrap_or(0.0)))
             })
             .collect();
         method_line(&mut chart, key, line, text)?;
