@@ -869,7 +869,8 @@ pub enum WidthSource {
 
 impl<'a> Stream<'a> {
     /// `cal` built on `spec` (its model and cut-off run the predictions); readings without a temperature
-    /// take `ambient_c` (None: the model's own 292.1 K).
+    /// take the last reading's, or `ambient_c` where none came within half an hour (None: the model's own
+    /// 292.1 K).
     pub fn new(cal: Box<dyn Calibrator + Send + 'a>, spec: &TrackerSpec, ambient_c: Option<f64>) -> Self {
         let ambient_k = ambient_c.map_or_else(
             || spec.model.model().map_or(bcal_common::battery::BatteryParams::default().tb0_k, |m| m.params.tb0_k),
@@ -1291,7 +1292,7 @@ impl<'a> Stream<'a> {
             if self.eod_track.load_on_s.is_none() {
                 rec.load_on();
             }
-            // The reading's own temperature, not the ambient filled in for one without.
+            // The reading's own temperature, not the one filled in for a reading without.
             rec.push(r.time_s - load_on_s, r.temperature_c.map_or(f64::NAN, |c| c + KELVIN_0C));
         }
         let learned = match (&self.end_record, rules_s, bin) {
@@ -1783,14 +1784,16 @@ mod tests {
             let later =
                 Reading { time_s: readings.last().unwrap().time_s + 3600.0, temperature_c: None, ..readings[0] };
             out.push(stream.step(&later).expect("a plausible reading"));
-            out.iter().map(|e| (e.q_mobile.to_bits(), e.r_o.to_bits())).collect::<Vec<_>>()
+            let later_k = stream.last_sample.expect("taken").temperature_k;
+            (out.iter().map(|e| (e.q_mobile.to_bits(), e.r_o.to_bits())).collect::<Vec<_>>(), later_k)
         };
         let held = readings[gap.start - 1].temperature_c;
         let dropped = run(&|k, r| if gap.contains(&k) { None } else { r.temperature_c }, Some(5.0));
         let filled = run(&|k, r| if gap.contains(&k) { held } else { r.temperature_c }, Some(5.0));
-        assert_eq!(dropped, filled, "the gap read at the reading before it, the hour later at the ambient");
+        assert_eq!(dropped.0, filled.0, "the gap read at the reading before it");
+        assert_eq!(dropped.1, 5.0 + KELVIN_0C, "the reading an hour later at the ambient");
         let at_ambient = run(&|k, r| if gap.contains(&k) { Some(5.0) } else { r.temperature_c }, Some(5.0));
-        assert_ne!(dropped, at_ambient, "a cell at 5 C moves the estimate: the rule is seen");
+        assert_ne!(dropped.0, at_ambient.0, "a cell at 5 C moves the estimate: the rule is seen");
     }
 
     /// A square wave read once per half-period (B0025's logger) is predicted at its mean current over time,

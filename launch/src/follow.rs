@@ -180,7 +180,7 @@ fn csv_fields(line: &str) -> Result<Vec<String>, String> {
 }
 
 /// A reading from the fields `value` gives for each column: time, voltage and current required, the
-/// temperature read as missing (the ambient) where it gives none; each converted by its column's unit.
+/// temperature read as missing (the stream fills it in) where it gives none; each converted by its column's unit.
 fn reading_of(
     c: &ReadingColumns,
     value: impl Fn(&NamedColumn) -> Result<Option<f64>, String>,

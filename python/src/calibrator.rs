@@ -235,7 +235,8 @@ impl Calibrator {
     /// A reading that is not finite, not a cell's voltage, not later than the last or a current glitch (a step
     /// of 5 A or more the voltage does not follow) raises ValueError and
     /// leaves the calibrator as it was (except that a third in a row more than half an hour behind, a clock
-    /// that went back and stays there, is taken on the readings' new clock).
+    /// that went back and stays there, is taken on the readings' new clock, and a current level refused twice in
+    /// a row as a glitch is taken at the third attempt).
     #[pyo3(signature = (time_s, voltage_v, current_a, temperature_c=None))]
     fn step<'py>(
         &self,

@@ -312,11 +312,15 @@ pub const STATED_TAIL_WINDOW: usize = crate::run::KNEE_WINDOW;
 
 /// Sets each record's [`CellRecord::stated_tail_ah`] where the source states its capacity to another voltage
 /// than the cut-off (`stated`, [`StatedCapacity::differs_from_cutoff`]): the median, over the last
-/// [`STATED_TAIL_WINDOW`] records before it (in order, training and judged) that reach the cut-off from a full
-/// charge, of the charge each drew between that voltage and the cut-off. A capacity predicted to the cut-off
-/// less that tail is a prediction of the quantity the source states (NASA's metadata: the charge to about 2.7
-/// V, whatever the cut-off), from what the discharges before it measured, no look-ahead. Before any such
-/// record, the training records' median (the stated capacity's two gaps) stands in.
+/// [`STATED_TAIL_WINDOW`] records before it (in order, training and judged, those kept: with `--stride`, of
+/// those) that reach the cut-off at a like current ([`bcal_calib::record_learner::LIKE_CURRENT`]; the charge below a voltage grows with
+/// the current: 0.019 / 0.028 / 0.047 Ah below 2.7 V at 1 / 2 / 4 A on a blind cell cut off at 2.2 V), else at
+/// any, of the charge each drew between that voltage and the cut-off. A capacity predicted to the cut-off less
+/// that tail is a prediction of the quantity the source states (NASA's metadata: the charge to about 2.7 V,
+/// whatever the cut-off), from what the discharges before it measured. A record's current is its loaded
+/// readings' mean over the first quarter of it, known by the first capacity it is scored on (at a quarter):
+/// no look-ahead. Before any such record, the training records' median (the stated capacity's two gaps)
+/// stands in.
 pub fn set_stated_tails<'r>(
     records: impl IntoIterator<Item = &'r mut CellRecord>,
     stated: Option<&StatedCapacity>,
@@ -328,15 +332,23 @@ pub fn set_stated_tails<'r>(
         }
         return;
     };
-    let mut tails: Vec<f64> = Vec::new();
+    // (current A, tail Ah) of every record before, in order.
+    let mut tails: Vec<(f64, f64)> = Vec::new();
     for r in records {
-        let mut last: Vec<f64> = tails[tails.len().saturating_sub(STATED_TAIL_WINDOW)..].to_vec();
-        r.stated_tail_ah = bcal_common::stats::median(&mut last).or(Some(sc.median_gap_ah - sc.cutoff_median_gap_ah));
-        if r.partial_start {
-            continue;
+        let current = r.loaded_current();
+        let now_a = r.discharge_s().and_then(|d| current.at(0.25 * d)).or_else(|| current.whole());
+        let like = |c: f64| now_a.is_some_and(|a| bcal_calib::record_learner::current_switch(a, c) == Some(0.0));
+        let mut last: Vec<f64> =
+            tails.iter().rev().filter(|(c, _)| like(*c)).take(STATED_TAIL_WINDOW).map(|t| t.1).collect();
+        if last.is_empty() {
+            last = tails.iter().rev().take(STATED_TAIL_WINDOW).map(|t| t.1).collect();
         }
-        if let (Some(to_cutoff), Some(to_stated)) = (r.data_capacity_ah, r.charge_to_v_ah(sc.voltage_v)) {
-            tails.push(to_cutoff - to_stated);
+        r.stated_tail_ah = bcal_common::stats::median(&mut last).or(Some(sc.median_gap_ah - sc.cutoff_median_gap_ah));
+        // A discharge from a partial charge counts too: the tail is drawn at its end, and whether it started
+        // partial is read off the rests of the records after it as well.
+        if let (Some(to_cutoff), Some(to_stated), Some(a)) = (r.data_capacity_ah, r.charge_to_v_ah(sc.voltage_v), now_a)
+        {
+            tails.push((a, to_cutoff - to_stated));
         }
     }
 }
@@ -448,10 +460,15 @@ mod tests {
     /// `stretch` (a cell that holds more charge falls more slowly), to 2.45 V (a 2.5 V cut-off), with the
     /// capacity it states.
     fn linear(stretch: f64, stated_ah: f64) -> CellRecord {
+        linear_at(2.0, stretch, stated_ah)
+    }
+
+    /// [`linear`] at `current_a`.
+    fn linear_at(current_a: f64, stretch: f64, stated_ah: f64) -> CellRecord {
         let n = 17;
         let mut d = discharge(
             (0..n).map(|k| if k == 0 { 4.2 } else { 4.05 - 0.1 * k as f64 }).collect(),
-            (0..n).map(|k| if k == 0 { 0.0 } else { 2.0 }).collect(),
+            (0..n).map(|k| if k == 0 { 0.0 } else { current_a }).collect(),
         );
         d.time_s = (0..n).map(|k| 10.0 * stretch * k as f64).collect();
         d.stated_capacity_ah = Some(stated_ah);
@@ -517,20 +534,32 @@ mod tests {
         let tail = |r: &CellRecord| r.data_capacity_ah.unwrap() - r.charge_to_v_ah(2.7).unwrap();
         let tails: Vec<f64> = records.iter().map(tail).collect();
         let sc = stated_capacity(&records[..3], 2.5).expect("three records state a capacity");
-        records[4].partial_start = true;
         set_stated_tails(records.iter_mut(), Some(&sc), 2.5);
         // The first has none before it: the training records' median gap stands in.
         let first = records[0].stated_tail_ah.unwrap();
         assert!((first - (sc.median_gap_ah - sc.cutoff_median_gap_ah)).abs() < 1e-12, "{first}");
-        // Then the median of the last three before it (never its own), a partial start left out.
+        // Then the median of the last three before it, never its own.
         assert!((records[1].stated_tail_ah.unwrap() - tails[0]).abs() < 1e-12);
         assert!((records[3].stated_tail_ah.unwrap() - tails[1]).abs() < 1e-12, "median of 0, 1, 2");
         assert!((records[4].stated_tail_ah.unwrap() - tails[2]).abs() < 1e-12, "median of 1, 2, 3");
-        assert!((records[5].stated_tail_ah.unwrap() - tails[2]).abs() < 1e-12, "4 was a partial start");
-        // The capacity to the cut-off less the tail is the stated one, up to how the tail moved since.
-        let r = &records[1];
-        let off = r.data_capacity_ah.unwrap() - r.stated_tail_ah.unwrap() - r.stated_capacity_ah.unwrap();
-        assert!(off.abs() < (tails[0] - tails[1]).abs() + 1e-12 && tails[0] > tails[1], "{off}");
+        assert!((records[5].stated_tail_ah.unwrap() - tails[3]).abs() < 1e-12, "median of 2, 3, 4");
+        assert!(tails.windows(2).all(|w| w[1] < w[0]), "a cell that falls ever faster: {tails:?}");
+        // A cell cycled at 2 and 4 A: each takes the tails of the discharges at its own current (at 4 A the same
+        // fall of the voltage over the same time holds twice the charge), while one at a current none before
+        // ran at takes those of any.
+        let at = |a: f64, stretch: f64| {
+            let r = linear_at(a, stretch, 0.0);
+            linear_at(a, stretch, r.charge_to_v_ah(2.7).unwrap())
+        };
+        let mut mixed =
+            vec![at(2.0, 1.3), at(4.0, 1.3), at(2.0, 1.2), at(4.0, 1.2), at(2.0, 1.1), at(4.0, 1.1), at(1.0, 1.0)];
+        let tails: Vec<f64> = mixed.iter().map(tail).collect();
+        set_stated_tails(mixed.iter_mut(), Some(&sc), 2.5);
+        assert!((mixed[4].stated_tail_ah.unwrap() - 0.5 * (tails[0] + tails[2])).abs() < 1e-12, "2 A: of 0 and 2");
+        assert!((mixed[5].stated_tail_ah.unwrap() - 0.5 * (tails[1] + tails[3])).abs() < 1e-12, "4 A: of 1 and 3");
+        // 3 and 5 at 4 A, 4 at 2 A: the median is 5's, the smaller of the two at 4 A.
+        assert!((mixed[6].stated_tail_ah.unwrap() - tails[5]).abs() < 1e-12, "1 A: the median of 3, 4, 5");
+        assert!(tails[1] > 1.9 * tails[0]);
         // Stated to the cut-off: no tail anywhere.
         let own = StatedCapacity { voltage_v: 2.5, median_gap_ah: 0.0, cutoff_median_gap_ah: 0.0, records: 3 };
         set_stated_tails(records.iter_mut(), Some(&own), 2.5);

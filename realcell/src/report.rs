@@ -380,12 +380,12 @@ fn draw_capacity<DB: DrawingBackend>(
     let mut b = ChartBuilder::on(root);
     b.margin(10);
     if text {
-        b.caption(
-            "capacity over the cell's life: stated vs predicted from half of each discharge, to the stated voltage (Ah)",
-            ("sans-serif", 15),
-        )
-        .x_label_area_size(35)
-        .y_label_area_size(50);
+        let caption = if records.iter().any(|r| r.stated_tail_ah.is_some()) {
+            "capacity over the cell's life: stated vs predicted from half of each discharge, to the stated voltage (Ah)"
+        } else {
+            "capacity over the cell's life: measured vs predicted from half of each discharge (Ah)"
+        };
+        b.caption(caption, ("sans-serif", 15)).x_label_area_size(35).y_label_area_size(50);
     }
     let mut chart = b.build_cartesian_2d(0.0..x_max, y_lo..y_hi).map_err(e2s)?;
     if text {
