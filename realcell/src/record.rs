@@ -552,7 +552,7 @@ mod tests {
             linear_at(a, stretch, r.charge_to_v_ah(2.7).unwrap())
         };
         let mut mixed =
-            vec![at(2.0, 1.3), at(4.0, 1.3), at(2.0, 1.2), at(4.0, 1.2), at(2.0, 1.1), at(4.0, 1.1), at(1.0, 1.0)];
+            [at(2.0, 1.3), at(4.0, 1.3), at(2.0, 1.2), at(4.0, 1.2), at(2.0, 1.1), at(4.0, 1.1), at(1.0, 1.0)];
         let tails: Vec<f64> = mixed.iter().map(tail).collect();
         set_stated_tails(mixed.iter_mut(), Some(&sc), 2.5);
         assert!((mixed[4].stated_tail_ah.unwrap() - 0.5 * (tails[0] + tails[2])).abs() < 1e-12, "2 A: of 0 and 2");
