@@ -178,11 +178,12 @@ class Calibrator:
     its end of discharge moved by the learner on the stream's own record, as `bcal calibrate`'s
     ukf_learned), "rl" (an RL policy; `policy` is its .bcalpol file), "fit" (the window fit, no
     learning) or "uncalibrated" (the prior).
-    `model`: the doctor's extended model (diagnosis.json, or its folder); its per-cycle values start at
-    the last training fits and are refitted on every discharge followed to the cut-off. `config`: a bcal config TOML
-    (`bcal cell-config` writes one per cell); its lifetime model (else the diagnosis's) moves what one
-    discharge hands the next by the fade and the capacity a rest gives back. `ambient_c`: temperature of readings that give none before any other did within half an hour.
-    `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0).
+    `model`: the doctor's extended model (diagnosis.json, or its folder); its per-cycle values start at the last
+    training fits and are refitted on every discharge followed to the cut-off. `config`: a bcal config TOML
+    (`bcal cell-config` writes one per cell); its lifetime model (else the diagnosis's) moves what one discharge
+    hands the next by the fade and the capacity a rest gives back. `ambient_c`: temperature of readings that
+    give none before any other did within half an hour. `cutoff_v`: the cut-off of the EOD predictions, V
+    (default the config's, else 3.0).
 
     Raises ValueError for a bad kind or file content, FileNotFoundError / OSError for unreadable
     files.
@@ -221,10 +222,10 @@ class Calibrator:
         temperature_c: Optional[float] = None,
     ) -> Estimate:
         """Takes the next reading (time order; current positive while discharging) and returns the
-        estimate. A temperature of None or NaN (pandas' missing value) reads as the last reading's (within half an hour; else the ambient). A reading
-        that is not finite, not a cell's voltage, not later than the last or a current glitch (a step of
-        5 A or more that the voltage does not follow) raises ValueError and leaves the calibrator as it
-        was."""
+        estimate. A temperature of None or NaN (pandas' missing value) reads as the last reading's (within
+        half an hour; else the ambient). A reading that is not finite, not a cell's voltage, not later than
+        the last or a current glitch (a step of 5 A or more that the voltage does not follow; a level refused
+        twice in a row is taken at the third) raises ValueError and leaves the calibrator as it was."""
     def predict_eod_s(self, current_a: Optional[float] = None, *, power_w: Optional[float] = None) -> Optional[float]:
         """End of discharge (absolute time, s) if the cell now draws `current_a` (A), or `power_w` (W: the
         current P / V rising as the voltage falls), to the cut-off; exactly one of them. None before the first
@@ -236,5 +237,5 @@ class Calibrator:
         """Feeds every row of `df` (columns time_s, voltage_v, current_a, optionally temperature_c; or
         the same quantities in other units, named as the CSV readers read them: time_ms, current_ma,
         Voltage / mV, NASA's Voltage_measured ...) and returns one row per reading: the keys of `step` (NaN for None) and `row`, the reading's
-        position. A missing temperature (NaN) reads as the last reading's (else the ambient), as an empty CSV field of
-        `bcal calibrate --follow` does. A bad row raises ValueError naming its position."""
+        position. A missing temperature (NaN) reads as the last reading's (else the ambient), as an empty CSV
+        field of `bcal calibrate --follow` does. A bad row raises ValueError naming its position."""

@@ -41,7 +41,8 @@ self_cell::self_cell!(
 /// discharge followed to the cut-off). `config`: a
 /// bcal config TOML (`bcal cell-config` writes one per cell) whose `measured.tracker` sets ranges, prior
 /// and cut-off. `ambient_c`: the temperature of readings that give none before any other did within half an
-/// hour, deg C (default the model's 18.95 C). `cutoff_v`: the cut-off of the EOD predictions, V (default the config's, else 3.0). The
+/// hour, deg C (default the model's 18.95 C). `cutoff_v`: the cut-off of the EOD predictions, V (default the
+/// config's, else 3.0). The
 /// joint UKF's settings are the config's or the RL run's (tuned on validation by `bcal train`), else the
 /// defaults; an RL policy runs as it was trained (on the window fit or as a correction of the joint UKF).
 /// Raises ValueError (bad kind or files) and FileNotFoundError / OSError (unreadable files).
@@ -313,9 +314,9 @@ impl Calibrator {
     /// `temperature_c`; or the same quantities in other units named as the CSV readers read them: `time_ms`,
     /// `current_ma`, `Voltage / mV`, NASA's `Voltage_measured`) in order, and returns a DataFrame with one
     /// row per reading: the columns of `step` (NaN where `step` gives None) and `row`, the reading's position
-    /// in `df`. A missing temperature (NaN) is a reading without one, at the last reading's (the ambient before any),
-    /// as an empty field of `bcal calibrate --follow`'s CSV is. A bad row raises ValueError naming its position; the readings
-    /// before it have been taken.
+    /// in `df`. A missing temperature (NaN) is a reading without one, at the last reading's (the ambient before
+    /// any), as an empty field of `bcal calibrate --follow`'s CSV is. A bad row raises ValueError naming its
+    /// position; the readings before it have been taken.
     fn run<'py>(&self, py: Python<'py>, df: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
         let columns: Vec<String> = df.getattr("columns")?.call_method0("tolist")?.extract()?;
         let names: Vec<&str> = columns.iter().map(String::as_str).collect();

@@ -310,17 +310,16 @@ pub fn stated_capacity(records: &[CellRecord], cutoff_v: f64) -> Option<StatedCa
 /// is taken ([`crate::run::KNEE_WINDOW`]); the tail grows as the cell ages and sags more under load.
 pub const STATED_TAIL_WINDOW: usize = crate::run::KNEE_WINDOW;
 
-/// Sets each record's [`CellRecord::stated_tail_ah`] where the source states its capacity to another voltage
-/// than the cut-off (`stated`, [`StatedCapacity::differs_from_cutoff`]): the median, over the last
-/// [`STATED_TAIL_WINDOW`] records before it (in order, training and judged, those kept: with `--stride`, of
-/// those) that reach the cut-off at a like current ([`bcal_calib::record_learner::LIKE_CURRENT`]; the charge below a voltage grows with
-/// the current: 0.019 / 0.028 / 0.047 Ah below 2.7 V at 1 / 2 / 4 A on a blind cell cut off at 2.2 V), else at
-/// any, of the charge each drew between that voltage and the cut-off. A capacity predicted to the cut-off less
-/// that tail is a prediction of the quantity the source states (NASA's metadata: the charge to about 2.7 V,
-/// whatever the cut-off), from what the discharges before it measured. A record's current is its loaded
-/// readings' mean over the first quarter of it, known by the first capacity it is scored on (at a quarter):
-/// no look-ahead. Before any such record, the training records' median (the stated capacity's two gaps)
-/// stands in.
+/// Sets each record's [`CellRecord::stated_tail_ah`] where the source states its capacity to another voltage than
+/// the cut-off (`stated`, [`StatedCapacity::differs_from_cutoff`]): the median, over the last
+/// [`STATED_TAIL_WINDOW`] records before it (in order, training and judged; with `--stride`, of those kept) that
+/// reach the cut-off at a like current ([`bcal_calib::record_learner::LIKE_CURRENT`]; the charge below a voltage
+/// grows with the current: 0.019 / 0.028 / 0.047 Ah below 2.7 V at 1 / 2 / 4 A on a blind cell cut off at 2.2 V),
+/// else at any, of the charge each drew between that voltage and the cut-off. A capacity predicted to the cut-off
+/// less that tail is a prediction of the quantity the source states (NASA's metadata: the charge to about 2.7 V,
+/// whatever the cut-off), from what the discharges before it measured. A record's current is its loaded readings'
+/// mean over the first quarter of it, known by the first capacity it is scored on (at a quarter): no look-ahead.
+/// Before any such record, the training records' median (the stated capacity's two gaps) stands in.
 pub fn set_stated_tails<'r>(
     records: impl IntoIterator<Item = &'r mut CellRecord>,
     stated: Option<&StatedCapacity>,
