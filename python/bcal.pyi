@@ -236,6 +236,6 @@ class Calibrator:
     def run(self, df: pd.DataFrame) -> pd.DataFrame:
         """Feeds every row of `df` (columns time_s, voltage_v, current_a, optionally temperature_c; or
         the same quantities in other units, named as the CSV readers read them: time_ms, current_ma,
-        Voltage / mV, NASA's Voltage_measured ...) and returns one row per reading: the keys of `step` (NaN for None) and `row`, the reading's
-        position. A missing temperature (NaN) reads as the last reading's (else the ambient), as an empty CSV
-        field of `bcal calibrate --follow` does. A bad row raises ValueError naming its position."""
+        Voltage / mV, NASA's Voltage_measured ...) and returns one row per reading: the keys of `step` (NaN
+        for None) and `row`, the reading's position. A missing temperature (NaN) reads as the last reading's
+        (within half an hour; else the ambient), as an empty CSV field of `bcal calibrate --follow` does. A bad row raises ValueError naming its position."""

@@ -37,14 +37,13 @@ self_cell::self_cell!(
 /// of discharge moved by the learner on the stream's own record), "rl" (an RL policy: `policy` is its
 /// .bcalpol file), "fit" (the window fit, no learning) or "uncalibrated" (the prior, never moved).
 /// `model`: the doctor's extended model (diagnosis.json of `bcal diagnose`, or its folder; its per-cycle
-/// parameters start at the median of the last five training cycles' fits and are refitted on every
-/// discharge followed to the cut-off). `config`: a
-/// bcal config TOML (`bcal cell-config` writes one per cell) whose `measured.tracker` sets ranges, prior
-/// and cut-off. `ambient_c`: the temperature of readings that give none before any other did within half an
-/// hour, deg C (default the model's 18.95 C). `cutoff_v`: the cut-off of the EOD predictions, V (default the
-/// config's, else 3.0). The
-/// joint UKF's settings are the config's or the RL run's (tuned on validation by `bcal train`), else the
-/// defaults; an RL policy runs as it was trained (on the window fit or as a correction of the joint UKF).
+/// parameters start at the median of the last five training cycles' fits and are refitted on every discharge
+/// followed to the cut-off). `config`: a bcal config TOML (`bcal cell-config` writes one per cell) whose
+/// `measured.tracker` sets ranges, prior and cut-off. `ambient_c`: the temperature of readings that give none
+/// before any other did within half an hour, deg C (default the model's 18.95 C). `cutoff_v`: the cut-off of
+/// the EOD predictions, V (default the config's, else 3.0). The joint UKF's settings are the config's or the RL
+/// run's (tuned on validation by `bcal train`), else the defaults; an RL policy runs as it was trained (on the
+/// window fit or as a correction of the joint UKF).
 /// Raises ValueError (bad kind or files) and FileNotFoundError / OSError (unreadable files).
 #[pyclass(module = "bcal")]
 pub struct Calibrator {
@@ -234,10 +233,10 @@ impl Calibrator {
     /// end measured, else its final estimate).
     /// Intervals and prediction are None while the calibrator cannot tell.
     /// A reading that is not finite, not a cell's voltage, not later than the last or a current glitch (a step
-    /// of 5 A or more the voltage does not follow) raises ValueError and
-    /// leaves the calibrator as it was (except that a third in a row more than half an hour behind, a clock
-    /// that went back and stays there, is taken on the readings' new clock, and a current level refused twice in
-    /// a row as a glitch is taken at the third attempt).
+    /// of 5 A or more the voltage does not follow) raises ValueError and leaves the calibrator as it was
+    /// (except that a third in a row more than half an hour behind, a clock that went back and stays there, is
+    /// taken on the readings' new clock, and a current level refused twice in a row as a glitch is taken at the
+    /// third attempt).
     #[pyo3(signature = (time_s, voltage_v, current_a, temperature_c=None))]
     fn step<'py>(
         &self,
@@ -314,8 +313,8 @@ impl Calibrator {
     /// `temperature_c`; or the same quantities in other units named as the CSV readers read them: `time_ms`,
     /// `current_ma`, `Voltage / mV`, NASA's `Voltage_measured`) in order, and returns a DataFrame with one
     /// row per reading: the columns of `step` (NaN where `step` gives None) and `row`, the reading's position
-    /// in `df`. A missing temperature (NaN) is a reading without one, at the last reading's (the ambient before
-    /// any), as an empty field of `bcal calibrate --follow`'s CSV is. A bad row raises ValueError naming its
+    /// in `df`. A missing temperature (NaN) is a reading without one, at the last reading's (within half an hour;
+    /// else the ambient), as an empty field of `bcal calibrate --follow`'s CSV is. A bad row raises ValueError naming its
     /// position; the readings before it have been taken.
     fn run<'py>(&self, py: Python<'py>, df: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
         let columns: Vec<String> = df.getattr("columns")?.call_method0("tolist")?.extract()?;

@@ -516,7 +516,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         progress(&format!(
             "the stated capacities are the charge to about {:.1} V (median gap {:+.3} Ah over {} training records), not \
              to the {cut} V cut-off ({:+.3} Ah): capacities are scored against them less the charge the last {} \
-             discharges drew below {:.1} V",
+             discharges at a like current (else at any) drew below {:.1} V",
             sc.voltage_v,
             sc.median_gap_ah,
             sc.records,

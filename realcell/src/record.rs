@@ -236,8 +236,9 @@ pub struct CapacityRefs {
 
 /// The voltage the source's stated capacity is drawn to, as the data shows it: NASA's metadata states the
 /// charge to about 2.7 V on every cell, whatever its cut-off (B0055 at 4 C, cut off at 2.5 V: 0.05 Ah less than
-/// its charge to the cut-off), so a capacity predicted to the cut-off and scored against the stated one carries
-/// that difference as an error no calibrator can remove.
+/// its charge to the cut-off), so a capacity predicted to the cut-off and scored against the stated one carried
+/// that difference as an error until 2026-11-30; it is now scored less the tail below that voltage
+/// ([`set_stated_tails`]).
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct StatedCapacity {
     /// The voltage whose charge matches the stated capacity best (by the median absolute gap), V.
@@ -335,7 +336,9 @@ pub fn set_stated_tails<'r>(
     let mut tails: Vec<(f64, f64)> = Vec::new();
     for r in records {
         let current = r.loaded_current();
-        let now_a = r.discharge_s().and_then(|d| current.at(0.25 * d)).or_else(|| current.whole());
+        // Known by the first capacity scored.
+        let first_scored = f64::from(crate::score::CAPACITY_FRACTIONS_PCT[0]) / 100.0;
+        let now_a = r.discharge_s().and_then(|d| current.at(first_scored * d)).or_else(|| current.whole());
         let like = |c: f64| now_a.is_some_and(|a| bcal_calib::record_learner::current_switch(a, c) == Some(0.0));
         let mut last: Vec<f64> =
             tails.iter().rev().filter(|(c, _)| like(*c)).take(STATED_TAIL_WINDOW).map(|t| t.1).collect();
@@ -533,6 +536,8 @@ mod tests {
         let tail = |r: &CellRecord| r.data_capacity_ah.unwrap() - r.charge_to_v_ah(2.7).unwrap();
         let tails: Vec<f64> = records.iter().map(tail).collect();
         let sc = stated_capacity(&records[..3], 2.5).expect("three records state a capacity");
+        // A discharge from a partial charge counts (its end is like the others').
+        records[4].partial_start = true;
         set_stated_tails(records.iter_mut(), Some(&sc), 2.5);
         // The first has none before it: the training records' median gap stands in.
         let first = records[0].stated_tail_ah.unwrap();
@@ -541,7 +546,7 @@ mod tests {
         assert!((records[1].stated_tail_ah.unwrap() - tails[0]).abs() < 1e-12);
         assert!((records[3].stated_tail_ah.unwrap() - tails[1]).abs() < 1e-12, "median of 0, 1, 2");
         assert!((records[4].stated_tail_ah.unwrap() - tails[2]).abs() < 1e-12, "median of 1, 2, 3");
-        assert!((records[5].stated_tail_ah.unwrap() - tails[3]).abs() < 1e-12, "median of 2, 3, 4");
+        assert!((records[5].stated_tail_ah.unwrap() - tails[3]).abs() < 1e-12, "median of 2, 3, 4 (partial)");
         assert!(tails.windows(2).all(|w| w[1] < w[0]), "a cell that falls ever faster: {tails:?}");
         // A cell cycled at 2 and 4 A: each takes the tails of the discharges at its own current (at 4 A the same
         // fall of the voltage over the same time holds twice the charge), while one at a current none before
@@ -559,6 +564,16 @@ mod tests {
         // 3 and 5 at 4 A, 4 at 2 A: the median is 5's, the smaller of the two at 4 A.
         assert!((mixed[6].stated_tail_ah.unwrap() - tails[5]).abs() < 1e-12, "1 A: the median of 3, 4, 5");
         assert!(tails[1] > 1.9 * tails[0]);
+        // A discharge at 2 A over its first quarter and 4 A after is taken at 2 A, as known by then.
+        let mut late = at(2.0, 1.0);
+        let quarter_s = late.load_on_s + 0.25 * late.discharge_s().unwrap();
+        for s in late.samples.iter_mut().filter(|s| s.t_s > quarter_s + 10.0 && s.current_a > 1.0) {
+            s.current_a = 4.0;
+        }
+        let mut with_late: Vec<CellRecord> = mixed[..6].to_vec();
+        with_late.push(late);
+        set_stated_tails(with_late.iter_mut(), Some(&sc), 2.5);
+        assert!((with_late[6].stated_tail_ah.unwrap() - tails[2]).abs() < 1e-12, "2 A: the median of 0, 2, 4");
         // Stated to the cut-off: no tail anywhere.
         let own = StatedCapacity { voltage_v: 2.5, median_gap_ah: 0.0, cutoff_median_gap_ah: 0.0, records: 3 };
         set_stated_tails(records.iter_mut(), Some(&own), 2.5);

@@ -135,7 +135,8 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
             s,
             "- the stated capacity is the data's charge to about {:.1} V (median gap {:+.3} Ah over {} training \
              records), not to the {} V cut-off the capacities are predicted to ({:+.3} Ah): against it each \
-             capacity is scored less the charge the last {} discharges before it drew below {:.1} V \
+             capacity is scored less the charge the last {} discharges before it at a like current (else at \
+             any) drew below {:.1} V \
              (`records.capacity_refs`, `stated_tail_ah`); against the data's charge (in brackets) as predicted",
             sc.voltage_v,
             sc.median_gap_ah,
