@@ -52,10 +52,10 @@ impl Transition {
     }
 
     /// Whether two discharges moved their current alike: each current like the other's
-    /// ([`crate::record_learner::current_switch`] gives 0) where both are known; one not known is alike to any.
+    /// ([`crate::record_learner::like_current`]) where both are known; one not known is alike to any.
     pub fn alike(&self, other: &Transition) -> bool {
         let like = |a: Option<f64>, b: Option<f64>| match (a, b) {
-            (Some(a), Some(b)) => crate::record_learner::current_switch(a, b) == Some(0.0),
+            (Some(a), Some(b)) => crate::record_learner::like_current(a, b),
             _ => true,
         };
         like(self.before_a, other.before_a) && like(self.now_a, other.now_a)

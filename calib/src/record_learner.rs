@@ -82,6 +82,11 @@ pub fn current_switch(now_a: f64, before_a: f64) -> Option<f64> {
     Some(if x.abs() < (1.0 + LIKE_CURRENT).ln() { 0.0 } else { x.clamp(-max, max) })
 }
 
+/// Whether two discharges ran at a like current: [`current_switch`] gives 0 ([`LIKE_CURRENT`]).
+pub fn like_current(a: f64, b: f64) -> bool {
+    current_switch(a, b) == Some(0.0)
+}
+
 /// A learner fitted on a record: what it expects of the next discharge given the rest before it, its
 /// loaded readings' mean temperature so far and its current input.
 #[derive(Clone, Debug, PartialEq)]

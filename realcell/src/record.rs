@@ -339,7 +339,7 @@ pub fn set_stated_tails<'r>(
         // Known by the first capacity scored.
         let first_scored = f64::from(crate::score::CAPACITY_FRACTIONS_PCT[0]) / 100.0;
         let now_a = r.discharge_s().and_then(|d| current.at(first_scored * d)).or_else(|| current.whole());
-        let like = |c: f64| now_a.is_some_and(|a| bcal_calib::record_learner::current_switch(a, c) == Some(0.0));
+        let like = |c: f64| now_a.is_some_and(|a| bcal_calib::record_learner::like_current(a, c));
         let mut last: Vec<f64> =
             tails.iter().rev().filter(|(c, _)| like(*c)).take(STATED_TAIL_WINDOW).map(|t| t.1).collect();
         if last.is_empty() {
