@@ -120,6 +120,37 @@ fn prepare_all(ds: &[Discharge], cutoff_v: f64, summary: &mut RecordSummary) -> 
     (out, kept)
 }
 
+/// Marks the records (`train`, `judged`, prepared from `train_read`, `judged_read`) that started from a partial
+/// charge, as their neighbours' rest voltages show (the doctor's rule), and reads what the stated capacity
+/// measures ([`crate::record::stated_capacity`]). Which training records started partial is first read off the
+/// training records alone, for the stated capacity (a definition, read before any discharge is judged); then off
+/// every record, later ones among the neighbours, for the scores only (a partial start's capacity is not scored).
+fn mark_partial_starts(
+    train: &mut [CellRecord],
+    judged: &mut [CellRecord],
+    train_read: &[Discharge],
+    judged_read: &[Discharge],
+    cutoff_v: f64,
+) -> Option<crate::record::StatedCapacity> {
+    let life_cfg = bcal_doctor::lifetime::LifetimeConfig::default();
+    let short = |read: Vec<&Discharge>| -> Vec<u32> {
+        bcal_doctor::record::short_starts(&read, life_cfg.load_threshold_a, life_cfg.partial_start_v)
+            .into_iter()
+            .map(|(cycle, _, _)| cycle)
+            .collect()
+    };
+    let short_train = short(train_read.iter().collect());
+    for r in train.iter_mut() {
+        r.partial_start = short_train.contains(&r.cycle);
+    }
+    let stated = crate::record::stated_capacity(train, cutoff_v);
+    let short_all = short(train_read.iter().chain(judged_read).collect());
+    for r in train.iter_mut().chain(judged.iter_mut()) {
+        r.partial_start = short_all.contains(&r.cycle);
+    }
+    stated
+}
+
 /// Fewer loaded samples than this, settled after a load step and above the fit's voltage floor, leave a
 /// record's offline fit undetermined (the protocol-wide check in [`fits`] uses the same count).
 const MIN_FIT_SAMPLES: usize = 5;
@@ -493,24 +524,10 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         &fit_cfg,
         &mut summary,
     );
-    // Discharges that started from a partial charge, as their neighbours' rest voltages show (the doctor's
-    // rule; later records among the neighbours, so for the scores only): their capacity is not scored.
-    let life_cfg = bcal_doctor::lifetime::LifetimeConfig::default();
-    let all_read: Vec<&Discharge> = input.train.iter().chain(&input.judged).collect();
-    let short: Vec<u32> =
-        bcal_doctor::record::short_starts(&all_read, life_cfg.load_threshold_a, life_cfg.partial_start_v)
-            .into_iter()
-            .map(|(cycle, _, _)| cycle)
-            .collect();
-    for r in train.iter_mut().chain(judged.iter_mut()) {
-        r.partial_start = short.contains(&r.cycle);
-    }
+    summary.stated_capacity = mark_partial_starts(&mut train, &mut judged, &input.train, &input.judged, cut);
     summary.partial_start = judged.iter().filter(|r| r.partial_start).map(|r| r.cycle).collect();
     summary.unread = input.unread.clone();
     summary.noted = input.noted.clone();
-    // What the stated capacity measures, read before any discharge is judged (it names a definition), and
-    // the charge below that voltage each discharge's capacity is taken down by before it is scored against it.
-    summary.stated_capacity = crate::record::stated_capacity(&train, cut);
     crate::record::set_stated_tails(train.iter_mut().chain(judged.iter_mut()), summary.stated_capacity.as_ref(), cut);
     if let Some(sc) = summary.stated_capacity.as_ref().filter(|sc| sc.differs_from_cutoff(cut)) {
         progress(&format!(
@@ -569,7 +586,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             "judged cycles {:?} started from a partial charge (rest voltage more than {:.0} mV below their \
              neighbours'): their ends of discharge are scored, their capacity is not",
             summary.partial_start,
-            life_cfg.partial_start_v * 1000.0
+            bcal_doctor::lifetime::LifetimeConfig::default().partial_start_v * 1000.0
         ));
     }
 
@@ -1331,6 +1348,51 @@ mod tests {
             temperature_k: None,
             stated_capacity_ah: None,
         }
+    }
+
+    /// What the stated capacity measures is read off the training records alone: a last training record that
+    /// rests clearly below the ones before it is a partial start there, whatever the judged records after it
+    /// rest at (before 2026-11-30 their rests decided it, a look-ahead into a definition); the scores still
+    /// read the partial starts off every record.
+    #[test]
+    fn the_stated_capacity_is_read_without_the_judged_records() {
+        // Linear discharges whose source states the charge to 2.8 V; cycle 10 rests 60 mV under the ones
+        // before it (cycle 8 40 mV, not enough to call).
+        let with_rest = |cycle: u32, rest_v: f64| {
+            let capacity_ah = 1.8 - 0.002 * f64::from(cycle);
+            let mut d = discharge(cycle, capacity_ah);
+            d.voltage_v[0] = rest_v;
+            d.stated_capacity_ah = Some(capacity_ah * 1.2 / 1.3);
+            d
+        };
+        let train_read: Vec<Discharge> = (1..=10)
+            .map(|c| {
+                with_rest(
+                    c,
+                    match c {
+                        8 => 4.15,
+                        10 => 4.13,
+                        _ => 4.19,
+                    },
+                )
+            })
+            .collect();
+        let marked = |judged_rest_v: f64| {
+            let judged_read: Vec<Discharge> = (11..=13).map(|c| with_rest(c, judged_rest_v)).collect();
+            let mut summary = RecordSummary::default();
+            let (mut train, _) = prepare_all(&train_read, 2.7, &mut summary);
+            let (mut judged, _) = prepare_all(&judged_read, 2.7, &mut summary);
+            assert!(summary.refused.is_empty(), "{:?}", summary.refused);
+            let stated = mark_partial_starts(&mut train, &mut judged, &train_read, &judged_read, 2.7);
+            (stated.expect("ten records state a capacity"), train[9].partial_start)
+        };
+        let (as_high, partial_high) = marked(4.19);
+        let (as_low, partial_low) = marked(4.10);
+        assert_eq!(as_high, as_low);
+        assert_eq!(as_high.records, 9, "cycle 10 left out as a partial start: {as_high:?}");
+        assert!((as_high.voltage_v - 2.8).abs() < 1e-9, "{as_high:?}");
+        // For the scores, later rests count: among judged records resting as low, cycle 10 started full.
+        assert!(partial_high && !partial_low);
     }
 
     /// The capacity `model` predicts for cycle 41 after following cycles 1-40.
