@@ -41,7 +41,9 @@ pub const MIN_SAMPLES: usize = 10;
 /// Ambient temperature assumed for a generic CSV without a temperature column, deg C.
 pub const DEFAULT_AMBIENT_C: f64 = 25.0;
 
-use bcal_common::measured::{current_glitch, CELL_TEMPERATURE_RANGE_C, LOADED_A, NEW_DISCHARGE_GAP_S};
+use bcal_common::measured::{
+    current_glitch, CELL_TEMPERATURE_RANGE_C, GLITCH_RUN_READINGS, LOADED_A, NEW_DISCHARGE_GAP_S,
+};
 pub use bcal_common::measured::{MAX_CELL_CURRENT_A, MAX_LOADED_S, MAX_RECORD_CHARGE_AH};
 
 /// Least evidence the sign decision needs, V of voltage change (see [`SignEvidence`]).
@@ -545,10 +547,11 @@ fn nasa_record(
         let after = rows.damaged_end.as_ref().map_or(0, |e| e.records);
         rows.damaged_end = Some(DamagedEnd { records: frozen.records + after, ..frozen });
     }
+    // Current glitches before the fill too, and before the sign is decided (said as the file has them).
+    rows.glitched = leave_out_glitches(&mut d, &mut line_of);
     rows.temperature_note = fill_missing(&mut d, &line_of, "Temperature_measured")?;
     let mut d = validate(d)?;
-    // Before the sign is decided: as the file has it.
-    glitch(&d, &line_of, 1.0)?;
+    voltage_glitch(&d, &line_of)?;
     // Units the layout does not have, whatever the sign (a current in mA reads as no sign at all): a current
     // above what a cell carries, and time in ms (more charge than a cell holds, days under load).
     let magnitude_a: Vec<f64> = d.current_a.iter().map(|i| i.abs()).collect();
@@ -583,6 +586,10 @@ fn nasa_record(
 
 /// One record read strictly: a damaged end or a reading written twice fails it as a bad record anywhere does.
 fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
+    let read = match read {
+        (_, _, RowsRead { first_again: None, glitched: Some(g), .. }) => return Err(g.error),
+        read => read,
+    };
     match read {
         (d, sign, RowsRead { damaged_end: None, first_again: None, temperature_note: None, .. }) => Ok((d, sign)),
         (_, _, RowsRead { first_again: None, damaged_end: None, temperature_note: Some(note), .. }) => {
@@ -617,46 +624,130 @@ fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
     Some(DamagedEnd { error, records: readings })
 }
 
-/// Refuses a reading a logger got wrong while the load is on (from the first loaded reading to the last,
-/// whatever the sign), naming its line: a voltage outside a cell's (a 0 V sample, which would be read as the
-/// cut-off and end the discharge there), or a current far off both its neighbours while the voltage does not
-/// move with it ([`current_glitch`]). Readings at rest before or after the load (a record that starts before
-/// its cell is connected) are read as they are.
-/// `sign` (+1 or -1) turns the record's current back into the file's for the message.
-fn glitch(d: &Discharge, line_of: &[u64], sign: f64) -> Result<(), DoctorError> {
+/// Refuses a reading whose voltage a logger got wrong while the load is on (from the first loaded reading to
+/// the last, whatever the sign), naming its line: a voltage outside a cell's (a 0 V sample, which would be read
+/// as the cut-off and end the discharge there). Readings at rest before or after the load (a record that starts
+/// before its cell is connected) are read as they are. Current glitches are left out before ([`current_glitches`]).
+fn voltage_glitch(d: &Discharge, line_of: &[u64]) -> Result<(), DoctorError> {
     let (v, i) = (&d.voltage_v, &d.current_a);
     let loaded = |i: &f64| i.abs() > LOADED_A;
     let first = i.iter().position(loaded).unwrap_or(0);
     let last = i.iter().rposition(loaded).map_or(0, |k| k + 1);
     let outside = |v: &f64| !(CELL_VOLTAGE_V[0]..=CELL_VOLTAGE_V[1]).contains(v);
-    if let Some(k) = v[first..last.max(first)].iter().position(outside).map(|k| first + k) {
-        return Err(DoctorError::VoltageGlitch { path: d.source.clone(), line: line_of[k], voltage_v: v[k] });
+    match v[first..last.max(first)].iter().position(outside).map(|k| first + k) {
+        Some(k) => Err(DoctorError::VoltageGlitch { path: d.source.clone(), line: line_of[k], voltage_v: v[k] }),
+        None => Ok(()),
     }
-    for k in first.max(1)..last.min(i.len() - 1) {
-        // A glitch of one reading or of a few in a row, between neighbours that agree.
-        for n in 1..=bcal_common::measured::GLITCH_RUN_READINGS.min(i.len() - 1 - k) {
-            let (a, b) = (k - 1, k + n);
-            let off = |j: usize| (i[j] - 0.5 * (i[a] + i[b]), v[j] - 0.5 * (v[a] + v[b]));
-            let (off_a, moved_v) = off(k);
-            // Both neighbours left: a step of the load that the voltage sample lags is not one.
-            let lone = (i[a] - i[b]).abs() < 0.2 * off_a.abs();
-            let run = (k..b).all(|j| {
-                let (o, m) = off(j);
-                o * off_a > 0.0 && current_glitch(o, m)
-            });
-            if lone && run {
-                return Err(DoctorError::CurrentGlitch {
-                    path: d.source.clone(),
-                    line: line_of[k],
-                    current_a: sign * i[k],
-                    before_a: sign * i[a],
-                    after_a: sign * i[b],
-                    moved_mv: 1e3 * moved_v.abs(),
-                });
+}
+
+/// A run of readings whose current a logger got wrong ([`current_glitches`]): `first..first + readings`, off the
+/// level of readings `neighbours`, which agree (either side of the run; at a record's first or last readings,
+/// the two on its one side).
+#[derive(Clone, Copy, Debug)]
+struct GlitchRun {
+    first: usize,
+    readings: usize,
+    neighbours: [usize; 2],
+}
+
+/// The runs of one to [`GLITCH_RUN_READINGS`] readings whose current lies at least
+/// [`CURRENT_GLITCH_A`](bcal_common::measured::CURRENT_GLITCH_A) off the level of two neighbours that agree, on
+/// the same side of it, the voltage not moving with them ([`current_glitch`]): within the readings `v`, `i`
+/// (volts, amperes, either sign) or at their first or last. A load step whose voltage sample lags is none (its
+/// neighbours do not agree, and from its second reading on the voltage has moved). Left out, a glitch is not read
+/// as a load: it cannot move a load-on or a cut-off, nor add charge.
+fn current_glitches(v: &[f64], i: &[f64]) -> Vec<GlitchRun> {
+    let n = i.len();
+    let glitch = |first: usize, readings: usize, [a, b]: [usize; 2]| {
+        let off = |j: usize| (i[j] - 0.5 * (i[a] + i[b]), v[j] - 0.5 * (v[a] + v[b]));
+        let off_a = off(first).0;
+        let agree = (i[a] - i[b]).abs() < 0.2 * off_a.abs();
+        let run = (first..first + readings).all(|j| {
+            let (o, moved_v) = off(j);
+            o * off_a > 0.0 && current_glitch(o, moved_v)
+        });
+        (agree && run).then_some(GlitchRun { first, readings, neighbours: [a, b] })
+    };
+    let lengths = 1..=GLITCH_RUN_READINGS;
+    let mut out: Vec<GlitchRun> = Vec::new();
+    out.extend(lengths.clone().filter(|&r| r + 2 <= n).find_map(|r| glitch(0, r, [r, r + 1])));
+    let mut k = out.first().map_or(1, |g| g.readings + 1);
+    while k + 1 < n {
+        match lengths.clone().filter(|&r| k + r < n).find_map(|r| glitch(k, r, [k - 1, k + r])) {
+            Some(g) => {
+                out.push(g);
+                k += g.readings + 1;
             }
+            None => k += 1,
         }
     }
-    Ok(())
+    let free = |first: usize| out.last().is_none_or(|g| g.first + g.readings < first);
+    let last = lengths.filter(|&r| r + 2 <= n && free(n - r)).find_map(|r| glitch(n - r, r, [n - r - 1, n - r - 2]));
+    out.extend(last);
+    out
+}
+
+/// What a reader says of the current glitches it left out of a record (`runs`, the record's readings `i`, `v`
+/// with the file's sign, the first run's line `line`): the error a strict reader refuses the record with, and
+/// how many readings were left out.
+fn glitch_error(path: &Path, line: u64, v: &[f64], i: &[f64], g: &GlitchRun) -> DoctorError {
+    let [a, b] = g.neighbours;
+    DoctorError::CurrentGlitch {
+        path: path.to_path_buf(),
+        line,
+        current_a: i[g.first],
+        before_a: i[a.min(b)],
+        after_a: i[a.max(b)],
+        moved_mv: 1e3 * (v[g.first] - 0.5 * (v[a] + v[b])).abs(),
+    }
+}
+
+/// Readings a logger got wrong, left out of a record ([`current_glitches`]): the first one's error (which a
+/// strict reader refuses the record with) and how many.
+#[derive(Debug)]
+struct Glitched {
+    error: DoctorError,
+    readings: usize,
+}
+
+/// Leaves the current glitches out of `d` (and their lines out of `line_of`), returning what was left out.
+fn leave_out_glitches(d: &mut Discharge, line_of: &mut Vec<u64>) -> Option<Glitched> {
+    let runs = current_glitches(&d.voltage_v, &d.current_a);
+    let first = runs.first()?;
+    let error = glitch_error(&d.source, line_of[first.first], &d.voltage_v, &d.current_a, first);
+    let keep = outside_runs(&runs, d.len());
+    retain_by(&mut d.time_s, &keep);
+    retain_by(&mut d.voltage_v, &keep);
+    retain_by(&mut d.current_a, &keep);
+    if let Some(t) = d.temperature_k.as_mut() {
+        retain_by(t, &keep);
+    }
+    retain_by(line_of, &keep);
+    Some(Glitched { error, readings: keep.iter().filter(|k| !**k).count() })
+}
+
+/// Per reading of `n`, whether it lies outside every run of `runs`.
+fn outside_runs(runs: &[GlitchRun], n: usize) -> Vec<bool> {
+    let mut keep = vec![true; n];
+    runs.iter().flat_map(|g| g.first..g.first + g.readings).for_each(|k| keep[k] = false);
+    keep
+}
+
+/// Keeps the items of `v` whose flag in `keep` is set.
+fn retain_by<T>(v: &mut Vec<T>, keep: &[bool]) {
+    let mut flags = keep.iter();
+    v.retain(|_| *flags.next().expect("one flag per item"));
+}
+
+/// The note a reader gives of the glitches it left out.
+fn glitch_note(g: &Glitched) -> String {
+    let more = match g.readings {
+        1 => String::new(),
+        n => format!(", {n} readings in all"),
+    };
+    let text = g.error.to_string();
+    let text = text.strip_suffix("; fix or remove that row").unwrap_or(&text);
+    format!("{text}: left out of the record{more} (the readings around it read as they are)")
 }
 
 /// Repeats of one reading at a record's end that [`frozen_end`] reads as a frozen logger.
@@ -885,6 +976,20 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     if peak_a <= opts.load_threshold_a {
         return Err(no_current(path, opts));
     }
+    // Current glitches left out of each group before its sign and records are read (said as the file has them).
+    let mut glitch_notes = Vec::new();
+    for (cycle, rows) in groups.iter_mut() {
+        let v: Vec<f64> = rows.iter().map(|r| r.voltage_v).collect();
+        let i: Vec<f64> = rows.iter().map(|r| r.current_a).collect();
+        let runs = current_glitches(&v, &i);
+        let Some(first) = runs.first() else { continue };
+        let lines = line_of.get_mut(cycle).expect("a line per row");
+        let error = glitch_error(path, lines[first.first], &v, &i, first);
+        let keep = outside_runs(&runs, rows.len());
+        retain_by(rows, &keep);
+        retain_by(lines, &keep);
+        glitch_notes.push(glitch_note(&Glitched { error, readings: keep.iter().filter(|k| !**k).count() }));
+    }
     let mut report = ReadReport { format: cols.format, ..ReadReport::default() };
     report.units = cols.conversions();
     let mut evidence = SignEvidence::default();
@@ -895,6 +1000,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     }
     let sign = decide_sign(path, evidence, opts.current_sign)?;
     report.notes.extend(rows_read.notes());
+    report.notes.extend(glitch_notes);
     report.notes.extend(convention_note(path, cols.format, &sign));
     let flip = if sign.discharge_positive { 1.0 } else { -1.0 };
     let cell = cell_name(path);
@@ -950,7 +1056,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             let header = cols.temperature.as_ref().map_or("", |c| c.header.as_str());
             let checked = fill_missing(&mut d, lines, header).and_then(|filled| {
                 let d = validate(d)?;
-                glitch(&d, lines, flip)?;
+                voltage_glitch(&d, lines)?;
                 Ok((plausible_charge(d, &cols.time.header)?, filled))
             });
             match checked {
@@ -1661,6 +1767,8 @@ struct RowsRead {
     first_again: Option<DoctorError>,
     /// Temperatures left empty and filled ([`fill_missing`]), said.
     temperature_note: Option<String>,
+    /// Current glitches left out ([`leave_out_glitches`]), said.
+    glitched: Option<Glitched>,
 }
 
 impl RowsRead {
@@ -1677,6 +1785,7 @@ impl RowsRead {
                 plural(self.again)
             ));
         }
+        out.extend(self.glitched.as_ref().map(glitch_note));
         out.extend(self.temperature_note.clone());
         match &self.damaged_end {
             Some(DamagedEnd { error: error @ DoctorError::FrozenEnd { .. }, .. }) => {

@@ -38,16 +38,17 @@ pub const MAX_LOADED_S: f64 = 172_800.0;
 /// Whether a change of current `step_a` with the voltage moving `moved_v` is a logger's glitch: at least
 /// [`CURRENT_GLITCH_A`] that the voltage follows by less than [`GLITCH_OHM`] per ampere. A cell of this model
 /// (18650-like, Ro 0.05-0.25 ohm) moves its voltage 25-125 times more at once (a -40 A sample amid 2 A,
-/// the voltage unmoved, would add 0.11 Ah at 10 s sampling). The readers refuse such a reading that both its
-/// neighbours leave, a live stream one that the last reading it took leaves.
+/// the voltage unmoved, would add 0.11 Ah at 10 s sampling). The readers leave out such a reading that two
+/// neighbours that agree leave (and say so; a strict reader refuses the record), a live stream one that the last
+/// reading it took leaves.
 pub fn current_glitch(step_a: f64, moved_v: f64) -> bool {
     step_a.abs() >= CURRENT_GLITCH_A && moved_v.abs() < GLITCH_OHM * step_a.abs()
 }
 /// See [`current_glitch`], A and ohm.
 pub const CURRENT_GLITCH_A: f64 = 5.0;
 pub const GLITCH_OHM: f64 = 0.002;
-/// Readings in a row one current glitch may span (a logger that wrote a bad value twice): the readers refuse
-/// a run of up to this many that both neighbours leave; a live stream refuses a level this many times in a
+/// Readings in a row one current glitch may span (a logger that wrote a bad value twice): the readers leave out
+/// a run of up to this many that two neighbours leave; a live stream refuses a level this many times in a
 /// row and takes it at the next attempt (a load that did step, under a voltage sensor that lagged, is then
 /// followed, not refused for ever).
 pub const GLITCH_RUN_READINGS: usize = 2;
