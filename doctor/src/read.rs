@@ -650,12 +650,18 @@ struct GlitchRun {
     neighbours: [usize; 2],
 }
 
-/// The runs of one to [`GLITCH_RUN_READINGS`] readings whose current lies at least
-/// [`CURRENT_GLITCH_A`](bcal_common::measured::CURRENT_GLITCH_A) off the level of two neighbours that agree, on
-/// the same side of it, the voltage not moving with them ([`current_glitch`]): within the readings `v`, `i`
-/// (volts, amperes, either sign) or at their first or last. A load step whose voltage sample lags is none (its
-/// neighbours do not agree, and from its second reading on the voltage has moved). Left out, a glitch is not read
-/// as a load: it cannot move a load-on or a cut-off, nor add charge.
+/// Readings in a row a reader takes for one current glitch ([`current_glitches`]). More than a live stream's
+/// [`GLITCH_RUN_READINGS`]: a reader sees both sides of a run, and a current at least 5 A off two neighbours that
+/// agree, the voltage not following on any of its readings, is no cell's (a load step whose voltage sample lags is
+/// unfollowed on its first reading only). A longer run is read as it is.
+const READ_GLITCH_RUN_READINGS: usize = 10;
+
+/// The runs of one to [`READ_GLITCH_RUN_READINGS`] readings whose current lies at least
+/// [`CURRENT_GLITCH_A`](bcal_common::measured::CURRENT_GLITCH_A) off the level of two neighbours that agree, on the
+/// same side of it, the voltage not moving with them ([`current_glitch`]): within the readings `v`, `i` (volts,
+/// amperes, either sign), or of up to [`GLITCH_RUN_READINGS`] at their first or last. A load step whose voltage sample
+/// lags is none (its neighbours do not agree, and from its second reading on the voltage has moved). Left out, a glitch
+/// is not read as a load: it cannot move a load-on or a cut-off, nor add charge.
 fn current_glitches(v: &[f64], i: &[f64]) -> Vec<GlitchRun> {
     let n = i.len();
     let glitch = |first: usize, readings: usize, [a, b]: [usize; 2]| {
@@ -668,9 +674,11 @@ fn current_glitches(v: &[f64], i: &[f64]) -> Vec<GlitchRun> {
         });
         (agree && run).then_some(GlitchRun { first, readings, neighbours: [a, b] })
     };
-    let lengths = 1..=GLITCH_RUN_READINGS;
+    let lengths = 1..=READ_GLITCH_RUN_READINGS;
+    // At an end the run is seen from one side only, as a live stream sees it: as short as the stream's.
+    let at_ends = 1..=GLITCH_RUN_READINGS;
     let mut out: Vec<GlitchRun> = Vec::new();
-    out.extend(lengths.clone().filter(|&r| r + 2 <= n).find_map(|r| glitch(0, r, [r, r + 1])));
+    out.extend(at_ends.clone().filter(|&r| r + 2 <= n).find_map(|r| glitch(0, r, [r, r + 1])));
     let mut k = out.first().map_or(1, |g| g.readings + 1);
     while k + 1 < n {
         match lengths.clone().filter(|&r| k + r < n).find_map(|r| glitch(k, r, [k - 1, k + r])) {
@@ -682,7 +690,7 @@ fn current_glitches(v: &[f64], i: &[f64]) -> Vec<GlitchRun> {
         }
     }
     let free = |first: usize| out.last().is_none_or(|g| g.first + g.readings < first);
-    let last = lengths.filter(|&r| r + 2 <= n && free(n - r)).find_map(|r| glitch(n - r, r, [n - r - 1, n - r - 2]));
+    let last = at_ends.filter(|&r| r + 2 <= n && free(n - r)).find_map(|r| glitch(n - r, r, [n - r - 1, n - r - 2]));
     out.extend(last);
     out
 }
@@ -2007,6 +2015,31 @@ fn csv_error(path: &Path, source: csv::Error, lines: &mut Lines) -> DoctorError 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A load that steps by 6 A under a voltage sample that lags one reading, or pulses for three readings so,
+    /// is no glitch: from its second reading on the voltage has moved (0.1 ohm). The same pulse with the voltage
+    /// never moving is one, and so is a lone spike at either end.
+    #[test]
+    fn a_load_step_whose_voltage_lags_is_no_current_glitch() {
+        let n = 20;
+        let lagged = |on: std::ops::Range<usize>| -> (Vec<f64>, Vec<f64>) {
+            let i: Vec<f64> = (0..n).map(|k| if on.contains(&k) { 6.0 } else { 0.0 }).collect();
+            // The voltage answers the current of the reading before.
+            let v: Vec<f64> = (0..n).map(|k| 4.0 - 0.1 * if k == 0 { 0.0 } else { i[k - 1] }).collect();
+            (v, i)
+        };
+        for on in [5..n, 5..8] {
+            let (v, i) = lagged(on.clone());
+            assert!(current_glitches(&v, &i).is_empty(), "{on:?}: {:?}", current_glitches(&v, &i));
+        }
+        let i: Vec<f64> = (0..n).map(|k| if (5..8).contains(&k) { 6.0 } else { 0.0 }).collect();
+        let g = current_glitches(&[4.0; 20], &i);
+        assert_eq!(g.iter().map(|g| (g.first, g.readings)).collect::<Vec<_>>(), vec![(5, 3)]);
+        let mut ends = vec![2.0; n];
+        (ends[0], ends[n - 1]) = (-40.0, 40.0);
+        let g = current_glitches(&[3.8; 20], &ends);
+        assert_eq!(g.iter().map(|g| (g.first, g.readings)).collect::<Vec<_>>(), vec![(0, 1), (n - 1, 1)]);
+    }
 
     /// A stream's or a DataFrame's columns are found as the CSV readers find them, each converted by the unit
     /// its name gives; a missing quantity and an unknown unit are named.

@@ -47,10 +47,10 @@ pub fn current_glitch(step_a: f64, moved_v: f64) -> bool {
 /// See [`current_glitch`], A and ohm.
 pub const CURRENT_GLITCH_A: f64 = 5.0;
 pub const GLITCH_OHM: f64 = 0.002;
-/// Readings in a row one current glitch may span (a logger that wrote a bad value twice): the readers leave out
-/// a run of up to this many that two neighbours leave; a live stream refuses a level this many times in a
-/// row and takes it at the next attempt (a load that did step, under a voltage sensor that lagged, is then
-/// followed, not refused for ever).
+/// Readings in a row one current glitch may span where it is seen from one side (a logger that wrote a bad value
+/// twice): the readers leave out a run of up to this many at a record's first or last readings (inside a record,
+/// seen from both sides, up to ten); a live stream refuses a level this many times in a row and takes it at the
+/// next attempt (a load that did step, under a voltage sensor that lagged, is then followed, not refused for ever).
 pub const GLITCH_RUN_READINGS: usize = 2;
 /// Current above which a reading counts as loaded for [`MAX_LOADED_S`], A.
 pub const LOADED_A: f64 = 0.05;
