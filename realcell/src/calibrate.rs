@@ -122,9 +122,10 @@ fn prepare_all(ds: &[Discharge], cutoff_v: f64, summary: &mut RecordSummary) -> 
 
 /// Marks the records (`train`, `judged`, prepared from `train_read`, `judged_read`) that started from a partial
 /// charge, as their neighbours' rest voltages show (the doctor's rule), and reads what the stated capacity
-/// measures ([`crate::record::stated_capacity`]). Which training records started partial is first read off the
-/// training records alone, for the stated capacity (a definition, read before any discharge is judged); then off
-/// every record, later ones among the neighbours, for the scores only (a partial start's capacity is not scored).
+/// measures ([`crate::record::stated_capacity`]). Which training records started partial is read off the training
+/// records alone (since 2026-11-30: the stated capacity's definition and the choices made on the validation
+/// records no longer look at the judged records' rests); which judged ones did off every record, later ones among
+/// the neighbours, for the scores only (a partial start's capacity is not scored).
 fn mark_partial_starts(
     train: &mut [CellRecord],
     judged: &mut [CellRecord],
@@ -145,7 +146,7 @@ fn mark_partial_starts(
     }
     let stated = crate::record::stated_capacity(train, cutoff_v);
     let short_all = short(train_read.iter().chain(judged_read).collect());
-    for r in train.iter_mut().chain(judged.iter_mut()) {
+    for r in judged.iter_mut() {
         r.partial_start = short_all.contains(&r.cycle);
     }
     stated
@@ -1350,10 +1351,11 @@ mod tests {
         }
     }
 
-    /// What the stated capacity measures is read off the training records alone: a last training record that
-    /// rests clearly below the ones before it is a partial start there, whatever the judged records after it
-    /// rest at (before 2026-11-30 their rests decided it, a look-ahead into a definition); the scores still
-    /// read the partial starts off every record.
+    /// Which training records started partial, and so what the stated capacity measures, is read off the
+    /// training records alone: a last training record that rests clearly below the ones before it is a partial
+    /// start whatever the judged records after it rest at (before 2026-11-30 their rests decided it, a
+    /// look-ahead into a definition and into the validation choices); judged records are read against every
+    /// record.
     #[test]
     fn the_stated_capacity_is_read_without_the_judged_records() {
         // Linear discharges whose source states the charge to 2.8 V; cycle 10 rests 60 mV under the ones
@@ -1377,22 +1379,25 @@ mod tests {
                 )
             })
             .collect();
-        let marked = |judged_rest_v: f64| {
-            let judged_read: Vec<Discharge> = (11..=13).map(|c| with_rest(c, judged_rest_v)).collect();
+        let marked = |judged_rest_v: [f64; 3]| {
+            let judged_read: Vec<Discharge> = (11..=13).map(|c| with_rest(c, judged_rest_v[c as usize - 11])).collect();
             let mut summary = RecordSummary::default();
             let (mut train, _) = prepare_all(&train_read, 2.7, &mut summary);
             let (mut judged, _) = prepare_all(&judged_read, 2.7, &mut summary);
             assert!(summary.refused.is_empty(), "{:?}", summary.refused);
             let stated = mark_partial_starts(&mut train, &mut judged, &train_read, &judged_read, 2.7);
-            (stated.expect("ten records state a capacity"), train[9].partial_start)
+            let partial = |r: &[CellRecord]| r.iter().filter(|r| r.partial_start).map(|r| r.cycle).collect::<Vec<_>>();
+            (stated.expect("ten records state a capacity"), train[9].partial_start, partial(&judged))
         };
-        let (as_high, partial_high) = marked(4.19);
-        let (as_low, partial_low) = marked(4.10);
+        let (as_high, partial_high, _) = marked([4.19; 3]);
+        let (as_low, partial_low, _) = marked([4.10; 3]);
         assert_eq!(as_high, as_low);
         assert_eq!(as_high.records, 9, "cycle 10 left out as a partial start: {as_high:?}");
         assert!((as_high.voltage_v - 2.8).abs() < 1e-9, "{as_high:?}");
-        // For the scores, later rests count: among judged records resting as low, cycle 10 started full.
-        assert!(partial_high && !partial_low);
+        // Nor do the choices made on the training records: cycle 10 is a partial start there whatever follows.
+        assert!(partial_high && partial_low);
+        // A judged record is read against its neighbours on both sides, for the scores.
+        assert_eq!(marked([4.19, 4.10, 4.19]).2, vec![12]);
     }
 
     /// The capacity `model` predicts for cycle 41 after following cycles 1-40.
