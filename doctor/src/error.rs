@@ -38,11 +38,19 @@ pub enum DoctorError {
     )]
     VoltageGlitch { path: PathBuf, line: u64, voltage_v: f64 },
     #[error(
-        "{path}, line {line}: current {current_a:?} A for one reading between {before_a:?} and {after_a:?} A, the \
-         voltage moving {moved_mv:.1} mV with it (a cell drawing that would move it by far more: a logger's glitch); \
-         fix or remove that row"
+        "{path}, line {line}: current {current_a:?} A on {readings} reading(s) where the readings around read \
+         {before_a:?} and {after_a:?} A, the voltage moving {moved_mv:.1} mV with it (a cell drawing that would move \
+         it by far more: a logger's glitch); fix or remove that row"
     )]
-    CurrentGlitch { path: PathBuf, line: u64, current_a: f64, before_a: f64, after_a: f64, moved_mv: f64 },
+    CurrentGlitch {
+        path: PathBuf,
+        line: u64,
+        current_a: f64,
+        readings: usize,
+        before_a: f64,
+        after_a: f64,
+        moved_mv: f64,
+    },
     /// Values a strict reader refuses where the others fill them and say so (the note).
     #[error("{why}")]
     MissingValues { why: String },

@@ -540,18 +540,15 @@ fn nasa_record(
     })?;
     // The frozen end first (a temperature left empty repeats as itself), so that the fill counts only the
     // readings kept.
-    if let Some(frozen) = frozen_end(&mut d, &line_of) {
+    if let Some(frozen) = frozen_end(&mut d, &mut line_of) {
         if d.len() < MIN_SAMPLES {
             return Err(frozen.error);
         }
         let after = rows.damaged_end.as_ref().map_or(0, |e| e.records);
         rows.damaged_end = Some(DamagedEnd { records: frozen.records + after, ..frozen });
     }
-    // Current glitches before the fill too, and before the sign is decided (said as the file has them).
-    rows.glitched = leave_out_glitches(&mut d, &mut line_of);
     rows.temperature_note = fill_missing(&mut d, &line_of, "Temperature_measured")?;
     let mut d = validate(d)?;
-    voltage_glitch(&d, &line_of)?;
     // Units the layout does not have, whatever the sign (a current in mA reads as no sign at all): a current
     // above what a cell carries, and time in ms (more charge than a cell holds, days under load).
     let magnitude_a: Vec<f64> = d.current_a.iter().map(|i| i.abs()).collect();
@@ -572,6 +569,13 @@ fn nasa_record(
             hint: "NASA's layout gives time in s: if it is in ms, divide it by 1000".into(),
         });
     }
+    // Current glitches after the units are checked (a square wave in mA would read as pulses the voltage does
+    // not follow, and left out, as no load) and before the sign is decided (said as the file has them).
+    rows.glitched = leave_out_glitches(&mut d, &mut line_of);
+    if d.len() < MIN_SAMPLES {
+        return Err(DoctorError::TooFewSamples { path: d.source.clone(), rows: d.len(), min: MIN_SAMPLES });
+    }
+    voltage_glitch(&d, &line_of)?;
     if opts.current_sign == CurrentSign::Auto && d.current_a.iter().all(|i| i.abs() <= opts.load_threshold_a) {
         return Err(no_current(path, opts));
     }
@@ -605,7 +609,7 @@ fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
 /// Readings a NASA logger that froze leaves at a record's end: the same reading, to the last of the layout's
 /// sixteen digits, over and over under load while the time runs on (a live cell's noise never repeats so).
 /// The record keeps the first of them; the rest is returned as its damaged end.
-fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
+fn frozen_end(d: &mut Discharge, line_of: &mut Vec<u64>) -> Option<DamagedEnd> {
     let n = d.len();
     let temps = d.temperature_k.as_ref()?;
     let reading = |k: usize| [d.voltage_v[k], d.current_a[k], temps[k]];
@@ -621,6 +625,7 @@ fn frozen_end(d: &mut Discharge, line_of: &[u64]) -> Option<DamagedEnd> {
     d.voltage_v.truncate(first);
     d.current_a.truncate(first);
     d.temperature_k.as_mut().expect("checked above").truncate(first);
+    line_of.truncate(first);
     Some(DamagedEnd { error, records: readings })
 }
 
@@ -653,15 +658,18 @@ struct GlitchRun {
 /// Readings in a row a reader takes for one current glitch ([`current_glitches`]). More than a live stream's
 /// [`GLITCH_RUN_READINGS`]: a reader sees both sides of a run, and a current at least 5 A off two neighbours that
 /// agree, the voltage not following on any of its readings, is no cell's (a load step whose voltage sample lags is
-/// unfollowed on its first reading only). A longer run is read as it is.
-const READ_GLITCH_RUN_READINGS: usize = 10;
+/// unfollowed on its first reading only). A longer run is read as it is; a shorter hole than six readings raises
+/// no gap note.
+const READ_GLITCH_RUN_READINGS: usize = 5;
 
 /// The runs of one to [`READ_GLITCH_RUN_READINGS`] readings whose current lies at least
 /// [`CURRENT_GLITCH_A`](bcal_common::measured::CURRENT_GLITCH_A) off the level of two neighbours that agree, on the
-/// same side of it, the voltage not moving with them ([`current_glitch`]): within the readings `v`, `i` (volts,
-/// amperes, either sign), or of up to [`GLITCH_RUN_READINGS`] at their first or last. A load step whose voltage sample
-/// lags is none (its neighbours do not agree, and from its second reading on the voltage has moved). Left out, a glitch
-/// is not read as a load: it cannot move a load-on or a cut-off, nor add charge.
+/// same side of it, the voltage not moving with them ([`current_glitch`]), within the readings `v`, `i` (volts,
+/// amperes, either sign); and of up to [`GLITCH_RUN_READINGS`] at their first or last readings, against the two
+/// nearest readings no run holds, where the current lies further from zero than theirs (a spike: seen from one
+/// side, a current that falls toward zero is also a load switched off under a voltage sample that lags). A load
+/// step whose voltage sample lags is none (its neighbours do not agree, and from its second reading on the voltage
+/// has moved). Left out, a glitch is not read as a load: it cannot move a load-on or a cut-off, nor add charge.
 fn current_glitches(v: &[f64], i: &[f64]) -> Vec<GlitchRun> {
     let n = i.len();
     let glitch = |first: usize, readings: usize, [a, b]: [usize; 2]| {
@@ -674,14 +682,10 @@ fn current_glitches(v: &[f64], i: &[f64]) -> Vec<GlitchRun> {
         });
         (agree && run).then_some(GlitchRun { first, readings, neighbours: [a, b] })
     };
-    let lengths = 1..=READ_GLITCH_RUN_READINGS;
-    // At an end the run is seen from one side only, as a live stream sees it: as short as the stream's.
-    let at_ends = 1..=GLITCH_RUN_READINGS;
     let mut out: Vec<GlitchRun> = Vec::new();
-    out.extend(at_ends.clone().filter(|&r| r + 2 <= n).find_map(|r| glitch(0, r, [r, r + 1])));
-    let mut k = out.first().map_or(1, |g| g.readings + 1);
+    let mut k = 1;
     while k + 1 < n {
-        match lengths.clone().filter(|&r| k + r < n).find_map(|r| glitch(k, r, [k - 1, k + r])) {
+        match (1..=READ_GLITCH_RUN_READINGS).filter(|&r| k + r < n).find_map(|r| glitch(k, r, [k - 1, k + r])) {
             Some(g) => {
                 out.push(g);
                 k += g.readings + 1;
@@ -689,21 +693,38 @@ fn current_glitches(v: &[f64], i: &[f64]) -> Vec<GlitchRun> {
             None => k += 1,
         }
     }
-    let free = |first: usize| out.last().is_none_or(|g| g.first + g.readings < first);
-    let last = at_ends.filter(|&r| r + 2 <= n && free(n - r)).find_map(|r| glitch(n - r, r, [n - r - 1, n - r - 2]));
-    out.extend(last);
+    let inside = |j: usize| out.iter().any(|g| (g.first..g.first + g.readings).contains(&j));
+    // At an end the run is seen from one side only, as a live stream sees it: as short as the stream's, a spike.
+    let at_end = |run: Range<usize>, mut clean: Vec<usize>| -> Option<GlitchRun> {
+        if run.clone().any(inside) || clean.len() < 2 {
+            return None;
+        }
+        clean.truncate(2);
+        let level_a = 0.5 * (i[clean[0]] + i[clean[1]]).abs();
+        let spike = run.clone().all(|j| i[j].abs() > level_a);
+        glitch(run.start, run.len(), [clean[0], clean[1]]).filter(|_| spike)
+    };
+    let start = (1..=GLITCH_RUN_READINGS)
+        .filter(|&r| r + 2 <= n)
+        .find_map(|r| at_end(0..r, (r..n).filter(|&j| !inside(j)).take(2).collect()));
+    let end = (1..=GLITCH_RUN_READINGS)
+        .filter(|&r| r + 2 <= n)
+        .find_map(|r| at_end(n - r..n, (0..n - r).rev().filter(|&j| !inside(j)).take(2).collect()));
+    out.extend(start);
+    out.extend(end);
+    out.sort_by_key(|g| g.first);
     out
 }
 
-/// What a reader says of the current glitches it left out of a record (`runs`, the record's readings `i`, `v`
-/// with the file's sign, the first run's line `line`): the error a strict reader refuses the record with, and
-/// how many readings were left out.
+/// The error a strict reader refuses a record with for its first current glitch `g` (the record's readings `v`,
+/// `i` as the file has them, `g`'s first line `line`), and that the readers' note tells.
 fn glitch_error(path: &Path, line: u64, v: &[f64], i: &[f64], g: &GlitchRun) -> DoctorError {
     let [a, b] = g.neighbours;
     DoctorError::CurrentGlitch {
         path: path.to_path_buf(),
         line,
         current_a: i[g.first],
+        readings: g.readings,
         before_a: i[a.min(b)],
         after_a: i[a.max(b)],
         moved_mv: 1e3 * (v[g.first] - 0.5 * (v[a] + v[b])).abs(),
@@ -755,7 +776,7 @@ fn glitch_note(g: &Glitched) -> String {
     };
     let text = g.error.to_string();
     let text = text.strip_suffix("; fix or remove that row").unwrap_or(&text);
-    format!("{text}: left out of the record{more} (the readings around it read as they are)")
+    format!("{text}: left out{more} (the readings around it read as they are)")
 }
 
 /// Repeats of one reading at a record's end that [`frozen_end`] reads as a frozen logger.
@@ -2035,10 +2056,25 @@ mod tests {
         let i: Vec<f64> = (0..n).map(|k| if (5..8).contains(&k) { 6.0 } else { 0.0 }).collect();
         let g = current_glitches(&[4.0; 20], &i);
         assert_eq!(g.iter().map(|g| (g.first, g.readings)).collect::<Vec<_>>(), vec![(5, 3)]);
+        let runs = |i: &[f64]| -> Vec<(usize, usize)> {
+            current_glitches(&vec![3.8; i.len()], i).iter().map(|g| (g.first, g.readings)).collect()
+        };
         let mut ends = vec![2.0; n];
         (ends[0], ends[n - 1]) = (-40.0, 40.0);
-        let g = current_glitches(&[3.8; 20], &ends);
-        assert_eq!(g.iter().map(|g| (g.first, g.readings)).collect::<Vec<_>>(), vec![(0, 1), (n - 1, 1)]);
+        assert_eq!(runs(&ends), vec![(0, 1), (n - 1, 1)]);
+        // A run just after the first reading, or one next to the last reading's glitch: each run is found, and
+        // no good reading is taken for one.
+        let mut early = vec![2.0; n];
+        (early[1], early[2]) = (-40.0, -40.0);
+        assert_eq!(runs(&early), vec![(1, 2)]);
+        let mut late = vec![2.0; n];
+        (late[n - 3], late[n - 1]) = (-40.0, 40.0);
+        assert_eq!(runs(&late), vec![(n - 3, 1), (n - 1, 1)]);
+        // A load of 6 A switched off at the last reading, the voltage (falling 5 mV a reading) sampled before
+        // the switch: seen from one side it could be a glitch, but a current that falls toward zero is read.
+        let i: Vec<f64> = (0..n).map(|k| if k + 1 < n { 6.0 } else { 0.0 }).collect();
+        let v: Vec<f64> = (0..n).map(|k| 3.8 - 0.005 * k.min(n - 2) as f64).collect();
+        assert!(current_glitches(&v, &i).is_empty());
     }
 
     /// A stream's or a DataFrame's columns are found as the CSV readers find them, each converted by the unit

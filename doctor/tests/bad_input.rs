@@ -339,7 +339,7 @@ fn a_nasa_record_in_ma_or_ms_or_with_a_0_v_reading_is_refused_naming_it() {
     assert_eq!(twice(-20.0, 2.0).unwrap().current_a[51], 20.0);
 }
 
-/// A current glitch of one to ten readings (the voltage unmoved, two neighbours that agree) is left out by the
+/// A current glitch of one to five readings (the voltage unmoved, two neighbours that agree) is left out by the
 /// folder reader and said, naming file, line and value, inside a record or at its first or last readings (where
 /// it would have moved the load-on or added charge after the cut-off); the strict reader refuses the record at
 /// the same line. The charge read is the clean record's to within the readings left out.
@@ -382,14 +382,35 @@ fn a_current_glitch_is_left_out_and_said_anywhere_in_a_record() {
         let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
         assert!(err.contains(&format!("00002.csv, line {line}: current -40.0 A")), "{err}");
     }
-    // Eleven in a row is past what is taken for one glitch: read as it is, as a load the voltage never follows.
-    write(&path, &spiked(&(50..61).collect::<Vec<usize>>()));
+    // Six in a row is past what is taken for one glitch: read as it is, as a load the voltage never follows.
+    write(&path, &spiked(&(50..56).collect::<Vec<usize>>()));
     let (records, _) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
     assert_eq!(records[0].len(), 134);
+    // With a frozen end too (a logger that froze under load after 100 readings): the end is cut, the glitch left
+    // out, both said.
+    let head: Vec<String> = spiked(&[50]).lines().take(101).map(str::to_string).collect();
+    let stuck = head[100].rsplit_once(',').unwrap().0.to_string();
+    let frozen: String = (100..112).map(|k| format!("{stuck},{}\n", 10 * k)).collect();
+    write(&path, &format!("{}\n{frozen}", head.join("\n")));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].len(), 99, "rows 0-99 but the glitch");
+    assert!(report.notes.iter().any(|n| n.contains("line 52: current -40.0 A")), "{:?}", report.notes);
+    assert!(report.notes.iter().any(|n| n.contains("froze")), "{:?}", report.notes);
+    // A square wave in mA (1 reading at 4000 "A" in 3, the voltage following by less than 2 mV per "A") is
+    // refused as milliamperes, not read as pulses left out.
+    let mut lines: Vec<String> = good.lines().map(str::to_string).collect();
+    for (k, line) in lines.iter_mut().enumerate().skip(1) {
+        let mut f: Vec<String> = line.split(',').map(str::to_string).collect();
+        f[1] = if k % 3 == 0 { "-4000.0" } else { "-1.0" }.into();
+        *line = f.join(",");
+    }
+    write(&path, &(lines.join("\n") + "\n"));
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("Current_measured") && err.contains("divide it by 1000"), "{err}");
 }
 
 /// The general CSV reader refuses a 0 V sample in a discharge, naming the line, and leaves out a current spike
-/// of one or two readings the voltage does not follow, saying so, as the NASA reader does.
+/// of up to five readings the voltage does not follow (two at either end), saying so, as the NASA reader does.
 #[test]
 fn a_glitch_in_a_generic_csv_discharge_is_refused_or_left_out_naming_its_line() {
     use bcal_doctor::read::{read_csv, ReadOptions};
@@ -405,7 +426,7 @@ fn a_glitch_in_a_generic_csv_discharge_is_refused_or_left_out_naming_its_line() 
     write(&path, &text(&|k| (k == 20).then(|| row(20, 0.0, 2.0))));
     let msg = read_csv(&path, &ReadOptions::default()).unwrap_err().to_string();
     assert!(msg.contains("g.csv, line 22") && msg.contains("voltage 0.0 V"), "{msg}");
-    // Once, twice (rows 20 and 21), three times or at the first or last reading: left out and said; eleven in a
+    // Once, twice (rows 20 and 21), three times or at the first or last reading: left out and said; six in a
     // row is past what is taken for one glitch.
     let spike =
         |rows: std::ops::Range<usize>| text(&|k| rows.contains(&k).then(|| row(k, 4.1 - 0.01 * k as f64, 40.0)));
@@ -416,7 +437,7 @@ fn a_glitch_in_a_generic_csv_discharge_is_refused_or_left_out_naming_its_line() 
         let note = report.notes.iter().find(|n| n.contains("glitch")).expect("said");
         assert!(note.contains(&format!("g.csv, line {line}: current 40.0 A")) && note.contains("left out"), "{note}");
     }
-    write(&path, &spike(20..31));
+    write(&path, &spike(20..26));
     assert_eq!(read_csv(&path, &ReadOptions::default()).unwrap().0[0].len(), 40);
 }
 

@@ -49,7 +49,7 @@ pub const CURRENT_GLITCH_A: f64 = 5.0;
 pub const GLITCH_OHM: f64 = 0.002;
 /// Readings in a row one current glitch may span where it is seen from one side (a logger that wrote a bad value
 /// twice): the readers leave out a run of up to this many at a record's first or last readings (inside a record,
-/// seen from both sides, up to ten); a live stream refuses a level this many times in a row and takes it at the
+/// seen from both sides, up to five); a live stream refuses a level this many times in a row and takes it at the
 /// next attempt (a load that did step, under a voltage sensor that lagged, is then followed, not refused for ever).
 pub const GLITCH_RUN_READINGS: usize = 2;
 /// Current above which a reading counts as loaded for [`MAX_LOADED_S`], A.
