@@ -512,6 +512,7 @@ fn nasa_record(
     let mut d = empty(cell, cycle, path, ambient_k, true);
     let temps = d.temperature_k.as_mut().expect("allocated");
     let mut line_of = Vec::new();
+    let mut unconfirmed: Option<UnconfirmedSwap> = None;
     let mut rows = read_rows(path, &mut rdr, &mut lines, MIN_SAMPLES, |rec, line| {
         let time_s = number(rec, cs, "Time", path, line)?;
         let voltage_v = number(rec, cv, "Voltage_measured", path, line)?;
@@ -528,9 +529,23 @@ fn nasa_record(
             };
             return match d.time_s.binary_search_by(|t| t.total_cmp(&time_s)) {
                 Ok(k) if same(k) => Ok(Taken::Again(e)),
+                Err(k) if k + 1 == d.time_s.len() => match unconfirmed.take() {
+                    Some(first) => Err(first.error(path)),
+                    None => {
+                        let previous_s = d.time_s[k];
+                        unconfirmed = Some(UnconfirmedSwap { line, time_s, previous_s });
+                        d.time_s.insert(k, time_s);
+                        d.voltage_v.insert(k, voltage_v);
+                        d.current_a.insert(k, current_a);
+                        temps.insert(k, temperature_k);
+                        line_of.insert(k, line);
+                        Ok(Taken::Swapped(e))
+                    }
+                },
                 _ => Err(e),
             };
         }
+        unconfirmed = None;
         d.time_s.push(time_s);
         d.voltage_v.push(voltage_v);
         d.current_a.push(current_a);
@@ -591,6 +606,7 @@ fn nasa_record(
 /// One record read strictly: a damaged end or a reading written twice fails it as a bad record anywhere does.
 fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
     let read = match read {
+        (_, _, RowsRead { first_again: None, first_swapped: Some(e), .. }) => return Err(e),
         (_, _, RowsRead { first_again: None, glitched: Some(g), .. }) => return Err(g.error),
         read => read,
     };
@@ -948,6 +964,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     let cols = Columns::find(&headers, path)?;
     let mut groups: BTreeMap<u32, Vec<Row>> = BTreeMap::new();
     let mut line_of: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
+    let mut unconfirmed: BTreeMap<u32, Option<UnconfirmedSwap>> = BTreeMap::new();
     let rows_read = read_rows(path, &mut rdr, &mut lines, MIN_SAMPLES, |rec, line| {
         let cycle = match &cols.cycle {
             Some(c) => {
@@ -973,13 +990,24 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             ambient_c: cols.ambient.as_ref().map(|c| c.value(rec, path, line)).transpose()?,
         };
         let rows = groups.entry(cycle).or_default();
+        let unconfirmed = unconfirmed.entry(cycle).or_default();
         if let Some(previous_s) = rows.last().map(|r| r.time_s).filter(|p| row.time_s <= *p) {
             let e = DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s: row.time_s, previous_s };
             return match rows.binary_search_by(|r| r.time_s.total_cmp(&row.time_s)) {
                 Ok(k) if rows[k].same(&row) => Ok(Taken::Again(e)),
+                Err(k) if k + 1 == rows.len() => match unconfirmed.take() {
+                    Some(first) => Err(first.error(path)),
+                    None => {
+                        *unconfirmed = Some(UnconfirmedSwap { line, time_s: row.time_s, previous_s });
+                        rows.insert(k, row);
+                        line_of.entry(cycle).or_default().insert(k, line);
+                        Ok(Taken::Swapped(e))
+                    }
+                },
                 _ => Err(e),
             };
         }
+        *unconfirmed = None;
         rows.push(row);
         line_of.entry(cycle).or_default().push(line);
         Ok(Taken::Kept)
@@ -1785,6 +1813,27 @@ enum Taken {
     /// The same reading, at the same time, as one already kept (a row copied, a logger's buffer written
     /// again): read once. The error is the one a strict reader refuses it with.
     Again(DoctorError),
+    /// A reading whose time falls between the last two kept (two rows written in the wrong order): read in its
+    /// place by time. The error is the one a strict reader refuses it with.
+    Swapped(DoctorError),
+}
+
+/// A reading whose time falls between the last two kept, read in its place ([`Taken::Swapped`]), until the next
+/// reading confirms the two rows were written in the wrong order by coming after the last one kept. If the next
+/// falls before it as well, the last reading's clock jumped ahead (more than two rows out of order): the record is
+/// refused at the first, as a clock that steps back or jumps ahead amid whole lines is.
+#[derive(Clone, Copy, Debug)]
+struct UnconfirmedSwap {
+    line: u64,
+    time_s: f64,
+    previous_s: f64,
+}
+
+impl UnconfirmedSwap {
+    fn error(self, path: &Path) -> DoctorError {
+        let UnconfirmedSwap { line, time_s, previous_s } = self;
+        DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s, previous_s }
+    }
 }
 
 /// What [`read_rows`] met beside the records it kept.
@@ -1798,6 +1847,9 @@ struct RowsRead {
     temperature_note: Option<String>,
     /// Current glitches left out ([`leave_out_glitches`]), said.
     glitched: Option<Glitched>,
+    /// Readings read in their place by time ([`Taken::Swapped`]), and the first of them.
+    swapped: usize,
+    first_swapped: Option<DoctorError>,
 }
 
 impl RowsRead {
@@ -1812,6 +1864,15 @@ impl RowsRead {
                 path.display(),
                 self.again,
                 plural(self.again)
+            ));
+        }
+        if let Some(DoctorError::TimeNotIncreasing { path, line, time_s, previous_s }) = &self.first_swapped {
+            out.push(format!(
+                "{}, line {line}: the reading at {time_s:?} s comes after the one at {previous_s:?} s (two rows written \
+                 in the wrong order); {} such reading{} read in its place by time",
+                path.display(),
+                self.swapped,
+                plural(self.swapped)
             ));
         }
         out.extend(self.glitched.as_ref().map(glitch_note));
@@ -1861,6 +1922,12 @@ fn read_rows(
             Ok(Taken::Again(e)) => {
                 out.again += 1;
                 out.first_again.get_or_insert(e);
+                continue;
+            }
+            Ok(Taken::Swapped(e)) => {
+                kept += 1;
+                out.swapped += 1;
+                out.first_swapped.get_or_insert(e);
                 continue;
             }
             Err(error) => error,

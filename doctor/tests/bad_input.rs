@@ -409,6 +409,60 @@ fn a_current_glitch_is_left_out_and_said_anywhere_in_a_record() {
     assert!(err.contains("Current_measured") && err.contains("divide it by 1000"), "{err}");
 }
 
+/// Two rows written in the wrong order (a reading whose time falls between the two before it) are read in their
+/// place by time and said, by the folder reader and the general reader; the strict reader refuses them, naming
+/// the line; a clock that steps further back (a logger restarted) still refuses the record.
+#[test]
+fn two_rows_written_in_the_wrong_order_are_read_in_time_order_and_said() {
+    use bcal_doctor::read::{read_csv, read_nasa, read_nasa_with, ReadOptions};
+    let dir = one_record_folder();
+    let path = dir.path().join("data/00002.csv");
+    let good = nasa_record(134);
+    write(&path, &good);
+    let clean = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap().0.remove(0);
+    let mut lines: Vec<&str> = good.lines().collect();
+    lines.swap(51, 52);
+    write(&path, &(lines.join("\n") + "\n"));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].time_s, clean.time_s);
+    assert_eq!(records[0].current_a, clean.current_a);
+    assert_eq!(records[0].voltage_v, clean.voltage_v);
+    let note = report.notes.iter().find(|n| n.contains("wrong order")).expect("said");
+    assert!(note.contains("00002.csv, line 53") && note.contains("1 such reading"), "{note}");
+    let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
+    assert!(err.contains("00002.csv, line 53") && err.contains("does not increase"), "{err}");
+    // A logger restarted mid-record: its clock from 0 again.
+    let restarted: String = good
+        .lines()
+        .enumerate()
+        .map(|(k, l)| match k {
+            k if k > 80 => {
+                let (head, t) = l.rsplit_once(',').unwrap();
+                format!("{head},{}\n", t.parse::<f64>().unwrap() - 800.0)
+            }
+            _ => format!("{l}\n"),
+        })
+        .collect();
+    write(&path, &restarted);
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("00002.csv, line 82") && err.contains("does not increase"), "{err}");
+    // The general reader.
+    let g = dir.path().join("g.csv");
+    let rows: Vec<String> = (0..40).map(|k| format!("{},{},2.0", 10 * k, 4.1 - 0.01 * k as f64)).collect();
+    let mut swapped = rows.clone();
+    swapped.swap(20, 21);
+    write(&g, &format!("time_s,voltage_v,current_a\n{}\n", rows.join("\n")));
+    let clean = read_csv(&g, &ReadOptions::default()).unwrap().0.remove(0);
+    write(&g, &format!("time_s,voltage_v,current_a\n{}\n", swapped.join("\n")));
+    let (records, report) = read_csv(&g, &ReadOptions::default()).unwrap();
+    assert_eq!((&records[0].time_s, &records[0].voltage_v), (&clean.time_s, &clean.voltage_v));
+    assert!(
+        report.notes.iter().any(|n| n.contains("g.csv, line 23") && n.contains("wrong order")),
+        "{:?}",
+        report.notes
+    );
+}
+
 /// The general CSV reader refuses a 0 V sample in a discharge, naming the line, and leaves out a current spike
 /// of up to five readings the voltage does not follow (two at either end), saying so, as the NASA reader does.
 #[test]
