@@ -483,6 +483,10 @@ pub struct Stream<'a> {
     /// The current of the attempt just before, if it was refused as a glitch ([`current_glitch`]), A, and how
     /// many attempts in a row were refused at that level.
     glitch_a: Option<(f64, usize)>,
+    /// The current and voltage of the last reading taken before a level that was taken unfollowed (at its
+    /// attempt after [`GLITCH_RUN_READINGS`] refusals, the voltage unmoved), A and V, until the voltage follows
+    /// that level: a reading back at that current ends a spike of more readings, and is taken at once.
+    unfollowed_from: Option<(f64, f64)>,
     /// Whether the current discharge began under load (after a gap in the readings): a piece of a
     /// discharge, whose start is unseen. It is neither scored nor measured nor end-fitted.
     joined_under_load: bool,
@@ -895,6 +899,7 @@ impl<'a> Stream<'a> {
             discharge_start_s: None,
             last_sample: None,
             glitch_a: None,
+            unfollowed_from: None,
             joined_under_load: false,
             last_loaded_t_s: None,
             counted_last_loaded_t_s: None,
@@ -1098,13 +1103,24 @@ impl<'a> Stream<'a> {
         // sample lagged meets a voltage that moved at its next reading. A level refused on
         // GLITCH_RUN_READINGS attempts in a row is taken at the next (a load that stepped under a voltage
         // sensor that never followed loses those readings, not the stream).
+        // A spike of more readings was taken from its third: the reading back where the current was before it
+        // meets no step against it.
+        let mut unfollowed_from = None;
         if let Some(p) = self.last_sample.filter(|p| r.time_s - p.t_s <= NEW_DISCHARGE_GAP_S) {
             let moved_v = r.voltage_v - p.voltage_v;
             let level = refused_a.filter(|(g, _)| (r.current_a - g).abs() < CURRENT_GLITCH_A).map_or(0, |(_, n)| n);
-            if level < GLITCH_RUN_READINGS && current_glitch(r.current_a - p.current_a, moved_v) {
+            let glitch = current_glitch(r.current_a - p.current_a, moved_v);
+            let back = self.unfollowed_from.is_some_and(|(a, _)| (r.current_a - a).abs() < CURRENT_GLITCH_A);
+            if glitch && !back && level < GLITCH_RUN_READINGS {
                 self.glitch_a = Some((r.current_a, level + 1));
                 return Err(ReadingError::CurrentGlitch { current_a: r.current_a, previous_a: p.current_a, moved_v });
             }
+            unfollowed_from = match self.unfollowed_from {
+                _ if glitch && !back => Some((p.current_a, p.voltage_v)),
+                // Kept while the level stays unfollowed; dropped once the voltage follows it, or back.
+                Some((a, v)) if !back && current_glitch(r.current_a - a, r.voltage_v - v) => Some((a, v)),
+                _ => None,
+            };
         }
         // Milliseconds read as seconds stretch every interval a thousandfold: the load then seems to stay on
         // for days and to draw more than a cell holds (the readers refuse such a record the same way).
@@ -1118,6 +1134,7 @@ impl<'a> Stream<'a> {
         if loaded_run.0 > MAX_LOADED_S || loaded_run.1 > MAX_RECORD_CHARGE_AH {
             return Err(ReadingError::LoadTooLong { time_s: r.time_s, loaded_s: loaded_run.0, drawn_ah: loaded_run.1 });
         }
+        self.unfollowed_from = unfollowed_from;
         let s = Sample {
             t_s: r.time_s,
             voltage_v: r.voltage_v,
@@ -1885,6 +1902,22 @@ mod tests {
         // Two days later, at rest 5 mV above the last loaded reading: no step against it.
         stream.step(&at(70.0 + 2.0 * 86_400.0, 3.605, 0.0)).unwrap();
         assert_eq!(stream.readings(), 8);
+        // A spike of four readings the voltage never follows: taken from its third (the stream cannot know it
+        // will end), and the reading back at the current before it is taken at once, not refused against it.
+        let mut stream = Stream::new(Box::new(WindowFitCalibrator::new(&spec)), &spec, None);
+        for k in 0..5 {
+            stream.step(&at(10.0 * k as f64, 3.9 - 0.001 * k as f64, 2.0)).unwrap();
+        }
+        for t in [50.0, 51.0] {
+            assert!(matches!(stream.step(&at(t, 3.895, 42.0)), Err(ReadingError::CurrentGlitch { .. })));
+        }
+        stream.step(&at(52.0, 3.895, 42.0)).unwrap();
+        stream.step(&at(53.0, 3.895, 42.0)).unwrap();
+        stream.step(&at(54.0, 3.895, 2.0)).unwrap();
+        // Once back, a new spike is refused as before.
+        assert!(matches!(stream.step(&at(60.0, 3.894, 42.0)), Err(ReadingError::CurrentGlitch { .. })));
+        stream.step(&at(61.0, 3.894, 2.0)).unwrap();
+        assert_eq!(stream.readings(), 9);
     }
 
     /// The stream gives what the calibrator alone gives, reading by reading, and refuses a bad reading
