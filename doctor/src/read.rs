@@ -17,15 +17,15 @@
 //!   runs into discharge records, each with the rest before its load and the relaxation after it; gaps
 //!   (a time step over [`ReadOptions::gap_factor`] median steps) are kept and noted.
 //!
-//! Bad input never passes silently: files named in the metadata but absent are skipped and counted,
-//! non-finite or non-numeric fields are errors naming file and line, time must increase, a metadata row may
-//! name only a bare file in `data/`. Error lines are the lines records start on (CRLF and blank lines
-//! counted); file content in a message is shown escaped and shortened. Through [`read_nasa_with`] and
-//! [`read_csv`] a bad record (cycle) is skipped and reported with its one-line error while the others read;
-//! the older [`read_nasa`], [`read_nasa_record`] and [`read_generic`] keep their fixed sign and fail on the
-//! first bad record. Records that end under load are told apart later by
-//! [`crate::record::Discharge::windows_with_cutoff`] (complete at the cut-off, or truncated) and
-//! [`nasa_cutoff_v`] gives a NASA cell's documented cut-off. Readers never fit and never print.
+//! Bad input never passes silently: files named in the metadata but absent are skipped and counted, non-finite or
+//! non-numeric fields are errors naming file and line, time must increase (two rows written in the wrong order are
+//! read in time order, said), a metadata row may name only a bare file in `data/`. Error lines are the lines
+//! records start on (CRLF and blank lines counted); file content in a message is shown escaped and shortened.
+//! Through [`read_nasa_with`] and [`read_csv`] a bad record (cycle) is skipped and reported with its one-line error
+//! while the others read; the older [`read_nasa`], [`read_nasa_record`] and [`read_generic`] keep their fixed sign
+//! and fail on the first bad record. Records that end under load are told apart later by
+//! [`crate::record::Discharge::windows_with_cutoff`] (complete at the cut-off, or truncated) and [`nasa_cutoff_v`]
+//! gives a NASA cell's documented cut-off. Readers never fit and never print.
 
 use crate::error::DoctorError;
 use crate::record::{Discharge, CELSIUS_TO_KELVIN};
@@ -527,9 +527,10 @@ fn nasa_record(
             let same = |k: usize| {
                 same_bits(&[d.voltage_v[k], d.current_a[k], temps[k]], &[voltage_v, current_a, temperature_k])
             };
+            let between = |k: usize| (k == 0 || d.time_s[k - 1] < time_s) && time_s < d.time_s[k];
             return match d.time_s.binary_search_by(|t| t.total_cmp(&time_s)) {
                 Ok(k) if same(k) => Ok(Taken::Again(e)),
-                Err(k) if k + 1 == d.time_s.len() => match unconfirmed.take() {
+                Err(k) if k + 1 == d.time_s.len() && between(k) => match unconfirmed.take() {
                     Some(first) => Err(first.error(path)),
                     None => {
                         let previous_s = d.time_s[k];
@@ -542,7 +543,7 @@ fn nasa_record(
                         Ok(Taken::Swapped(e))
                     }
                 },
-                _ => Err(e),
+                _ => Err(unconfirmed.take().map_or(e, |first| first.error(path))),
             };
         }
         unconfirmed = None;
@@ -553,6 +554,15 @@ fn nasa_record(
         line_of.push(line);
         Ok(Taken::Kept)
     })?;
+    if let Some(first) = unconfirmed {
+        // Nothing after the swap confirmed it: the reading it went before (now the last) is left out.
+        let time_s = d.time_s.pop().expect("a swap went before a reading");
+        d.voltage_v.pop();
+        d.current_a.pop();
+        temps.pop();
+        let line = line_of.pop().expect("a line per reading");
+        rows.unconfirmed_note = Some(first.left_out_note(path, line, time_s));
+    }
     // The frozen end first (a temperature left empty repeats as itself), so that the fill counts only the
     // readings kept.
     if let Some(frozen) = frozen_end(&mut d, &mut line_of) {
@@ -566,16 +576,16 @@ fn nasa_record(
     let mut d = validate(d)?;
     // Units the layout does not have, whatever the sign (a current in mA reads as no sign at all): a current
     // above what a cell carries, and time in ms (more charge than a cell holds, days under load).
-    let magnitude_a: Vec<f64> = d.current_a.iter().map(|i| i.abs()).collect();
-    let peak_a = magnitude_a.iter().copied().fold(0.0, f64::max);
-    if peak_a > MAX_CELL_CURRENT_A {
-        return Err(DoctorError::SuspectUnit {
-            path: path.to_path_buf(),
-            column: "Current_measured".into(),
-            why: format!("peaks at {} A, more than a cell carries ({MAX_CELL_CURRENT_A} A)", short(peak_a)),
-            hint: "NASA's layout gives current in A: if it is in mA, divide it by 1000".into(),
-        });
+    let in_ma = |current_a: &[f64]| DoctorError::SuspectUnit {
+        path: path.to_path_buf(),
+        column: "Current_measured".into(),
+        why: format!("peaks at {} A, more than a cell carries ({MAX_CELL_CURRENT_A} A)", short(peak_abs(current_a))),
+        hint: "NASA's layout gives current in A: if it is in mA, divide it by 1000".into(),
+    };
+    if beyond_a_cell(&d.current_a) > READ_GLITCH_RUN_READINGS {
+        return Err(in_ma(&d.current_a));
     }
+    let magnitude_a: Vec<f64> = d.current_a.iter().map(|i| i.abs()).collect();
     if let Some(why) = implausible(&d, &magnitude_a) {
         return Err(DoctorError::SuspectUnit {
             path: path.to_path_buf(),
@@ -590,6 +600,9 @@ fn nasa_record(
     if d.len() < MIN_SAMPLES {
         return Err(DoctorError::TooFewSamples { path: d.source.clone(), rows: d.len(), min: MIN_SAMPLES });
     }
+    if beyond_a_cell(&d.current_a) > 0 {
+        return Err(in_ma(&d.current_a));
+    }
     voltage_glitch(&d, &line_of)?;
     if opts.current_sign == CurrentSign::Auto && d.current_a.iter().all(|i| i.abs() <= opts.load_threshold_a) {
         return Err(no_current(path, opts));
@@ -603,7 +616,9 @@ fn nasa_record(
     Ok((d, sign, rows))
 }
 
-/// One record read strictly: a damaged end or a reading written twice fails it as a bad record anywhere does.
+/// One record read strictly: whatever the lenient readers read and say (a damaged end, a reading written twice,
+/// rows written in the wrong order, a current glitch, a temperature filled) fails it as a bad record anywhere does,
+/// naming the first of those in that order (not always the first by line).
 fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
     let read = match read {
         (_, _, RowsRead { first_again: None, first_swapped: Some(e), .. }) => return Err(e),
@@ -615,7 +630,7 @@ fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
         (_, _, RowsRead { first_again: None, damaged_end: None, temperature_note: Some(note), .. }) => {
             Err(DoctorError::MissingValues { why: format!("refused by the strict reader: {note}") })
         }
-        // The first bad line: readings written twice are met before the damage that ends the reading.
+        // Readings written twice are met before the damage that ends the reading.
         (_, _, RowsRead { damaged_end, first_again, .. }) => {
             Err(first_again.unwrap_or_else(|| damaged_end.expect("matched above").error))
         }
@@ -677,6 +692,17 @@ struct GlitchRun {
 /// unfollowed on its first reading only). A longer run is read as it is; a shorter hole than six readings raises
 /// no gap note.
 const READ_GLITCH_RUN_READINGS: usize = 5;
+
+/// How many of the currents `current_a` lie beyond what a cell carries ([`MAX_CELL_CURRENT_A`]): more than a glitch
+/// spans says the unit is not amperes (a glitch's few are left out first, and any left after refuse the record).
+fn beyond_a_cell(current_a: &[f64]) -> usize {
+    current_a.iter().filter(|i| i.abs() > MAX_CELL_CURRENT_A).count()
+}
+
+/// The largest magnitude of `values`.
+fn peak_abs(values: &[f64]) -> f64 {
+    values.iter().fold(0.0, |m, v| m.max(v.abs()))
+}
 
 /// The runs of one to [`READ_GLITCH_RUN_READINGS`] readings whose current lies at least
 /// [`CURRENT_GLITCH_A`](bcal_common::measured::CURRENT_GLITCH_A) off the level of two neighbours that agree, on the
@@ -951,7 +977,8 @@ pub fn read_generic(path: &Path, ambient_c: Option<f64>) -> Result<Vec<Discharge
 /// the relaxation after, its time counted from its first sample. A cycle holding two discharges keeps the
 /// larger and notes the other; without a cycle column records are numbered 1, 2, ... in time order.
 ///
-/// File-level problems (unreadable, missing columns, a field that is not a number, time going backwards,
+/// File-level problems (unreadable, missing columns, a field that is not a number, time going backwards beyond
+/// two rows written in the wrong order, which are read in time order and noted,
 /// a unit it cannot read or a current too large to be amperes, a sign it cannot decide, no discharge at
 /// all) fail the read naming the file (and line). A record that fails on its own (too few samples,
 /// millivolts, time in milliseconds) is skipped and listed in [`ReadReport::skipped`]; the read fails only
@@ -993,9 +1020,10 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
         let unconfirmed = unconfirmed.entry(cycle).or_default();
         if let Some(previous_s) = rows.last().map(|r| r.time_s).filter(|p| row.time_s <= *p) {
             let e = DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s: row.time_s, previous_s };
+            let between = |k: usize| (k == 0 || rows[k - 1].time_s < row.time_s) && row.time_s < rows[k].time_s;
             return match rows.binary_search_by(|r| r.time_s.total_cmp(&row.time_s)) {
                 Ok(k) if rows[k].same(&row) => Ok(Taken::Again(e)),
-                Err(k) if k + 1 == rows.len() => match unconfirmed.take() {
+                Err(k) if k + 1 == rows.len() && between(k) => match unconfirmed.take() {
                     Some(first) => Err(first.error(path)),
                     None => {
                         *unconfirmed = Some(UnconfirmedSwap { line, time_s: row.time_s, previous_s });
@@ -1004,7 +1032,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
                         Ok(Taken::Swapped(e))
                     }
                 },
-                _ => Err(e),
+                _ => Err(unconfirmed.take().map_or(e, |first| first.error(path))),
             };
         }
         *unconfirmed = None;
@@ -1012,25 +1040,38 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
         line_of.entry(cycle).or_default().push(line);
         Ok(Taken::Kept)
     })?;
+    let mut order_notes = Vec::new();
+    for (cycle, first) in unconfirmed.into_iter().filter_map(|(c, f)| f.map(|f| (c, f))) {
+        let row = groups.get_mut(&cycle).and_then(Vec::pop).expect("a swap went before a reading");
+        let line = line_of.get_mut(&cycle).and_then(Vec::pop).expect("a line per reading");
+        order_notes.push(first.left_out_note(path, line, row.time_s));
+    }
     if groups.is_empty() {
         return Err(DoctorError::TooFewSamples { path: path.to_path_buf(), rows: 0, min: MIN_SAMPLES });
     }
-    let peak_a = groups.values().flatten().map(|r| r.current_a.abs()).fold(0.0, f64::max);
-    if peak_a > MAX_CELL_CURRENT_A {
+    let currents = |groups: &BTreeMap<u32, Vec<Row>>, cycle: u32| -> Vec<f64> {
+        groups.get(&cycle).map_or_else(Vec::new, |rows| rows.iter().map(|r| r.current_a).collect())
+    };
+    let peak_a =
+        |groups: &BTreeMap<u32, Vec<Row>>| groups.values().flatten().fold(0.0_f64, |m, r| m.max(r.current_a.abs()));
+    let in_ma = |peak_a: f64| {
         let hint = if cols.current.unit == "A" {
             "if it is in mA, name the column current_ma (or `Current / mA`), or divide it by 1000".to_string()
         } else {
             format!("check the column's unit (read as {})", cols.current.unit)
         };
-        return Err(DoctorError::SuspectUnit {
+        DoctorError::SuspectUnit {
             path: path.to_path_buf(),
             column: shown(&cols.current.header, 60),
             why: format!("peaks at {} A, more than a cell carries ({MAX_CELL_CURRENT_A} A)", short(peak_a)),
             hint,
-        });
+        }
+    };
+    // More currents beyond a cell's in a group than a glitch spans: another unit (a glitch's are left out below).
+    if groups.keys().any(|&c| beyond_a_cell(&currents(&groups, c)) > READ_GLITCH_RUN_READINGS) {
+        return Err(in_ma(peak_a(&groups)));
     }
-
-    if peak_a <= opts.load_threshold_a {
+    if peak_a(&groups) <= opts.load_threshold_a {
         return Err(no_current(path, opts));
     }
     // Current glitches left out of each group before its sign and records are read (said as the file has them).
@@ -1047,6 +1088,9 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
         retain_by(lines, &keep);
         glitch_notes.push(glitch_note(&Glitched { error, readings: keep.iter().filter(|k| !**k).count() }));
     }
+    if peak_a(&groups) > MAX_CELL_CURRENT_A {
+        return Err(in_ma(peak_a(&groups)));
+    }
     let mut report = ReadReport { format: cols.format, ..ReadReport::default() };
     report.units = cols.conversions();
     let mut evidence = SignEvidence::default();
@@ -1058,6 +1102,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     let sign = decide_sign(path, evidence, opts.current_sign)?;
     report.notes.extend(rows_read.notes());
     report.notes.extend(glitch_notes);
+    report.notes.extend(order_notes);
     report.notes.extend(convention_note(path, cols.format, &sign));
     let flip = if sign.discharge_positive { 1.0 } else { -1.0 };
     let cell = cell_name(path);
@@ -1830,6 +1875,18 @@ struct UnconfirmedSwap {
 }
 
 impl UnconfirmedSwap {
+    /// What a reader says when nothing after the swap confirmed it (the record's last rows): the reading it went
+    /// before, at `time_s` on line `line`, may be one whose clock jumped ahead, and is left out.
+    fn left_out_note(self, path: &Path, line: u64, time_s: f64) -> String {
+        format!(
+            "{}, line {line}: the reading at {time_s:?} s comes before one at {:?} s (line {}), and no reading after \
+             them tells two rows written in the wrong order from a clock that jumped ahead: left out",
+            path.display(),
+            self.time_s,
+            self.line
+        )
+    }
+
     fn error(self, path: &Path) -> DoctorError {
         let UnconfirmedSwap { line, time_s, previous_s } = self;
         DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s, previous_s }
@@ -1850,6 +1907,8 @@ struct RowsRead {
     /// Readings read in their place by time ([`Taken::Swapped`]), and the first of them.
     swapped: usize,
     first_swapped: Option<DoctorError>,
+    /// A swap no reading after it confirmed ([`UnconfirmedSwap::left_out_note`]), said.
+    unconfirmed_note: Option<String>,
 }
 
 impl RowsRead {
@@ -1869,12 +1928,14 @@ impl RowsRead {
         if let Some(DoctorError::TimeNotIncreasing { path, line, time_s, previous_s }) = &self.first_swapped {
             out.push(format!(
                 "{}, line {line}: the reading at {time_s:?} s comes after the one at {previous_s:?} s (two rows written \
-                 in the wrong order); {} such reading{} read in its place by time",
+                 in the wrong order); {} such reading{} read in {} place by time",
                 path.display(),
                 self.swapped,
-                plural(self.swapped)
+                plural(self.swapped),
+                if self.swapped == 1 { "its" } else { "their" }
             ));
         }
+        out.extend(self.unconfirmed_note.clone());
         out.extend(self.glitched.as_ref().map(glitch_note));
         out.extend(self.temperature_note.clone());
         match &self.damaged_end {
@@ -1898,7 +1959,8 @@ impl RowsRead {
 /// line cut short. Where nothing after the first bad record is more data (see below), the file is read up to
 /// it and the damage returned for the caller to say; a bad record that data follows fails the read naming
 /// it, as does a damaged end with fewer than `min_kept` records before it. Readings written again
-/// (a buffer written twice) are read once wherever they are.
+/// (a buffer written twice) are read once wherever they are, and rows written in the wrong order in their place
+/// ([`Taken::Swapped`], counted among those kept).
 fn read_rows(
     path: &Path,
     rdr: &mut csv::Reader<&[u8]>,

@@ -382,6 +382,13 @@ fn a_current_glitch_is_left_out_and_said_anywhere_in_a_record() {
         let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
         assert!(err.contains(&format!("00002.csv, line {line}: current -40.0 A")), "{err}");
     }
+    // A logger's overflow value (6553.5 A) on one reading: a glitch left out, not a record in mA.
+    let mut lines: Vec<String> = good.lines().map(str::to_string).collect();
+    lines[61] = lines[61].replacen(",-2,", ",6553.5,", 1);
+    write(&path, &(lines.join("\n") + "\n"));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].len(), 133);
+    assert!(report.notes.iter().any(|n| n.contains("line 62: current 6553.5 A")), "{:?}", report.notes);
     // Six in a row is past what is taken for one glitch: read as it is, as a load the voltage never follows.
     write(&path, &spiked(&(50..56).collect::<Vec<usize>>()));
     let (records, _) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
@@ -431,6 +438,20 @@ fn two_rows_written_in_the_wrong_order_are_read_in_time_order_and_said() {
     assert!(note.contains("00002.csv, line 53") && note.contains("1 such reading"), "{note}");
     let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
     assert!(err.contains("00002.csv, line 53") && err.contains("does not increase"), "{err}");
+    // The last two rows swapped: nothing after them tells a swap from a clock that jumped ahead on the first of
+    // them, which is left out (the relaxation's last reading), said.
+    let mut lines: Vec<&str> = good.lines().collect();
+    lines.swap(133, 134);
+    write(&path, &(lines.join("\n") + "\n"));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].time_s, clean.time_s[..133]);
+    let note = report.notes.iter().find(|n| n.contains("jumped ahead")).expect("said");
+    assert!(note.contains("00002.csv, line 134: the reading at 1330.0 s") && note.contains("left out"), "{note}");
+    // A time of -0 after 0 is no swap (it does not fall between two readings): refused as before.
+    let minus_zero = good.replacen(",10\n", ",-0\n", 1);
+    write(&path, &minus_zero);
+    let err = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("line 3") && err.contains("does not increase"), "{err}");
     // A logger restarted mid-record: its clock from 0 again.
     let restarted: String = good
         .lines()
@@ -461,6 +482,15 @@ fn two_rows_written_in_the_wrong_order_are_read_in_time_order_and_said() {
         "{:?}",
         report.notes
     );
+    // With a cycle column, a swap at a cycle's last rows is unconfirmed: the reading it went before is left out.
+    let cycles: Vec<String> =
+        (0..80).map(|k| format!("{},{},2.0,{}", 10 * (k % 40), 4.1 - 0.01 * (k % 40) as f64, 1 + k / 40)).collect();
+    let mut swapped = cycles.clone();
+    swapped.swap(38, 39);
+    write(&g, &format!("time_s,voltage_v,current_a,cycle\n{}\n", swapped.join("\n")));
+    let (records, report) = read_csv(&g, &ReadOptions::default()).unwrap();
+    assert_eq!((records[0].len(), records[1].len()), (39, 40));
+    assert!(report.notes.iter().any(|n| n.contains("g.csv, line 40") && n.contains("left out")), "{:?}", report.notes);
 }
 
 /// The general CSV reader refuses a 0 V sample in a discharge, naming the line, and leaves out a current spike

@@ -471,7 +471,7 @@ struct GenericFile {
 
 fn rows() -> impl Strategy<Value = Vec<Row>> {
     // Currents within 4.9 A of each other (the first up to 0.5 A more): a lone reading 5 A off both its
-    // neighbours, the voltage unmoved, is a glitch the readers leave out.
+    // neighbours, the voltage unmoved, is a glitch the readers leave out (and the strict ones refuse).
     prop::collection::vec((1e-3f64..100.0, 2.5f64..4.3, -2.0f64..2.4, -20.0f64..60.0), MIN_SAMPLES..40).prop_map(
         |steps| {
             let mut t = -50.0;
