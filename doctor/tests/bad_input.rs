@@ -179,6 +179,18 @@ fn one_record_folder() -> tempfile::TempDir {
     dir
 }
 
+/// [`one_record_folder`] with a 134-reading record written ([`nasa_record`]): the folder, the record's path, its
+/// text and the record as the folder reader reads it.
+fn one_clean_record() -> (tempfile::TempDir, std::path::PathBuf, String, bcal_doctor::Discharge) {
+    let dir = one_record_folder();
+    let path = dir.path().join("data/00002.csv");
+    let good = nasa_record(134);
+    write(&path, &good);
+    let opts = bcal_doctor::read::ReadOptions::default();
+    let clean = bcal_doctor::read::read_nasa_with(dir.path(), "B0005", None, &opts).unwrap().0.remove(0);
+    (dir, path, good, clean)
+}
+
 /// Four synthetic discharges of one cell (rest, constant load to 3.0 V, relaxation).
 fn four_cycles(seed: u64) -> Vec<bcal_doctor::Discharge> {
     let mut rng = StdRng::seed_from_u64(seed);
@@ -346,11 +358,7 @@ fn a_nasa_record_in_ma_or_ms_or_with_a_0_v_reading_is_refused_naming_it() {
 #[test]
 fn a_current_glitch_is_left_out_and_said_anywhere_in_a_record() {
     use bcal_doctor::read::{read_nasa, read_nasa_with, ReadOptions};
-    let dir = one_record_folder();
-    let path = dir.path().join("data/00002.csv");
-    let good = nasa_record(134);
-    write(&path, &good);
-    let clean = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap().0.remove(0);
+    let (dir, path, good, clean) = one_clean_record();
     let charge_ah = |d: &bcal_doctor::Discharge| d.charge_ah(0, d.len());
     // Rows (0-based, header on line 1) set to -40 A, the voltage as it was.
     let spiked = |rows: &[usize]| -> String {
@@ -422,11 +430,7 @@ fn a_current_glitch_is_left_out_and_said_anywhere_in_a_record() {
 #[test]
 fn two_rows_written_in_the_wrong_order_are_read_in_time_order_and_said() {
     use bcal_doctor::read::{read_csv, read_nasa, read_nasa_with, ReadOptions};
-    let dir = one_record_folder();
-    let path = dir.path().join("data/00002.csv");
-    let good = nasa_record(134);
-    write(&path, &good);
-    let clean = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap().0.remove(0);
+    let (dir, path, good, clean) = one_clean_record();
     let mut lines: Vec<&str> = good.lines().collect();
     lines.swap(51, 52);
     write(&path, &(lines.join("\n") + "\n"));
