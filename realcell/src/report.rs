@@ -192,6 +192,7 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
         }
         let _ = writeln!(s, "{row} {} |", m.coverage_90_pct.map_or("-".into(), |c| format!("{c:.1}")));
     }
+    write_by_life(&mut s, r);
     bcal_eval::report::write_reading_plots_notes(&mut s, &reading(r), &r.plots, &r.notes);
     let _ = writeln!(
         s,
@@ -200,6 +201,37 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
     );
     let _ = writeln!(s, "\nCalibration took {:.0} s.", r.seconds);
     s
+}
+
+/// The table of each method's scores by third of the judged discharges ([`MethodScore::by_life`]): the
+/// coverage of its 90 % intervals (end / capacity) and its capacity RMSE from half against the data's charge.
+fn write_by_life(s: &mut String, r: &CalibrationReport) {
+    let Some(thirds) = r.methods.values().map(|m| m.scores.by_life.keys().cloned().collect::<Vec<_>>()).next() else {
+        return;
+    };
+    if thirds.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        s,
+        "\n## By third of the judged discharges (coverage of the 90 % intervals, end / capacity %; capacity from half \
+         against the data's charge, RMSE Ah)\n"
+    );
+    let _ = writeln!(s, "| Method | {} |\n| --- |{}", thirds.join(" | "), " ---: |".repeat(thirds.len()));
+    for (key, name) in METHODS {
+        let Some(m) = r.methods.get(key).filter(|m| !m.scores.by_life.is_empty()) else { continue };
+        let mut row = format!("| {name} |");
+        for t in &thirds {
+            let Some(p) = m.scores.by_life.get(t) else {
+                row.push_str(" - |");
+                continue;
+            };
+            let cov = |k: &str| p.coverage_90_pct.get(k).copied().flatten().map_or("-".into(), |c| format!("{c:.1}"));
+            let cap = p.capacity_vs_data.get("50").filter(|e| e.n > 0).map_or("-".into(), |e| format!("{:.4}", e.rmse));
+            let _ = write!(row, " {} / {}, {cap} |", cov("eod"), cov("capacity"));
+        }
+        let _ = writeln!(s, "{row}");
+    }
 }
 
 fn span(cycles: &[u32]) -> String {

@@ -9,7 +9,9 @@
 //!   discharge measured by the cycler, and the capacity the data itself shows down to the cut-off);
 //! - the same per condition (each discharge's current and ambient temperature, rounded) when the judged
 //!   discharges ran under more than one, and the capacity errors at the discharges that follow a rest of more
-//!   than a day (where the cell has regained capacity).
+//!   than a day (where the cell has regained capacity);
+//! - the same on the first, middle and last third of the judged discharges in order: an interval is only as
+//!   good as its coverage late in a cell's life, where the training discharges are furthest behind.
 
 use crate::record::CellRecord;
 use crate::run::CycleRun;
@@ -107,6 +109,28 @@ pub struct MethodScore {
     /// The same scores per condition (`"2.0 A, 24 C"`), when the judged discharges ran under more than one.
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
     pub by_condition: BTreeMap<String, MethodScore>,
+    /// The same scores on the first, middle and last third of the judged discharges in order ([`life_thirds`]:
+    /// `"1: cycles 41-83"`, `"2: ..."`, `"3: ..."`), when there are at least [`MIN_BY_LIFE`].
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub by_life: BTreeMap<String, MethodScore>,
+}
+
+/// Judged discharges needed to score the thirds of a life apart ([`MethodScore::by_life`]): three each.
+pub const MIN_BY_LIFE: usize = 9;
+
+/// The first, middle and last third of `records` (in order; the last takes what does not divide), each keyed
+/// by its place and cycles (`"1: cycles 41-83"`); none with fewer than [`MIN_BY_LIFE`].
+pub fn life_thirds(records: &[CellRecord]) -> Vec<(String, std::ops::Range<usize>)> {
+    let n = records.len();
+    if n < MIN_BY_LIFE {
+        return Vec::new();
+    }
+    let third = n / 3;
+    [0..third, third..2 * third, 2 * third..n]
+        .into_iter()
+        .enumerate()
+        .map(|(k, r)| (format!("{}: cycles {}-{}", k + 1, records[r.start].cycle, records[r.end - 1].cycle), r))
+        .collect()
 }
 
 /// Capacity from half of the discharges that follow a long rest.
@@ -140,6 +164,9 @@ pub fn score(records: &[CellRecord], runs: &[CycleRun]) -> MethodScore {
             let us: Vec<CycleRun> = idx.iter().map(|&k| runs[k].clone()).collect();
             s.by_condition.insert(key, score_flat(&rs, &us));
         }
+    }
+    for (key, part) in life_thirds(records) {
+        s.by_life.insert(key, score_flat(&records[part.clone()], &runs[part]));
     }
     s
 }
@@ -295,6 +322,15 @@ mod tests {
         let two = score(&[r.clone(), r2], &[run.clone(), run]);
         assert_eq!(two.by_condition.keys().cloned().collect::<Vec<_>>(), vec!["2.00 A, 25 C", "4.00 A, 25 C"]);
         assert_eq!(two.by_condition["4.00 A, 25 C"].capacity["50"].n, 1);
+        // Fewer than nine judged discharges: no thirds of the life; ten: 3, 3 and 4, keyed by their cycles.
+        assert!(two.by_life.is_empty());
+        let ten: Vec<CellRecord> = (1..=10).map(|c| CellRecord { cycle: c, ..r.clone() }).collect();
+        let runs: Vec<CycleRun> = ten.iter().map(s_run).collect();
+        let life = score(&ten, &runs).by_life;
+        let keys: Vec<&str> = life.keys().map(String::as_str).collect();
+        assert_eq!(keys, ["1: cycles 1-3", "2: cycles 4-6", "3: cycles 7-10"]);
+        assert_eq!(life["3: cycles 7-10"].eod_error_pct["50"].n, 4);
+        assert_eq!(life["1: cycles 1-3"].coverage_90_pct["eod"], Some(100.0));
         // A discharge from a partial charge: its end is scored, its capacity is not.
         let partial = CellRecord { cycle: 2, partial_start: true, ..r.clone() };
         let both = score(&[r.clone(), partial.clone()], &[s_run(&r), s_run(&partial)]);
