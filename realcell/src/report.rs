@@ -206,12 +206,9 @@ pub fn render_markdown(r: &CalibrationReport) -> String {
 /// The table of each method's scores by third of the judged discharges ([`MethodScore::by_life`]): the
 /// coverage of its 90 % intervals (end / capacity) and its capacity RMSE from half against the data's charge.
 fn write_by_life(s: &mut String, r: &CalibrationReport) {
-    let Some(thirds) = r.methods.values().map(|m| m.scores.by_life.keys().cloned().collect::<Vec<_>>()).next() else {
-        return;
-    };
-    if thirds.is_empty() {
-        return;
-    }
+    // Every method is scored on the same judged discharges: the first with thirds names them.
+    let Some(thirds) = r.methods.values().find(|m| !m.scores.by_life.is_empty()) else { return };
+    let thirds: Vec<String> = thirds.scores.by_life.keys().cloned().collect();
     let _ = writeln!(
         s,
         "\n## By third of the judged discharges (coverage of the 90 % intervals, end / capacity %; capacity from half \

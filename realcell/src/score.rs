@@ -110,7 +110,7 @@ pub struct MethodScore {
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
     pub by_condition: BTreeMap<String, MethodScore>,
     /// The same scores on the first, middle and last third of the judged discharges in order ([`life_thirds`]:
-    /// `"1: cycles 41-83"`, `"2: ..."`, `"3: ..."`), when there are at least [`MIN_BY_LIFE`].
+    /// `"1: cycles 41-82"`, `"2: ..."`, `"3: ..."`), when there are at least [`MIN_BY_LIFE`].
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
     pub by_life: BTreeMap<String, MethodScore>,
 }
@@ -119,7 +119,7 @@ pub struct MethodScore {
 pub const MIN_BY_LIFE: usize = 9;
 
 /// The first, middle and last third of `records` (in order; the last takes what does not divide), each keyed
-/// by its place and cycles (`"1: cycles 41-83"`); none with fewer than [`MIN_BY_LIFE`].
+/// by its place and cycles (`"1: cycles 41-82"`); none with fewer than [`MIN_BY_LIFE`].
 pub fn life_thirds(records: &[CellRecord]) -> Vec<(String, std::ops::Range<usize>)> {
     let n = records.len();
     if n < MIN_BY_LIFE {
@@ -322,8 +322,14 @@ mod tests {
         let two = score(&[r.clone(), r2], &[run.clone(), run]);
         assert_eq!(two.by_condition.keys().cloned().collect::<Vec<_>>(), vec!["2.00 A, 25 C", "4.00 A, 25 C"]);
         assert_eq!(two.by_condition["4.00 A, 25 C"].capacity["50"].n, 1);
-        // Fewer than nine judged discharges: no thirds of the life; ten: 3, 3 and 4, keyed by their cycles.
+        // Fewer than nine judged discharges: no thirds of the life; nine: 3 each; ten: 3, 3 and 4, keyed by their
+        // cycles.
         assert!(two.by_life.is_empty());
+        let thirds = |n: u32| {
+            let rs: Vec<CellRecord> = (1..=n).map(|c| CellRecord { cycle: c, ..r.clone() }).collect();
+            life_thirds(&rs).into_iter().map(|(_, part)| part.len()).collect::<Vec<_>>()
+        };
+        assert_eq!((thirds(8), thirds(9)), (vec![], vec![3, 3, 3]));
         let ten: Vec<CellRecord> = (1..=10).map(|c| CellRecord { cycle: c, ..r.clone() }).collect();
         let runs: Vec<CycleRun> = ten.iter().map(s_run).collect();
         let life = score(&ten, &runs).by_life;
