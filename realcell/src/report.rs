@@ -650,3 +650,45 @@ pub fn write_outputs(
     written.push(p);
     Ok(written)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::score::MethodScore;
+
+    /// The thirds' table names each third by its cycles and gives a method's coverage (end / capacity) and
+    /// capacity RMSE there; a report without thirds has no such table.
+    #[test]
+    fn the_thirds_of_the_life_are_tabulated_per_method() {
+        let third = |eod: f64, capacity: f64, rmse: f64| {
+            let mut s = MethodScore::default();
+            s.coverage_90_pct.insert("eod".into(), Some(eod));
+            s.coverage_90_pct.insert("capacity".into(), Some(capacity));
+            s.capacity_vs_data.insert("50".into(), crate::score::Errors { n: 3, rmse, ..Default::default() });
+            s
+        };
+        let mut ukf = MethodScore::default();
+        for (k, (e, c)) in [(85.0, 90.0), (88.0, 86.0), (84.0, 91.5)].into_iter().enumerate() {
+            ukf.by_life.insert(format!("{}: cycles {}-{}", k + 1, 10 * k + 1, 10 * k + 10), third(e, c, 0.01));
+        }
+        let report = |methods: BTreeMap<String, MethodEntry>| CalibrationReport {
+            cell: "T".into(),
+            cutoff_v: 2.7,
+            cutoff_source: "test".into(),
+            train_cycles: vec![],
+            cycles_judged: vec![],
+            records: RecordSummary::default(),
+            model: "base".into(),
+            methods,
+            settings: serde_json::Value::Null,
+            plots: vec![],
+            notes: vec![],
+            seconds: 0.0,
+        };
+        let md = render_markdown(&report(BTreeMap::from([("ukf".to_string(), MethodEntry::new("ukf", ukf))])));
+        assert!(md.contains("| Method | 1: cycles 1-10 | 2: cycles 11-20 | 3: cycles 21-30 |"), "{md}");
+        assert!(md.contains("| Joint UKF | 85.0 / 90.0, 0.0100 | 88.0 / 86.0, 0.0100 | 84.0 / 91.5, 0.0100 |"), "{md}");
+        let none = BTreeMap::from([("ukf".to_string(), MethodEntry::new("ukf", MethodScore::default()))]);
+        assert!(!render_markdown(&report(none)).contains("By third"));
+    }
+}
