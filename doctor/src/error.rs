@@ -108,3 +108,19 @@ pub enum DoctorError {
     #[error("JSON: {0}")]
     Json(#[from] serde_json::Error),
 }
+
+impl DoctorError {
+    /// The line of the file the error names, where it names one: a strict reader refuses a record with the
+    /// first of its errors in the file's order.
+    pub fn line(&self) -> Option<u64> {
+        match self {
+            Self::BadField { line, .. }
+            | Self::NotAFileName { line, .. }
+            | Self::TimeNotIncreasing { line, .. }
+            | Self::VoltageGlitch { line, .. }
+            | Self::CurrentGlitch { line, .. }
+            | Self::FrozenEnd { line, .. } => Some(*line),
+            _ => None,
+        }
+    }
+}

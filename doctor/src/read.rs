@@ -306,7 +306,8 @@ pub fn parse_cycle_range(text: &str) -> Result<RangeInclusive<u32>, DoctorError>
 
 /// Reads the discharges of `cell` whose cycle number (1-based order of the cell's discharge rows in
 /// `metadata.csv`) lies in `cycles` (all when `None`). Rows whose file is absent are skipped and listed.
-/// Current is read negative while discharging (NASA's sign); the first bad record fails the read.
+/// Current is read negative while discharging (NASA's sign); the first bad record fails the read, with the first
+/// of its errors in the file's order (a glitch, rows out of order or written twice, a damaged end, an empty field).
 pub fn read_nasa(
     root: &Path,
     cell: &str,
@@ -572,7 +573,9 @@ fn nasa_record(
         let after = rows.damaged_end.as_ref().map_or(0, |e| e.records);
         rows.damaged_end = Some(DamagedEnd { records: frozen.records + after, ..frozen });
     }
-    rows.temperature_note = fill_missing(&mut d, &line_of, "Temperature_measured")?;
+    let first_missing = d.temperature_k.as_ref().and_then(|t| t.iter().position(|t| !t.is_finite()));
+    rows.temperature_note = fill_missing(&mut d, &line_of, "Temperature_measured")?
+        .map(|note| (line_of[first_missing.expect("a note only where a temperature was missing")], note));
     let mut d = validate(d)?;
     // Units the layout does not have, whatever the sign (a current in mA reads as no sign at all): a current
     // above what a cell carries, and time in ms (more charge than a cell holds, days under load).
@@ -619,21 +622,20 @@ fn nasa_record(
 /// One record read strictly: whatever the lenient readers read and say (a damaged end, a reading written twice,
 /// rows written in the wrong order, a current glitch, a temperature filled) fails it as a bad record anywhere does,
 /// naming the first of those in that order (not always the first by line).
-fn whole(read: NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
-    let read = match read {
-        (_, _, RowsRead { first_again: None, first_swapped: Some(e), .. }) => return Err(e),
-        (_, _, RowsRead { first_again: None, glitched: Some(g), .. }) => return Err(g.error),
-        read => read,
-    };
-    match read {
-        (d, sign, RowsRead { damaged_end: None, first_again: None, temperature_note: None, .. }) => Ok((d, sign)),
-        (_, _, RowsRead { first_again: None, damaged_end: None, temperature_note: Some(note), .. }) => {
-            Err(DoctorError::MissingValues { why: format!("refused by the strict reader: {note}") })
-        }
-        // Readings written twice are met before the damage that ends the reading.
-        (_, _, RowsRead { damaged_end, first_again, .. }) => {
-            Err(first_again.unwrap_or_else(|| damaged_end.expect("matched above").error))
-        }
+fn whole((d, sign, rows): NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
+    let temperature = rows.temperature_note.map(|(line, note)| {
+        (line, DoctorError::MissingValues { why: format!("refused by the strict reader: {note}") })
+    });
+    // An error without a line is a damaged end's, at the file's end.
+    let refusals =
+        [rows.first_swapped, rows.glitched.map(|g| g.error), rows.first_again, rows.damaged_end.map(|e| e.error)]
+            .into_iter()
+            .flatten()
+            .map(|e| (e.line().unwrap_or(u64::MAX), e))
+            .chain(temperature);
+    match refusals.min_by_key(|(line, _)| *line) {
+        Some((_, e)) => Err(e),
+        None => Ok((d, sign)),
     }
 }
 
@@ -1900,8 +1902,8 @@ struct RowsRead {
     /// Readings written twice and read once, and the first of them.
     again: usize,
     first_again: Option<DoctorError>,
-    /// Temperatures left empty and filled ([`fill_missing`]), said.
-    temperature_note: Option<String>,
+    /// Temperatures left empty and filled ([`fill_missing`]), said, and the first one's line.
+    temperature_note: Option<(u64, String)>,
     /// Current glitches left out ([`leave_out_glitches`]), said.
     glitched: Option<Glitched>,
     /// Readings read in their place by time ([`Taken::Swapped`]), and the first of them.
@@ -1937,7 +1939,7 @@ impl RowsRead {
         }
         out.extend(self.unconfirmed_note.clone());
         out.extend(self.glitched.as_ref().map(glitch_note));
-        out.extend(self.temperature_note.clone());
+        out.extend(self.temperature_note.as_ref().map(|(_, note)| note.clone()));
         match &self.damaged_end {
             Some(DamagedEnd { error: error @ DoctorError::FrozenEnd { .. }, .. }) => {
                 out.push(format!("{error}: read up to them, as a record cut short"));

@@ -411,6 +411,14 @@ fn a_current_glitch_is_left_out_and_said_anywhere_in_a_record() {
     assert_eq!(records[0].len(), 99, "rows 0-99 but the glitch");
     assert!(report.notes.iter().any(|n| n.contains("line 52: current -40.0 A")), "{:?}", report.notes);
     assert!(report.notes.iter().any(|n| n.contains("froze")), "{:?}", report.notes);
+    // With a reading written twice too: the strict reader names whichever comes first in the file.
+    for (glitch_row, copied_row, line) in [(50, 80, "line 52: current -40.0 A"), (100, 30, "line 33: time")] {
+        let mut lines: Vec<String> = spiked(&[glitch_row]).lines().map(str::to_string).collect();
+        lines.insert(copied_row + 2, lines[copied_row + 1].clone());
+        write(&path, &(lines.join("\n") + "\n"));
+        let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
+        assert!(err.contains(line), "{line}: {err}");
+    }
     // A square wave in mA (1 reading at 4000 "A" in 3, the voltage following by less than 2 mV per "A") is
     // refused as milliamperes, not read as pulses left out.
     let mut lines: Vec<String> = good.lines().map(str::to_string).collect();
