@@ -621,7 +621,7 @@ fn nasa_record(
 
 /// One record read strictly: whatever the lenient readers read and say (a damaged end, a reading written twice,
 /// rows written in the wrong order, a current glitch, a temperature filled) fails it as a bad record anywhere does,
-/// naming the first of those in that order (not always the first by line).
+/// naming the first of those by line.
 fn whole((d, sign, rows): NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
     let temperature = rows.temperature_note.map(|(line, note)| {
         (line, DoctorError::MissingValues { why: format!("refused by the strict reader: {note}") })
