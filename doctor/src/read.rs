@@ -977,11 +977,13 @@ pub fn read_generic(path: &Path, ambient_c: Option<f64>) -> Result<Vec<Discharge
 /// by cycle when there is a cycle column, and each group (or the whole file) is cut at its charging runs
 /// into discharge records: each holds the rest before its load, the load (with any rests inside it) and
 /// the relaxation after, its time counted from its first sample. A cycle holding two discharges keeps the
-/// larger and notes the other; without a cycle column records are numbered 1, 2, ... in time order.
+/// larger and notes the other; without a cycle column records are numbered 1, 2, ... in time order, and a time
+/// that steps back before the last two readings and runs on from there (a logger restarted) starts a new session
+/// on its own clock, noted, whose records' numbers skip one (no rest is known across it).
 ///
 /// File-level problems (unreadable, missing columns, a field that is not a number, time going backwards beyond
-/// two rows written in the wrong order, which are read in time order and noted,
-/// a unit it cannot read or a current too large to be amperes, a sign it cannot decide, no discharge at
+/// two rows written in the wrong order, which are read in time order and noted, or a restart without a cycle
+/// column; with one, within a cycle), a unit it cannot read or a current too large to be amperes, a sign it cannot decide, no discharge at
 /// all) fail the read naming the file (and line). A record that fails on its own (too few samples,
 /// millivolts, time in milliseconds) is skipped and listed in [`ReadReport::skipped`]; the read fails only
 /// when none is left.
@@ -994,6 +996,10 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     let mut groups: BTreeMap<u32, Vec<Row>> = BTreeMap::new();
     let mut line_of: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
     let mut unconfirmed: BTreeMap<u32, Option<UnconfirmedSwap>> = BTreeMap::new();
+    // Without a cycle column, each logger session (a clock restarted) is a group of its own.
+    let mut session = 0u32;
+    let mut restart: Option<Restart> = None;
+    let mut restart_notes = Vec::new();
     let rows_read = read_rows(path, &mut rdr, &mut lines, MIN_SAMPLES, |rec, line| {
         let cycle = match &cols.cycle {
             Some(c) => {
@@ -1004,7 +1010,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
                 }
                 v as u32
             }
-            None => 0,
+            None => session,
         };
         let row = Row {
             time_s: cols.time.value(rec, path, line)?,
@@ -1018,6 +1024,14 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
                 .transpose()?,
             ambient_c: cols.ambient.as_ref().map(|c| c.value(rec, path, line)).transpose()?,
         };
+        // The reading after a restart confirms it by coming after it and before the clock it left; one that
+        // does not leaves the reading that stepped back a time the logger got wrong, refused as before.
+        if let Some(r) = restart.take() {
+            if !(r.time_s < row.time_s && row.time_s <= r.previous_s) {
+                return Err(r.error(path));
+            }
+            restart_notes.push(r.note(path));
+        }
         let rows = groups.entry(cycle).or_default();
         let unconfirmed = unconfirmed.entry(cycle).or_default();
         if let Some(previous_s) = rows.last().map(|r| r.time_s).filter(|p| row.time_s <= *p) {
@@ -1034,6 +1048,15 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
                         Ok(Taken::Swapped(e))
                     }
                 },
+                // Before the last two readings, with no swap pending and no cycle column: a logger restarted (its
+                // clock from 0, or set back), the readings from here a new session, once the next confirms it.
+                Ok(k) | Err(k) if k + 1 < rows.len() && unconfirmed.is_none() && cols.cycle.is_none() => {
+                    session += 1;
+                    restart = Some(Restart { line, time_s: row.time_s, previous_s });
+                    groups.entry(session).or_default().push(row);
+                    line_of.entry(session).or_default().push(line);
+                    Ok(Taken::Kept)
+                }
                 _ => Err(unconfirmed.take().map_or(e, |first| first.error(path))),
             };
         }
@@ -1042,6 +1065,12 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
         line_of.entry(cycle).or_default().push(line);
         Ok(Taken::Kept)
     })?;
+    // A restart at the file's last reading: nothing confirms it, and that reading is left out.
+    if let Some(r) = restart {
+        groups.remove(&session);
+        line_of.remove(&session);
+        restart_notes.push(r.left_out_note(path));
+    }
     let mut order_notes = Vec::new();
     for (cycle, first) in unconfirmed.into_iter().filter_map(|(c, f)| f.map(|f| (c, f))) {
         let row = groups.get_mut(&cycle).and_then(Vec::pop).expect("a swap went before a reading");
@@ -1105,6 +1134,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     report.notes.extend(rows_read.notes());
     report.notes.extend(glitch_notes);
     report.notes.extend(order_notes);
+    report.notes.extend(restart_notes);
     report.notes.extend(convention_note(path, cols.format, &sign));
     let flip = if sign.discharge_positive { 1.0 } else { -1.0 };
     let cell = cell_name(path);
@@ -1115,6 +1145,11 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     let mut any_discharge = false;
     let mut next_number = 1u32;
     for (cycle, rows) in &groups {
+        if !with_cycle && *cycle > 0 {
+            // A session after a restart: its records' numbers skip one, so that the record before its first is
+            // not one step back and no rest is taken across clocks that do not agree (`prior::rests_before`).
+            next_number += 1;
+        }
         let t: Vec<f64> = rows.iter().map(|r| r.time_s).collect();
         let i: Vec<f64> = rows.iter().map(|r| flip * r.current_a).collect();
         let mut segments = discharge_segments(&t, &i, opts, !with_cycle);
@@ -1891,6 +1926,45 @@ impl UnconfirmedSwap {
 
     fn error(self, path: &Path) -> DoctorError {
         let UnconfirmedSwap { line, time_s, previous_s } = self;
+        DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s, previous_s }
+    }
+}
+
+/// A reading of a CSV without a cycle column whose time falls before the last two kept ([`read_csv`]): a logger
+/// that restarted (its clock from 0, or set back), once the next reading comes after it; from it the readings are a
+/// new session on their own clock.
+#[derive(Clone, Copy, Debug)]
+struct Restart {
+    line: u64,
+    time_s: f64,
+    previous_s: f64,
+}
+
+impl Restart {
+    fn note(self, path: &Path) -> String {
+        let Restart { line, time_s, previous_s } = self;
+        format!(
+            "{}, line {line}: the time steps back from {previous_s:?} s to {time_s:?} s and runs on from there (a \
+             logger restarted): the readings from here are read as a new session on its own clock; no rest is known \
+             between the sessions, and the records' numbers skip one there",
+            path.display()
+        )
+    }
+
+    /// What is said when the restart is the file's last reading: nothing confirms it, and it is left out.
+    fn left_out_note(self, path: &Path) -> String {
+        format!(
+            "{}, line {}: the last reading's time {:?} s steps back from {:?} s, and no reading after it tells a logger \
+             that restarted from a time written wrong: left out",
+            path.display(),
+            self.line,
+            self.time_s,
+            self.previous_s
+        )
+    }
+
+    fn error(self, path: &Path) -> DoctorError {
+        let Restart { line, time_s, previous_s } = self;
         DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s, previous_s }
     }
 }

@@ -505,6 +505,72 @@ fn two_rows_written_in_the_wrong_order_are_read_in_time_order_and_said() {
     assert!(report.notes.iter().any(|n| n.contains("g.csv, line 40") && n.contains("left out")), "{:?}", report.notes);
 }
 
+/// A general CSV without a cycle column whose logger restarted (its clock from 0 again) between discharges: every
+/// discharge is read, the restart said, and the record after it numbered so that no rest is taken across clocks
+/// that do not agree; a time that steps back on one reading only is refused naming its line, and a restart at the
+/// file's last reading is left out and said.
+#[test]
+fn a_logger_restart_in_a_csv_without_cycles_starts_a_new_session() {
+    use bcal_doctor::read::{numbering_step, read_csv, ReadOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let g = dir.path().join("life.csv");
+    // (time, voltage, current) rows of a rest, a 2 A discharge and a relaxation, from `t0_s`, one every 10 s; a
+    // charge after it.
+    let discharge = |t0_s: f64, dv: f64| -> Vec<(f64, f64, f64)> {
+        let rest = (0..10).map(|k| (4.15, 0.0, k));
+        let load = (0..40).map(|k| (4.0 - 0.02 * k as f64, 2.0, 10 + k));
+        let relax = (0..10).map(|k| (3.6, 0.0, 50 + k));
+        let charge = (0..20).map(|k| (4.1, -1.5, 60 + k));
+        rest.chain(load).chain(relax).chain(charge).map(|(v, i, k)| (t0_s + 10.0 * k as f64, v + dv, i)).collect()
+    };
+    let csv = |rows: &[(f64, f64, f64)]| -> String {
+        let body: String = rows.iter().map(|(t, v, i)| format!("{t},{v},{i}\n")).collect();
+        format!("time_s,voltage_v,current_a\n{body}")
+    };
+    let before: Vec<_> = [discharge(0.0, 0.0), discharge(800.0, 0.0)].concat();
+    // The session after the restart reads other voltages (a copy of readings kept is a buffer written again).
+    let life: Vec<_> = [before.clone(), discharge(0.0, -0.001)].concat();
+    write(&g, &csv(&before));
+    let (alone, _) = read_csv(&g, &ReadOptions::default()).unwrap();
+    write(&g, &csv(&life));
+    let (records, report) = read_csv(&g, &ReadOptions::default()).unwrap();
+    assert_eq!(records.iter().map(|d| d.cycle).collect::<Vec<_>>(), [1, 2, 4]);
+    for (a, b) in alone.iter().zip(&records) {
+        assert_eq!((&a.time_s, &a.voltage_v, &a.current_a), (&b.time_s, &b.voltage_v, &b.current_a));
+    }
+    assert_eq!((&records[2].time_s, &records[2].current_a), (&records[0].time_s, &records[0].current_a));
+    // The restart is the file's row 160 (line 162), at 0 s after 1590 s.
+    let note = report.notes.iter().find(|n| n.contains("restarted")).expect("the restart is said");
+    assert!(note.contains("life.csv, line 162: the time steps back from 1590.0 s to 0.0 s"), "{note}");
+    let starts: Vec<(u32, f64)> = report.starts.iter().map(|s| (s.cycle, s.start_s)).collect();
+    assert_eq!(starts, [(1, 0.0), (2, 800.0), (4, 0.0)]);
+    assert_eq!(numbering_step(&report.starts), 1, "the record before the restart is not one step back");
+    // One reading's time written wrong (back to 5 s amid a discharge, the next on the clock it left): refused.
+    let mut wrong = life.clone();
+    wrong[30].0 = 5.0;
+    write(&g, &csv(&wrong));
+    let err = read_csv(&g, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("life.csv, line 32: time 5.0 s does not increase"), "{err}");
+    // A restart at the last reading: nothing confirms it; left out, said.
+    let last: Vec<_> = [before.clone(), vec![(0.0, 4.1, 0.0)]].concat();
+    write(&g, &csv(&last));
+    let (records, report) = read_csv(&g, &ReadOptions::default()).unwrap();
+    assert_eq!(records.len(), 2);
+    assert!(
+        report
+            .notes
+            .iter()
+            .any(|n| n.contains("life.csv, line 162: the last reading's time 0.0 s") && n.contains("left out")),
+        "{:?}",
+        report.notes
+    );
+    // With a cycle column the clocks of cycles are their own: a restart within a cycle is refused, named.
+    let body: String = life.iter().map(|(t, v, i)| format!("{t},{v},{i},1\n")).collect();
+    write(&g, &format!("time_s,voltage_v,current_a,cycle\n{body}"));
+    let err = read_csv(&g, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("life.csv, line 162") && err.contains("does not increase"), "{err}");
+}
+
 /// The general CSV reader refuses a 0 V sample in a discharge, naming the line, and leaves out a current spike
 /// of up to five readings the voltage does not follow (two at either end), saying so, as the NASA reader does.
 #[test]
