@@ -990,9 +990,20 @@ pub fn read_generic(path: &Path, ambient_c: Option<f64>) -> Result<Vec<Discharge
 pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, ReadReport), DoctorError> {
     let bytes = read_file(path)?;
     let mut lines = Lines::new(&bytes);
-    let mut rdr = csv::Reader::from_reader(bytes.as_slice());
+    let delimiter = delimiter(&bytes);
+    let mut rdr = csv::ReaderBuilder::new().delimiter(delimiter).from_reader(bytes.as_slice());
     let headers = rdr.headers().map_err(|e| csv_error(path, e, &mut lines))?.clone();
-    let cols = Columns::find(&headers, path)?;
+    let mut cols = Columns::find(&headers, path)?;
+    // Where the comma does not separate fields it may be the decimal mark (a spreadsheet's locale).
+    let decimal_comma = delimiter != b',';
+    for c in [&mut cols.time, &mut cols.voltage, &mut cols.current]
+        .into_iter()
+        .chain(&mut cols.temperature)
+        .chain(&mut cols.ambient)
+        .chain(&mut cols.cycle)
+    {
+        c.decimal_comma = decimal_comma;
+    }
     let mut groups: BTreeMap<u32, Vec<Row>> = BTreeMap::new();
     let mut line_of: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
     let mut unconfirmed: BTreeMap<u32, Option<UnconfirmedSwap>> = BTreeMap::new();
@@ -1124,6 +1135,10 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     }
     let mut report = ReadReport { format: cols.format, ..ReadReport::default() };
     report.units = cols.conversions();
+    if decimal_comma {
+        let shown = if delimiter == b'\t' { "a tab".to_string() } else { format!("`{}`", delimiter as char) };
+        report.units.push(format!("fields separated by {shown}; a decimal comma read as a decimal point"));
+    }
     let mut evidence = SignEvidence::default();
     for rows in groups.values() {
         let v: Vec<f64> = rows.iter().map(|r| r.voltage_v).collect();
@@ -1272,11 +1287,20 @@ struct Col {
     offset: f64,
     /// The unit the column is read in (`s`, `ms`, `V`, `mV`, `A`, `mA`, `degC`, `K`, ...).
     unit: &'static str,
+    /// Whether a comma in a value is its decimal mark (a file whose fields another character separates).
+    decimal_comma: bool,
 }
 
 impl Col {
     fn value(&self, rec: &csv::StringRecord, path: &Path, line: u64) -> Result<f64, DoctorError> {
-        let v = number(rec, self.index, &self.header, path, line)? * self.scale + self.offset;
+        let v = match self.decimal_comma {
+            true => {
+                let raw = rec.get(self.index).unwrap_or("");
+                raw.trim().replacen(',', ".", 1).parse::<f64>().map_err(|_| bad_field(path, line, &self.header, raw))?
+            }
+            false => number(rec, self.index, &self.header, path, line)?,
+        } * self.scale
+            + self.offset;
         if v.is_finite() {
             Ok(v)
         } else {
@@ -1329,7 +1353,11 @@ impl Columns {
                 });
             };
             let bdf = header.contains(" / ") || BDF_NAMES.contains(&header.trim());
-            found.push((quantity, Col { index, header: header.trim().to_string(), scale, offset, unit }, bdf));
+            found.push((
+                quantity,
+                Col { index, header: header.trim().to_string(), scale, offset, unit, decimal_comma: false },
+                bdf,
+            ));
         }
         let mut take = |q: Quantity| {
             found.iter().position(|(fq, _, _)| *fq == q).map(|k| {
@@ -2184,6 +2212,13 @@ fn bad_field(path: &Path, line: u64, column: &str, value: &str) -> DoctorError {
 
 fn read_file(path: &Path) -> Result<Vec<u8>, DoctorError> {
     std::fs::read(path).map_err(|source| DoctorError::Io { path: path.to_path_buf(), source })
+}
+
+/// The field delimiter of a CSV, from its header line: the comma, else a semicolon or a tab where the header holds
+/// one and no comma (what a spreadsheet writes in a locale whose decimal mark is the comma).
+fn delimiter(bytes: &[u8]) -> u8 {
+    let header = bytes.split(|b| *b == b'\n').next().unwrap_or_default();
+    [b',', b';', b'\t'].into_iter().find(|d| header.contains(d)).unwrap_or(b',')
 }
 
 /// Line numbers of records, counted over the file's bytes. The csv crate's `Position::line` names the line

@@ -505,6 +505,55 @@ fn two_rows_written_in_the_wrong_order_are_read_in_time_order_and_said() {
     assert!(report.notes.iter().any(|n| n.contains("g.csv, line 40") && n.contains("left out")), "{:?}", report.notes);
 }
 
+/// A CSV written in a locale whose decimal mark is the comma (fields separated by `;`) or separated by tabs reads as
+/// its comma-separated twin, and says how it was read; in a comma-separated file a decimal comma is a bad field.
+#[test]
+fn semicolons_tabs_and_decimal_commas_read_as_commas_and_points() {
+    use bcal_doctor::read::{read_csv, ReadOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let rows: Vec<[String; 4]> = (0..60)
+        .map(|k| {
+            let i = if (10..50).contains(&k) { 2.0 } else { 0.0 };
+            let v = if i > 0.0 { 4.0 - 0.02 * (k - 10) as f64 } else { 4.15 };
+            [format!("{}", 10.5 * k as f64), format!("{v}"), format!("{i}"), format!("{}", 24.25 + 0.01 * k as f64)]
+        })
+        .collect();
+    let write_with = |name: &str, sep: &str, comma: bool| {
+        let body: String = rows
+            .iter()
+            .map(|r| {
+                let fields: Vec<String> =
+                    r.iter().map(|f| if comma { f.replace('.', ",") } else { f.clone() }).collect();
+                fields.join(sep) + "\n"
+            })
+            .collect();
+        let path = dir.path().join(name);
+        write(&path, &format!("{}\n{body}", ["time_s", "voltage_v", "current_a", "temperature_c"].join(sep)));
+        path
+    };
+    let (plain, report) = read_csv(&write_with("plain.csv", ",", false), &ReadOptions::default()).unwrap();
+    assert!(!report.units.iter().any(|u| u.contains("separated")), "{:?}", report.units);
+    for (name, sep, comma, said) in [("semi.csv", ";", true, "`;`"), ("tab.csv", "\t", false, "a tab")] {
+        let (records, report) = read_csv(&write_with(name, sep, comma), &ReadOptions::default()).unwrap();
+        assert_eq!(records.len(), plain.len(), "{name}");
+        for (a, b) in records.iter().zip(&plain) {
+            assert_eq!(
+                (&a.time_s, &a.voltage_v, &a.current_a, &a.temperature_k),
+                (&b.time_s, &b.voltage_v, &b.current_a, &b.temperature_k),
+                "{name}"
+            );
+        }
+        assert!(report.units.iter().any(|u| u.contains(&format!("separated by {said}"))), "{name}: {:?}", report.units);
+    }
+    // A decimal comma in a comma-separated file (the field quoted): a bad field, named.
+    let path = dir.path().join("quoted.csv");
+    let mut text = std::fs::read_to_string(write_with("q.csv", ",", false)).unwrap();
+    text = text.replacen("\n10.5,4.15,", "\n\"10,5\",4.15,", 1);
+    write(&path, &text);
+    let err = read_csv(&path, &ReadOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("quoted.csv, line 3: field `time_s` = `10,5`"), "{err}");
+}
+
 /// A general CSV without a cycle column whose logger restarted (its clock from 0 again) between discharges: every
 /// discharge is read, the restart said, and the record after it numbered so that no rest is taken across clocks
 /// that do not agree; a time that steps back on one reading only is refused naming its line, and a restart at the
