@@ -531,6 +531,7 @@ fn nasa_record(
             let between = |k: usize| (k == 0 || d.time_s[k - 1] < time_s) && time_s < d.time_s[k];
             return match d.time_s.binary_search_by(|t| t.total_cmp(&time_s)) {
                 Ok(k) if same(k) => Ok(Taken::Again(e)),
+                Ok(k) if k + 1 == d.time_s.len() => Ok(Taken::SameTime(e)),
                 Err(k) if k + 1 == d.time_s.len() && between(k) => match unconfirmed.take() {
                     Some(first) => Err(first.error(path)),
                     None => {
@@ -620,19 +621,24 @@ fn nasa_record(
 }
 
 /// One record read strictly: whatever the lenient readers read and say (a damaged end, a reading written twice,
-/// rows written in the wrong order, a current glitch, a temperature filled) fails it as a bad record anywhere does,
+/// rows written in the wrong order, a second reading at one time, a current glitch, a temperature filled) fails it as a bad record anywhere does,
 /// naming the first of those by line.
 fn whole((d, sign, rows): NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
     let temperature = rows.temperature_note.map(|(line, note)| {
         (line, DoctorError::MissingValues { why: format!("refused by the strict reader: {note}") })
     });
     // An error without a line is a damaged end's, at the file's end.
-    let refusals =
-        [rows.first_swapped, rows.glitched.map(|g| g.error), rows.first_again, rows.damaged_end.map(|e| e.error)]
-            .into_iter()
-            .flatten()
-            .map(|e| (e.line().unwrap_or(u64::MAX), e))
-            .chain(temperature);
+    let refusals = [
+        rows.first_swapped,
+        rows.first_same_time,
+        rows.glitched.map(|g| g.error),
+        rows.first_again,
+        rows.damaged_end.map(|e| e.error),
+    ]
+    .into_iter()
+    .flatten()
+    .map(|e| (e.line().unwrap_or(u64::MAX), e))
+    .chain(temperature);
     match refusals.min_by_key(|(line, _)| *line) {
         Some((_, e)) => Err(e),
         None => Ok((d, sign)),
@@ -1050,6 +1056,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             let between = |k: usize| (k == 0 || rows[k - 1].time_s < row.time_s) && row.time_s < rows[k].time_s;
             return match rows.binary_search_by(|r| r.time_s.total_cmp(&row.time_s)) {
                 Ok(k) if rows[k].same(&row) => Ok(Taken::Again(e)),
+                Ok(k) if k + 1 == rows.len() => Ok(Taken::SameTime(e)),
                 Err(k) if k + 1 == rows.len() && between(k) => match unconfirmed.take() {
                     Some(first) => Err(first.error(path)),
                     None => {
@@ -1926,6 +1933,9 @@ enum Taken {
     /// A reading whose time falls between the last two kept (two rows written in the wrong order): read in its
     /// place by time. The error is the one a strict reader refuses it with.
     Swapped(DoctorError),
+    /// Another reading at the time of the last one kept (a clock coarser than the logging): left out, since
+    /// no order between the two is known. The error is the one a strict reader refuses it with.
+    SameTime(DoctorError),
 }
 
 /// A reading whose time falls between the last two kept, read in its place ([`Taken::Swapped`]), until the next
@@ -2011,6 +2021,9 @@ struct RowsRead {
     /// Readings read in their place by time ([`Taken::Swapped`]), and the first of them.
     swapped: usize,
     first_swapped: Option<DoctorError>,
+    /// Readings left out at the time of the one before with other values ([`Taken::SameTime`]), and the first.
+    same_time: usize,
+    first_same_time: Option<DoctorError>,
     /// A swap no reading after it confirmed ([`UnconfirmedSwap::left_out_note`]), said.
     unconfirmed_note: Option<String>,
 }
@@ -2037,6 +2050,15 @@ impl RowsRead {
                 self.swapped,
                 plural(self.swapped),
                 if self.swapped == 1 { "its" } else { "their" }
+            ));
+        }
+        if let Some(DoctorError::TimeNotIncreasing { path, line, time_s, .. }) = &self.first_same_time {
+            out.push(format!(
+                "{}, line {line}: a reading at {time_s:?} s, the time of the one before, with other values (a clock \
+                 coarser than the logging); {} such reading{} left out, the first at each time kept",
+                path.display(),
+                self.same_time,
+                plural(self.same_time)
             ));
         }
         out.extend(self.unconfirmed_note.clone());
@@ -2094,6 +2116,11 @@ fn read_rows(
                 kept += 1;
                 out.swapped += 1;
                 out.first_swapped.get_or_insert(e);
+                continue;
+            }
+            Ok(Taken::SameTime(e)) => {
+                out.same_time += 1;
+                out.first_same_time.get_or_insert(e);
                 continue;
             }
             Err(error) => error,

@@ -505,6 +505,40 @@ fn two_rows_written_in_the_wrong_order_are_read_in_time_order_and_said() {
     assert!(report.notes.iter().any(|n| n.contains("g.csv, line 40") && n.contains("left out")), "{:?}", report.notes);
 }
 
+/// A reading at the time of the one before with other values (a clock coarser than the logging) is left out and
+/// said by the folder reader and the general reader (the first at each time kept); the strict reader refuses the
+/// record naming its line.
+#[test]
+fn a_second_reading_at_the_same_time_is_left_out_and_said() {
+    use bcal_doctor::read::{read_csv, read_nasa, read_nasa_with, ReadOptions};
+    let (dir, path, good, clean) = one_clean_record();
+    // Rows 40 and 90 (lines 42 and 92) written again at their own times, the voltage 1 mV lower.
+    let mut lines: Vec<String> = good.lines().map(str::to_string).collect();
+    for row in [90, 40] {
+        let f: Vec<String> = lines[row + 1].split(',').map(str::to_string).collect();
+        let v: f64 = f[0].parse().unwrap();
+        lines.insert(row + 2, [vec![format!("{}", v - 0.001)], f[1..].to_vec()].concat().join(","));
+    }
+    write(&path, &(lines.join("\n") + "\n"));
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!((&records[0].time_s, &records[0].voltage_v), (&clean.time_s, &clean.voltage_v));
+    let note = report.notes.iter().find(|n| n.contains("the time of the one before")).expect("said");
+    assert!(note.contains("00002.csv, line 43: a reading at 400.0 s") && note.contains("2 such readings"), "{note}");
+    let err = read_nasa(dir.path(), "B0005", None).unwrap_err().to_string();
+    assert!(err.contains("00002.csv, line 43: time 400.0 s does not increase"), "{err}");
+    // The general reader.
+    let g = dir.path().join("g.csv");
+    let rows: Vec<String> = (0..40).map(|k| format!("{},{},2.0", 10 * k, 4.1 - 0.01 * k as f64)).collect();
+    write(&g, &format!("time_s,voltage_v,current_a\n{}\n", rows.join("\n")));
+    let plain = read_csv(&g, &ReadOptions::default()).unwrap().0.remove(0);
+    let mut again = rows.clone();
+    again.insert(21, format!("200,{},2.0", 4.1 - 0.01 * 20.0 - 0.002));
+    write(&g, &format!("time_s,voltage_v,current_a\n{}\n", again.join("\n")));
+    let (records, report) = read_csv(&g, &ReadOptions::default()).unwrap();
+    assert_eq!((&records[0].time_s, &records[0].voltage_v), (&plain.time_s, &plain.voltage_v));
+    assert!(report.notes.iter().any(|n| n.contains("g.csv, line 23: a reading at 200.0 s")), "{:?}", report.notes);
+}
+
 /// A CSV written in a locale whose decimal mark is the comma (fields separated by `;`) or separated by tabs reads as
 /// its comma-separated twin, and says how it was read; in a comma-separated file a decimal comma is a bad field.
 #[test]
