@@ -2241,9 +2241,10 @@ fn read_file(path: &Path) -> Result<Vec<u8>, DoctorError> {
     std::fs::read(path).map_err(|source| DoctorError::Io { path: path.to_path_buf(), source })
 }
 
-/// The field delimiter of a CSV, from its header line: the comma, else a semicolon or a tab where the header holds
-/// one and no comma (what a spreadsheet writes in a locale whose decimal mark is the comma).
-fn delimiter(bytes: &[u8]) -> u8 {
+/// The field delimiter of a CSV, from its header line (the file's first): the comma, else a semicolon or a tab
+/// where the header holds one and no comma (what a spreadsheet writes in a locale whose decimal mark is the
+/// comma, which a reader then reads as the decimal point where the comma does not separate fields).
+pub fn delimiter(bytes: &[u8]) -> u8 {
     let header = bytes.split(|b| *b == b'\n').next().unwrap_or_default();
     [b',', b';', b'\t'].into_iter().find(|d| header.contains(d)).unwrap_or(b',')
 }

@@ -161,8 +161,9 @@ fn replaced(_file: &std::fs::File, _path_meta: &std::fs::Metadata) -> bool {
 
 /// The layout of the lines, decided by the first one that is not empty or a `#` comment.
 enum Layout {
-    /// CSV under a header: where each quantity is and its unit, and how many fields a row has.
-    Csv { columns: Box<ReadingColumns>, width: usize },
+    /// CSV under a header: where each quantity is and its unit, how many fields a row has, and what separates
+    /// them (`bcal_doctor::read::delimiter`: where it is not the comma, a comma is a decimal point).
+    Csv { columns: Box<ReadingColumns>, width: usize, delimiter: u8 },
     /// One JSON object per line, its keys read as a CSV header is.
     Json,
 }
@@ -170,8 +171,9 @@ enum Layout {
 const JSON_HINT: &str =
     "or give JSON lines like {\"time_s\": 0, \"voltage_v\": 4.1, \"current_a\": 2.0, \"temperature_c\": 24}";
 
-fn csv_fields(line: &str) -> Result<Vec<String>, String> {
-    let mut rdr = csv::ReaderBuilder::new().has_headers(false).flexible(true).from_reader(line.as_bytes());
+fn csv_fields(line: &str, delimiter: u8) -> Result<Vec<String>, String> {
+    let mut rdr =
+        csv::ReaderBuilder::new().has_headers(false).flexible(true).delimiter(delimiter).from_reader(line.as_bytes());
     match rdr.records().next() {
         Some(Ok(r)) => Ok(r.iter().map(|f| f.trim().to_string()).collect()),
         Some(Err(e)) => Err(format!("not a CSV row ({e})")),
@@ -201,30 +203,34 @@ impl Layout {
         if line.trim_start().starts_with('{') {
             return Ok(Layout::Json);
         }
-        let names = csv_fields(line)?;
+        let delimiter = bcal_doctor::read::delimiter(line.as_bytes());
+        let names = csv_fields(line, delimiter)?;
         let refs: Vec<&str> = names.iter().map(String::as_str).collect();
         let columns = reading_columns(&refs)
             .map_err(|e| format!("the header `{}`: {e}; {JSON_HINT}", bcal_common::text::shown(line, 80)))?;
-        Ok(Layout::Csv { columns: Box::new(columns), width: names.len() })
+        Ok(Layout::Csv { columns: Box::new(columns), width: names.len(), delimiter })
     }
 
     /// One reading from a data line, in s, V, A and deg C, current with the sign as written (the caller
     /// applies the stream's convention).
     fn parse(&self, line: &str) -> Result<Reading, String> {
-        let number = |field: &str, text: &str| -> Result<f64, String> {
-            text.trim()
-                .parse::<f64>()
-                .map_err(|_| format!("field `{field}` = `{}` is not a number", bcal_common::text::shown(text, 40)))
+        let number = |field: &str, text: &str, decimal_comma: bool| -> Result<f64, String> {
+            let text = text.trim();
+            match decimal_comma {
+                true => text.replacen(',', ".", 1).parse::<f64>(),
+                false => text.parse::<f64>(),
+            }
+            .map_err(|_| format!("field `{field}` = `{}` is not a number", bcal_common::text::shown(text, 40)))
         };
         match self {
-            Layout::Csv { columns, width } => {
-                let f = csv_fields(line)?;
+            Layout::Csv { columns, width, delimiter } => {
+                let f = csv_fields(line, *delimiter)?;
                 if f.len() != *width {
                     return Err(format!("{} fields where the header has {width}", f.len()));
                 }
                 reading_of(columns, |c| match f[c.index].as_str() {
                     "" => Ok(None),
-                    text => number(&c.name, text).map(Some),
+                    text => number(&c.name, text, *delimiter != b',').map(Some),
                 })
             }
             Layout::Json => {
@@ -752,6 +758,20 @@ mod tests {
         assert!(l.parse("2.0,,3.9").unwrap_err().contains("no value for `time_s`"));
         let e = Layout::from_first("time_s,volts,current_a").err().unwrap();
         assert!(e.contains("no voltage among `time_s,volts,current_a`") && e.contains("JSON lines"), "{e}");
+    }
+
+    /// A stream whose fields a semicolon separates (a decimal comma read as a point) or a tab reads as the CSV
+    /// readers read the same file; under commas a decimal comma stays a bad field.
+    #[test]
+    fn semicolons_and_tabs_separate_fields_as_the_readers_take_them() {
+        let want = Reading { time_s: 10.5, voltage_v: 3.9, current_a: 2.0, temperature_c: Some(24.25) };
+        let l = Layout::from_first("time_s;voltage_v;current_a;temperature_c").unwrap();
+        assert_eq!(l.parse("10,5;3,9;2;24,25").unwrap(), want);
+        assert_eq!(l.parse("10.5;3.9;2.0;24.25").unwrap(), want);
+        let l = Layout::from_first("time_s\tvoltage_v\tcurrent_a\ttemperature_c").unwrap();
+        assert_eq!(l.parse("10.5\t3.9\t2\t24.25").unwrap(), want);
+        let l = Layout::from_first("time_s,voltage_v,current_a,temperature_c").unwrap();
+        assert!(l.parse("\"10,5\",3.9,2,24.25").unwrap_err().contains("field `time_s` = `10,5` is not a number"));
     }
 
     /// A stream logged in milliseconds, millivolts and milliamperes (or NASA's own record columns) is read
