@@ -1175,6 +1175,18 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
         let t: Vec<f64> = rows.iter().map(|r| r.time_s).collect();
         let i: Vec<f64> = rows.iter().map(|r| flip * r.current_a).collect();
         let mut segments = discharge_segments(&t, &i, opts, !with_cycle);
+        for pulse in charger_pulses(&t, &i, &mut segments, opts) {
+            report.notes.push(format!(
+                "{}, line {}: a discharge current of {} A on {} reading{} right before a charge, {} after the load \
+                 before it (a charger's first readings, as NASA's charges open): not read as a discharge",
+                path.display(),
+                line_of[cycle][pulse.start],
+                short(i[pulse.start]),
+                pulse.len(),
+                if pulse.len() == 1 { "" } else { "s" },
+                pulse_rest(&t, &i, pulse.start, opts).map_or("with no load".to_string(), |s| format!("{} s", short(s)))
+            ));
+        }
         if segments.is_empty() {
             if with_cycle {
                 report.notes.push(format!("{}, cycle {cycle}: no discharge, skipped", path.display()));
@@ -1612,6 +1624,45 @@ fn accepted_units(q: Quantity) -> &'static str {
 fn cell_name(path: &Path) -> String {
     let stem = path.file_stem().map_or_else(|| "cell".to_string(), |s| s.to_string_lossy().into_owned());
     stem.strip_suffix(".bdf").map_or(stem.clone(), str::to_string)
+}
+
+/// Readings a charger draws at a discharge's sign as it starts (NASA's charges open with one at 3-4 A): at most
+/// this many.
+const CHARGER_PULSE_READINGS: usize = 2;
+/// ... after at least this long at rest since the load before them, s (a pulsed load rests for seconds between
+/// its pulses; a discharge's relaxation lasts minutes).
+const CHARGER_PULSE_REST_S: f64 = 300.0;
+
+/// The time at rest before the loaded reading `k` since the loaded reading before it, s (None: none before).
+fn pulse_rest(t: &[f64], i: &[f64], k: usize, opts: &ReadOptions) -> Option<f64> {
+    (0..k).rev().find(|&j| i[j] > opts.load_threshold_a).map(|j| t[k] - t[j])
+}
+
+/// Takes off the end of `segments` (of [`discharge_segments`]) the loaded runs of at most
+/// [`CHARGER_PULSE_READINGS`] right before a charge that follow at least [`CHARGER_PULSE_REST_S`] at rest or no
+/// load at all: a charger's first readings, not a discharge's (the segment then ends within `max_rest_after_s` of
+/// the load before them). A segment left with no load is dropped (it takes no record's number). Returns the runs
+/// taken off.
+fn charger_pulses(t: &[f64], i: &[f64], segments: &mut Vec<Range<usize>>, opts: &ReadOptions) -> Vec<Range<usize>> {
+    let loaded = |k: usize| i[k] > opts.load_threshold_a;
+    let mut pulses = Vec::new();
+    segments.retain_mut(|s| {
+        let charge_next = s.end < i.len() && i[s.end] < -opts.load_threshold_a;
+        let run = (s.start..s.end).rev().take_while(|&k| loaded(k)).count();
+        if !charge_next || run == 0 || run > CHARGER_PULSE_READINGS {
+            return true;
+        }
+        let start = s.end - run;
+        if pulse_rest(t, i, start, opts).is_some_and(|rest_s| rest_s < CHARGER_PULSE_REST_S) {
+            return true;
+        }
+        pulses.push(start..s.end);
+        // The record ends as any does: within `max_rest_after_s` of its last load.
+        let Some(last) = (s.start..start).rev().find(|&k| loaded(k)) else { return false };
+        s.end = 1 + (last..start).rev().find(|&k| t[k] <= t[last] + opts.max_rest_after_s).unwrap_or(last);
+        true
+    });
+    pulses
 }
 
 /// The discharge records of one group of samples (time order, current positive while discharging): the

@@ -505,6 +505,63 @@ fn two_rows_written_in_the_wrong_order_are_read_in_time_order_and_said() {
     assert!(report.notes.iter().any(|n| n.contains("g.csv, line 40") && n.contains("left out")), "{:?}", report.notes);
 }
 
+/// A whole life in a CSV without a cycle column whose charges open with a reading at a discharge's current (as
+/// NASA's charge files do): that reading is no part of the discharge before it (whose end stays its load's) nor a
+/// discharge of its own (it takes no record's number), said naming its line; a pulsed load's last pulse before a
+/// charge stays the load's.
+#[test]
+fn a_charger_pulse_before_a_charge_is_no_discharge() {
+    use bcal_doctor::read::{read_csv, ReadOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let g = dir.path().join("life.csv");
+    // A rest, a 2 A discharge to 3.22 V, a relaxation of 640 s, `gap_s` without readings, the charger's first
+    // reading at 3.36 A and a charge, one reading every 10 s, from `t0_s`; `pulsed`: the load on every other reading.
+    let cycle = |t0_s: f64, gap_s: f64, pulsed: bool| -> Vec<(f64, f64, f64)> {
+        let mut rows = Vec::new();
+        let mut t = t0_s;
+        let mut push = |v: f64, i: f64, dt: f64| {
+            rows.push((t, v, i));
+            t += dt;
+        };
+        (0..10).for_each(|_| push(4.15, 0.0, 10.0));
+        for k in 0..40 {
+            let on = !pulsed || k % 2 == 1;
+            push(if on { 4.0 - 0.02 * k as f64 } else { 4.05 - 0.02 * k as f64 }, if on { 2.0 } else { 0.0 }, 10.0);
+        }
+        if !pulsed {
+            (0..64).for_each(|k| push(3.6, 0.0, if k == 63 { 10.0 + gap_s } else { 10.0 }));
+            push(3.0, 3.36, 10.0);
+        }
+        (0..20).for_each(|_| push(4.1, -1.5, 10.0));
+        rows
+    };
+    let csv = |rows: &[(f64, f64, f64)]| -> String {
+        let body: String = rows.iter().map(|(t, v, i)| format!("{t},{v},{i}\n")).collect();
+        format!("time_s,voltage_v,current_a\n{body}")
+    };
+    let life: Vec<_> = [cycle(0.0, 0.0, false), cycle(2000.0, 2000.0, false), cycle(6000.0, 0.0, false)].concat();
+    write(&g, &csv(&life));
+    let (records, report) = read_csv(&g, &ReadOptions::default()).unwrap();
+    assert_eq!(records.iter().map(|d| d.cycle).collect::<Vec<_>>(), [1, 2, 3], "{:?}", report.notes);
+    for d in &records {
+        let last = (0..d.len()).rev().find(|&k| d.current_a[k] > 0.1).unwrap();
+        assert!((d.voltage_v[last] - 3.22).abs() < 1e-9 && d.current_a[last] == 2.0, "cycle {}", d.cycle);
+        assert_eq!(d.len(), 114, "cycle {}: the rest, the load and the relaxation", d.cycle);
+    }
+    let said: Vec<&String> = report.notes.iter().filter(|n| n.contains("a charger's first readings")).collect();
+    assert_eq!(said.len(), 3, "{:?}", report.notes);
+    assert!(
+        said[0].contains("life.csv, line 116: a discharge current of 3.36 A on 1 reading") && said[0].contains("650 s"),
+        "{}",
+        said[0]
+    );
+    // A pulsed load (10 s on, 10 s off) whose last pulse comes right before a charge keeps it.
+    write(&g, &csv(&cycle(0.0, 0.0, true)));
+    let (records, report) = read_csv(&g, &ReadOptions::default()).unwrap();
+    assert_eq!(records[0].current_a.iter().filter(|&&i| i > 0.1).count(), 20, "{:?}", report.notes);
+    assert!(!report.notes.iter().any(|n| n.contains("charger")), "{:?}", report.notes);
+}
+
 /// A reading at the time of the one before with other values (a clock coarser than the logging) is left out and
 /// said by the folder reader and the general reader (the first at each time kept); the strict reader refuses the
 /// record naming its line.
