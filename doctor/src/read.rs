@@ -286,7 +286,10 @@ impl ReadReport {
             ));
         }
         out.extend(self.units.iter().map(|u| format!("unit: {u}")));
-        out.extend(self.skipped.iter().map(|s| format!("skipped: {}", s.reason)));
+        out.extend(self.skipped.iter().map(|s| match s.cycle {
+            Some(c) => format!("skipped: record {c}: {}", s.reason),
+            None => format!("skipped: {}", s.reason),
+        }));
         out.extend(self.notes.iter().cloned());
         out
     }
@@ -357,9 +360,19 @@ fn nasa_folder(
     // (test_id, filename, ambient_c, capacity_ah, start, metadata line) of the cell's discharges.
     let mut rows = Vec::new();
     let mut bad_starts = Vec::new();
+    // The cell's rows of a type the layout does not have: (line, type).
+    let mut other_types: Vec<(u64, String)> = Vec::new();
     // A metadata file the logger stopped writing (a half row at its end) is read up to it, as a data file is.
     let meta_read = read_rows(&meta_path, &mut rdr, &mut lines, 1, |rec, line| {
-        if rec.get(c_type) != Some("discharge") || rec.get(c_cell) != Some(cell) {
+        // Ids and types as a person or a spreadsheet may have written them: spaces around, another case.
+        if !rec.get(c_cell).is_some_and(|id| id.trim().eq_ignore_ascii_case(cell.trim())) {
+            return Ok(Taken::Kept);
+        }
+        let kind = rec.get(c_type).unwrap_or("").trim();
+        if !kind.eq_ignore_ascii_case("discharge") {
+            if !["charge", "impedance"].iter().any(|k| kind.eq_ignore_ascii_case(k)) {
+                other_types.push((line, kind.to_string()));
+            }
             return Ok(Taken::Kept);
         }
         let test_id = number(rec, c_test, "test_id", &meta_path, line)?;
@@ -392,6 +405,16 @@ fn nasa_folder(
     rows.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut report = ReadReport { format: if strict { "" } else { "nasa" }, ..ReadReport::default() };
     report.notes.extend(meta_read.notes());
+    if let Some((line, kind)) = other_types.first() {
+        report.notes.push(format!(
+            "{}, line {line}: type `{}` is none of discharge, charge or impedance; {} such row{} of cell `{cell}` left \
+             out (a discharge's row must say `discharge`)",
+            meta_path.display(),
+            shown(kind, 40),
+            other_types.len(),
+            if other_types.len() == 1 { "" } else { "s" }
+        ));
+    }
     if !bad_starts.is_empty() {
         report.notes.push(format!(
             "{}: field `start_time` is not a date vector [Y M D h m s] on {} of the cell's discharge rows (first: {}); \

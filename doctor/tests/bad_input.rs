@@ -505,6 +505,28 @@ fn two_rows_written_in_the_wrong_order_are_read_in_time_order_and_said() {
     assert!(report.notes.iter().any(|n| n.contains("g.csv, line 40") && n.contains("left out")), "{:?}", report.notes);
 }
 
+/// A NASA `metadata.csv` whose type or cell id a spreadsheet wrote with spaces around or in another case reads as
+/// the layout's; a row of the cell whose type is none of the layout's is left out and said, naming its line.
+#[test]
+fn metadata_types_and_ids_as_people_write_them() {
+    use bcal_doctor::read::{read_nasa_with, ReadOptions};
+    let (dir, _path, good, clean) = one_clean_record();
+    write(&dir.path().join("data/00003.csv"), &good);
+    write(
+        &dir.path().join("metadata.csv"),
+        "type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct\n\
+         charge,[2008 4 2 13 25 41],24,B0005,0,1,00001.csv,,,\n\
+          Discharge ,[2008 4 2 15 25 41],24,b0005 ,1,2,00002.csv,1.85,,\n\
+         discharge_cc,[2008 4 3 15 25 41],24,B0005,2,3,00003.csv,1.84,,\n\
+         discharge,[2008 4 4 15 25 41],24,B0006,3,4,00003.csv,1.84,,\n",
+    );
+    let (records, report) = read_nasa_with(dir.path(), "B0005", None, &ReadOptions::default()).unwrap();
+    assert_eq!(records.len(), 1);
+    assert_eq!(records[0].voltage_v, clean.voltage_v);
+    let note = report.notes.iter().find(|n| n.contains("none of discharge")).expect("said");
+    assert!(note.contains("metadata.csv, line 4: type `discharge_cc`") && note.contains("1 such row"), "{note}");
+}
+
 /// A whole life in a CSV without a cycle column whose charges open with a reading at a discharge's current (as
 /// NASA's charge files do): that reading is no part of the discharge before it (whose end stays its load's) nor a
 /// discharge of its own (it takes no record's number), said naming its line; a pulsed load's last pulse before a
