@@ -341,7 +341,9 @@ pub fn assess(
         .filter_map(|p| p.q_mobile_c.map(|v| Point { cycle: p.cycle, value: v, at: p.condition }))
         .collect();
     let rest_of: BTreeMap<u32, f64> = series.iter().filter_map(|p| p.rest_before_s.map(|r| (p.cycle, r))).collect();
-    let ctx = Context { cfg, rest_of: &rest_of, usual_rest_s: usual_rest_s.unwrap_or(0.0), train, heldout };
+    let first_cycle = series.first().map_or(1, |p| p.cycle);
+    let ctx =
+        Context { cfg, rest_of: &rest_of, usual_rest_s: usual_rest_s.unwrap_or(0.0), train, heldout, first_cycle };
     let capacity = ctx.fit_series(Quantity::CapacityAh, &capacity_points, &mut notes);
     let q_mobile = if q_points.is_empty() { None } else { ctx.fit_series(Quantity::QMobileC, &q_points, &mut notes) };
 
@@ -427,13 +429,15 @@ struct Context<'a> {
     usual_rest_s: f64,
     train: &'a RangeInclusive<u32>,
     heldout: &'a RangeInclusive<u32>,
+    /// The first record's cycle: the life is followed from it (a CSV's cycle column may number from a date).
+    first_cycle: u32,
 }
 
 impl Context<'_> {
-    /// R at every cycle from 1 to `last` under `m` (the usual rest where none is known).
+    /// R at every cycle from the first record's to `last` under `m` (the usual rest where none is known).
     fn recovery_states(&self, m: &LifetimeModel, last: u32) -> BTreeMap<u32, f64> {
         let mut t = LifeTracker::new(*m);
-        (1..=last)
+        (self.first_cycle..=last)
             .map(|c| {
                 t.advance_to(c, self.rest_of.get(&c).copied(), m.reference);
                 (c, t.recovery())
@@ -446,7 +450,7 @@ impl Context<'_> {
     fn one_ahead(&self, m: &LifetimeModel, points: &[Point]) -> BTreeMap<u32, Prediction> {
         let mut t = LifeTracker::new(*m);
         let mut out = BTreeMap::new();
-        let mut now = 0;
+        let mut now = self.first_cycle.saturating_sub(1);
         for p in points {
             for c in now + 1..p.cycle {
                 t.advance_to(c, self.rest_of.get(&c).copied(), p.at);
@@ -769,6 +773,35 @@ mod tests {
                 assert!(!life.recovery, "{}", life.verdict);
             }
         }
+    }
+
+    /// A life whose records a CSV numbers from a date (20080401, ...) is followed from its first record, as one
+    /// numbered from 1 (not through twenty million cycles that never were): the same fit and judgement.
+    #[test]
+    fn a_life_numbered_from_a_large_cycle_is_followed_from_its_first() {
+        let m = model(0.05);
+        let mut t = LifeTracker::new(m);
+        let (mut records, mut starts, mut clock_s) = (Vec::new(), Vec::new(), 0.0);
+        for c in 1..=40u32 {
+            let rest_s =
+                if c % 6 == 4 { 3600.0 * [10.0, 30.0, 72.0, 192.0][(c / 6) as usize % 4] } else { 4.0 * 3600.0 };
+            t.advance_to(c, Some(rest_s), m.reference);
+            records.push(discharge(c, t.model.level(c, t.recovery(), m.reference)));
+            clock_s += rest_s;
+            starts.push(RecordStart { cycle: c, start_s: clock_s });
+            clock_s += 3600.0;
+        }
+        let from_one = assess(&LifetimeConfig::default(), &records, &starts, &(1..=20), &(21..=40), None).unwrap();
+        let offset = 20_080_400;
+        records.iter_mut().for_each(|d| d.cycle += offset);
+        starts.iter_mut().for_each(|s| s.cycle += offset);
+        let (train, held) = ((1 + offset)..=(20 + offset), (21 + offset)..=(40 + offset));
+        let from_date = assess(&LifetimeConfig::default(), &records, &starts, &train, &held, None).unwrap();
+        assert!(from_one.recovery && from_date.recovery, "{} / {}", from_one.verdict, from_date.verdict);
+        let rel = |a: Option<f64>, b: Option<f64>| (a.unwrap() / b.unwrap() - 1.0).abs();
+        assert!(rel(from_one.amplitude_ah, from_date.amplitude_ah) < 1e-6);
+        assert!(rel(from_one.tau_rest_s, from_date.tau_rest_s) < 1e-6);
+        assert!(rel(from_one.heldout_capacity_rmse_ah, from_date.heldout_capacity_rmse_ah) < 1e-3);
     }
 
     #[test]

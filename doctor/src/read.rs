@@ -301,7 +301,8 @@ pub fn parse_cycle_range(text: &str) -> Result<RangeInclusive<u32>, DoctorError>
     let (a, b) = text.split_once("..").ok_or_else(bad)?;
     let a: u32 = a.trim().parse().map_err(|_| bad())?;
     let b: u32 = b.trim().trim_start_matches('=').parse().map_err(|_| bad())?;
-    if a == 0 || b < a {
+    // Cycle 0 is a cycle where a CSV's cycle column counts from 0 (NASA's numbering has none, and selects none).
+    if b < a {
         return Err(bad());
     }
     Ok(a..=b)
@@ -2562,7 +2563,8 @@ mod tests {
     fn cycle_ranges_parse_and_refuse_nonsense() {
         assert_eq!(parse_cycle_range("1..40").unwrap(), 1..=40);
         assert_eq!(parse_cycle_range("3..=3").unwrap(), 3..=3);
-        for bad in ["", "5", "0..3", "9..2", "a..b"] {
+        assert_eq!(parse_cycle_range("0..3").unwrap(), 0..=3, "a CSV's cycle column may count from 0");
+        for bad in ["", "5", "9..2", "a..b", "-1..3"] {
             assert!(parse_cycle_range(bad).is_err(), "{bad}");
         }
     }

@@ -91,7 +91,7 @@ pub struct CalibrateArgs {
     #[arg(long, value_parser = crate::cli::positive_f64)]
     pub cutoff_v: Option<f64>,
     /// Ambient temperature for a generic CSV without a temperature column, deg C.
-    #[arg(long, allow_hyphen_values = true)]
+    #[arg(long, allow_hyphen_values = true, value_parser = crate::cli::ambient_c)]
     pub ambient_c: Option<f64>,
     /// Which sign of the current is discharge: `auto` decides from the data and says what it chose.
     #[arg(long, default_value = "auto")]
@@ -130,7 +130,7 @@ pub struct CellConfigArgs {
     pub train_cycles: Option<String>,
     #[arg(long, value_parser = crate::cli::positive_f64)]
     pub cutoff_v: Option<f64>,
-    #[arg(long, allow_hyphen_values = true)]
+    #[arg(long, allow_hyphen_values = true, value_parser = crate::cli::ambient_c)]
     pub ambient_c: Option<f64>,
     #[arg(long, default_value = "auto")]
     pub current_sign: CurrentSign,
@@ -332,6 +332,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         a.calibrator.clone()
     };
     let started = Instant::now();
+    if a.ambient_c.is_some() && data.is_dir() {
+        eprintln!(
+            "--ambient-c: a NASA folder gives each record's ambient (metadata.csv's ambient_temperature): not used"
+        );
+    }
     let cell = cell_name(&a.cell, &data)?;
     let model = load_model(&a.model)?;
     let opts = ReadOptions { current_sign: a.current_sign, ambient_c: a.ambient_c, ..ReadOptions::default() };

@@ -120,6 +120,19 @@ pub fn positive_f64(s: &str) -> Result<f64, String> {
     bcal_common::simulate::positive(parse_number(s)?)
 }
 
+/// An ambient temperature, deg C, within those the model is taken at
+/// ([`bcal_common::measured::extension::TEMPERATURE_RANGE_K`]).
+pub fn ambient_c(s: &str) -> Result<f64, String> {
+    use bcal_common::measured::{extension::TEMPERATURE_RANGE_K, scenario::KELVIN_0C};
+    let c = parse_number(s)?;
+    let [lo, hi] = TEMPERATURE_RANGE_K.map(|k| k - KELVIN_0C);
+    if c.is_finite() && c > lo && c < hi {
+        Ok(c)
+    } else {
+        Err(format!("`{}` is not an ambient temperature in deg C (between {lo:.2} and {hi:.2})", s.trim()))
+    }
+}
+
 /// A finite number >= 0.
 pub fn non_negative_f64(s: &str) -> Result<f64, String> {
     bcal_common::simulate::non_negative(parse_number(s)?)

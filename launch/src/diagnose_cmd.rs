@@ -49,7 +49,7 @@ pub struct DiagnoseArgs {
     #[arg(long, default_value_t = 0.05, value_parser = crate::cli::positive_f64)]
     pub load_threshold: f64,
     /// Ambient temperature for a generic CSV, deg C (default: each record's first temperature, else 25).
-    #[arg(long, allow_hyphen_values = true)]
+    #[arg(long, allow_hyphen_values = true, value_parser = crate::cli::ambient_c)]
     pub ambient_c: Option<f64>,
     /// Which sign of the current is discharge: `auto` decides from the data and says what it chose
     /// (NASA: negative; the generic CSV: positive; the Battery Data Format: negative).

@@ -66,6 +66,8 @@ fn bad_values_get_clear_errors() {
         (&["simulate", "--load-w", "8", "--max-steps", "10"], "stayed above VEOD"),
         (&["dataset", "info", "--experiment", "multi"], "bcal dataset generate"),
         (&["dataset", "generate", "--experiment", "quadruple"], "invalid value"),
+        (&["calibrate", "--data", "x.csv", "--out", "o", "--ambient-c", "150"], "not an ambient temperature in deg C"),
+        (&["diagnose", "--data", "x.csv", "--ambient-c=-100"], "between -73.15 and 126.85"),
     ];
     for (args, want) in cases {
         let o = bcal(args, dir.path());

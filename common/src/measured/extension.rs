@@ -10,6 +10,9 @@
 use crate::battery::{BatteryModel, BatteryParams};
 use serde::{Deserialize, Serialize};
 
+/// Temperatures the model is taken at, K (exclusive): a cell's ambient and its extensions' reference.
+pub const TEMPERATURE_RANGE_K: [f64; 2] = [200.0, 400.0];
+
 /// The doctor's causes a calibrator's model can carry; the others (a sensor offset or gain, an OCV
 /// correction, an extra RC branch) are the doctor's alone.
 pub const SUPPORTED_CAUSES: [&str; 4] = ["electrode_balance", "charge_transfer", "thermal", "diffusion"];
@@ -136,8 +139,9 @@ impl ModelExtension {
             return Err(format!("{key}: activation temperatures must be >= 0"));
         }
         if let Some(r) = self.reference_k {
-            if !(r.is_finite() && r > 200.0 && r < 400.0) {
-                return Err(format!("{key}.reference_k = {r}: must be a temperature in K (200-400)"));
+            let [lo, hi] = TEMPERATURE_RANGE_K;
+            if !(r.is_finite() && r > lo && r < hi) {
+                return Err(format!("{key}.reference_k = {r}: must be a temperature in K ({lo}-{hi})"));
             }
         }
         self.model().map(|_| ()).map_err(|e| format!("{key}: {e}"))
