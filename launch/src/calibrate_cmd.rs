@@ -202,7 +202,12 @@ fn train_cycles(
     opts: &ReadOptions,
 ) -> anyhow::Result<(RangeInclusive<u32>, Option<(Vec<Discharge>, Vec<RecordStart>, Said)>)> {
     if let Some(t) = given {
-        return Ok((parse_cycle_range(t)?, None));
+        let range = parse_cycle_range(t)?;
+        // A folder is read by the cycles asked; a CSV is read whole whatever they are: once, not once per range.
+        if data.is_dir() {
+            return Ok((range, None));
+        }
+        return Ok((range, Some(read_with_starts(data, cell, None, opts)?)));
     }
     let (all, starts, said) = read_with_starts(data, cell, None, opts)?;
     let range = bcal_doctor::input::default_train_cycles(cell, &all)?;
@@ -360,6 +365,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
             shown(&train_range)
         );
     }
+    // The cycles the data holds, where it was read whole (to say so if none was asked for).
+    let held = everything.as_ref().and_then(|(all, _, _)| {
+        let cycles = all.iter().map(|d| d.cycle);
+        Some(format!("; {} holds cycles {}..{}", data.display(), cycles.clone().min()?, cycles.max()?))
+    });
     let (train, mut judged, starts, said) = match everything {
         // Read once already; the starts of records outside both ranges are never looked up.
         Some((all, starts, said)) => {
@@ -392,11 +402,11 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
     let noted = once(said.notes);
     if train.is_empty() && judged.is_empty() {
         bail!(
-            "{cell}: no discharge read from {} in cycles {} or {} (the reader's lines above say what was missing \
-             or refused)",
+            "{cell}: no discharge read from {} in cycles {} or {}{}",
             data.display(),
             shown(&train_range),
-            shown(&judged_range)
+            shown(&judged_range),
+            held.unwrap_or_else(|| " (the reader's lines above say what was missing or refused)".into())
         );
     }
     if judged.is_empty() {
