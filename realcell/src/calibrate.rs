@@ -774,8 +774,10 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
             .collect();
         let what = match bcal_common::stats::median(&mut ends) {
             Some(v) if ends.len() * 2 > train.len() => format!(
-                "the training records stop under load at {v:.2} V (median), above the {cut} V cut-off: give the \
-                 cut-off they were run to with --cutoff-v (e.g. --cutoff-v {:.1}), or widen --train-cycles",
+                "the training records stop under load at {v:.2} V (median), above the {cut} V cut-off: if they \
+                 were run to a cut-off of their own, give it with --cutoff-v (e.g. --cutoff-v {:.1}); if they were \
+                 stopped before their end (partial discharges), no end of discharge can be learned from them: give \
+                 discharges run to the cell's cut-off (widen --train-cycles, or other records)",
                 ((v - 1e-9) * 10.0).ceil() / 10.0
             ),
             _ => "widen --train-cycles".to_string(),
