@@ -156,8 +156,8 @@ def diagnose(
     cycle, find what it gets wrong, name the cause, extend the model, judged on held-out cycles.
 
     `data`: a NASA PCoE folder (`cell` required, e.g. "B0005") or a CSV
-    (time_s,voltage_v,current_a[,temperature_c][,cycle]). `cycles`, `holdout`: "A..B" (1-based,
-    inclusive; default three quarters of the cycles `bcal calibrate` trains on against the last quarter,
+    (time_s,voltage_v,current_a[,temperature_c][,cycle]). `cycles`, `holdout`: "A..B" (NASA from 1, a CSV as
+    its cycle column counts; inclusive; default three quarters of the cycles `bcal calibrate` trains on against the last quarter,
     B0005 1..30 against 31..40, so the diagnosis feeds `bcal calibrate --model`; a life under 24
     discharges: its first third against the rest).
 

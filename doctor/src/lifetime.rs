@@ -230,7 +230,7 @@ pub fn assess(
     let mut recs: Vec<&Discharge> = records.iter().collect();
     recs.sort_by_key(|d| d.cycle);
     recs.dedup_by_key(|d| d.cycle);
-    let start_of: BTreeMap<u32, f64> = starts.iter().map(|s| (s.cycle, s.start_s)).collect();
+    let start_of: BTreeMap<u32, (f64, u32)> = starts.iter().map(|s| (s.cycle, (s.start_s, s.session))).collect();
     let step = crate::read::numbering_step(starts);
     let fits: BTreeMap<u32, (f64, f64)> = diag
         .map(|d| {
@@ -246,7 +246,8 @@ pub fn assess(
     // The per-cycle series, with the rest since the previous record ended.
     let mut series: Vec<LifePoint> = Vec::with_capacity(recs.len());
     let mut schedule = !start_of.is_empty();
-    let mut prev_end: Option<(u32, f64)> = None;
+    // (cycle, end, session) of the record before.
+    let mut prev_end: Option<(u32, f64, u32)> = None;
     for d in &recs {
         let w = d.windows_with_cutoff(cfg.load_threshold_a, cfg.v_floor_v, cfg.cutoff_v);
         let capacity_ah = w.filter(|w| !w.truncated).map(|w| d.charge_ah(w.load_on, w.load_end));
@@ -263,15 +264,20 @@ pub fn assess(
             }
             _ => None,
         };
-        let start_s = start_of.get(&d.cycle).copied();
-        let rest_before_s = match (prev_end, start_s) {
-            (Some((c, end_s)), Some(s)) if c + step == d.cycle => Some(s - end_s),
+        let start = start_of.get(&d.cycle).copied();
+        let start_s = start.map(|(s, _)| s);
+        // A rest only between records one step apart on one logger session's clock.
+        let rest_before_s = match (prev_end, start) {
+            (Some((c, end_s, prev_session)), Some((s, session))) if c + step == d.cycle && session == prev_session => {
+                Some(s - end_s)
+            }
             _ => None,
         };
         if rest_before_s.is_some_and(|r| r < -60.0) {
             schedule = false;
         }
-        prev_end = start_s.map(|s| (d.cycle, s + d.time_s.last().copied().unwrap_or(0.0) - d.time_s[0]));
+        prev_end =
+            start.map(|(s, session)| (d.cycle, s + d.time_s.last().copied().unwrap_or(0.0) - d.time_s[0], session));
         let role = if train.contains(&d.cycle) {
             "train"
         } else if heldout.contains(&d.cycle) {
@@ -754,7 +760,7 @@ mod tests {
                 // A deterministic wiggle of 2 mAh for measurement noise.
                 let cap_ah = t.model.level(c, t.recovery(), m.reference) + 0.002 * (f64::from(c) * 2.3).sin();
                 clock_s += rest_of(c);
-                starts.push(RecordStart { cycle: c, start_s: clock_s });
+                starts.push(RecordStart { cycle: c, start_s: clock_s, session: 0 });
                 records.push(discharge(c, cap_ah));
                 clock_s += 3600.0;
             }
@@ -788,7 +794,7 @@ mod tests {
             t.advance_to(c, Some(rest_s), m.reference);
             records.push(discharge(c, t.model.level(c, t.recovery(), m.reference)));
             clock_s += rest_s;
-            starts.push(RecordStart { cycle: c, start_s: clock_s });
+            starts.push(RecordStart { cycle: c, start_s: clock_s, session: 0 });
             clock_s += 3600.0;
         }
         let from_one = assess(&LifetimeConfig::default(), &records, &starts, &(1..=20), &(21..=40), None).unwrap();
@@ -820,7 +826,7 @@ mod tests {
         records[0] = discharge(1, 1.70);
         records[0].voltage_v[0] = 4.19 - 0.077;
         let starts: Vec<RecordStart> =
-            (1..=13).map(|c| RecordStart { cycle: c, start_s: f64::from(c) * 4.0 * 3600.0 }).collect();
+            (1..=13).map(|c| RecordStart { cycle: c, start_s: f64::from(c) * 4.0 * 3600.0, session: 0 }).collect();
         let fade = |cfg: &LifetimeConfig| {
             let life = assess(cfg, &records, &starts, &(1..=10), &(11..=13), None).unwrap();
             (life.capacity.unwrap().without_recovery.per_cycle, life.partial_start_cycles, life.notes)

@@ -194,11 +194,15 @@ pub struct ReadReport {
     pub starts: Vec<RecordStart>,
 }
 
-/// When a record started, s on the source's clock (only differences between records mean anything).
+/// When a record started, s on the source's clock (only differences between records of one session mean
+/// anything).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct RecordStart {
     pub cycle: u32,
     pub start_s: f64,
+    /// The logger session whose clock `start_s` is on (a CSV's logger that restarted starts another, 0 first):
+    /// no rest is taken between records of two sessions.
+    pub session: u32,
 }
 
 /// The step of a cell's record numbering, the one its consecutive records read take most (1 for NASA's
@@ -310,8 +314,9 @@ pub fn parse_cycle_range(text: &str) -> Result<RangeInclusive<u32>, DoctorError>
 
 /// Reads the discharges of `cell` whose cycle number (1-based order of the cell's discharge rows in
 /// `metadata.csv`) lies in `cycles` (all when `None`). Rows whose file is absent are skipped and listed.
-/// Current is read negative while discharging (NASA's sign); the first bad record fails the read, with the first
-/// of its errors in the file's order (a glitch, rows out of order or written twice, a damaged end, an empty field).
+/// Current is read negative while discharging (NASA's sign); the first bad record fails the read: with the first by
+/// line of what the lenient reader reads past (a glitch, rows out of order, written twice or at one time, a damaged
+/// end, an empty field), or with what it refuses too (a unit, a voltage out of a cell's range under load).
 pub fn read_nasa(
     root: &Path,
     cell: &str,
@@ -449,7 +454,7 @@ fn nasa_folder(
         match read {
             Ok((mut d, sign, rows)) => {
                 d.stated_capacity_ah = capacity_ah;
-                report.starts.extend(start_s.map(|start_s| RecordStart { cycle, start_s }));
+                report.starts.extend(start_s.map(|start_s| RecordStart { cycle, start_s, session: 0 }));
                 if !strict {
                     report.notes.extend(rows.notes());
                     report.notes.extend(gap_note(&d, opts.gap_factor));
@@ -644,9 +649,9 @@ fn nasa_record(
     Ok((d, sign, rows))
 }
 
-/// One record read strictly: whatever the lenient readers read and say (a damaged end, a reading written twice,
-/// rows written in the wrong order, a second reading at one time, a current glitch, a temperature filled) fails it as a bad record anywhere does,
-/// naming the first of those by line.
+/// One record read strictly: whatever the lenient readers read and say (a damaged end, a reading written twice, rows
+/// written in the wrong order, a second reading at one time, a current glitch, a temperature filled) fails it as a bad
+/// record anywhere does, naming the first of those by line.
 fn whole((d, sign, rows): NasaRecord) -> Result<(Discharge, SignChoice), DoctorError> {
     let temperature = rows.temperature_note.map(|(line, note)| {
         (line, DoctorError::MissingValues { why: format!("refused by the strict reader: {note}") })
@@ -1000,23 +1005,20 @@ pub fn read_generic(path: &Path, ambient_c: Option<f64>) -> Result<Vec<Discharge
         .collect()
 }
 
-/// Reads any CSV of measured samples whose columns name time, voltage and current (see the module doc:
-/// the generic names, the Battery Data Format's labels or machine names, NASA's record names, units in
-/// the names), with optional cell temperature, ambient temperature and cycle columns. Units are converted
-/// or refused, the sign comes from `opts.current_sign` (decided on the whole file under `Auto`), rows group
-/// by cycle when there is a cycle column, and each group (or the whole file) is cut at its charging runs
-/// into discharge records: each holds the rest before its load, the load (with any rests inside it) and
-/// the relaxation after, its time counted from its first sample. A cycle holding two discharges keeps the
-/// larger and notes the other; without a cycle column records are numbered 1, 2, ... in time order, and a time
-/// that steps back before the last two readings and runs on from there (a logger restarted) starts a new session
-/// on its own clock, noted, whose records' numbers skip one (no rest is known across it).
-///
-/// File-level problems (unreadable, missing columns, a field that is not a number, time going backwards beyond
-/// two rows written in the wrong order, which are read in time order and noted, or a restart without a cycle
-/// column; with one, within a cycle), a unit it cannot read or a current too large to be amperes, a sign it cannot decide, no discharge at
-/// all) fail the read naming the file (and line). A record that fails on its own (too few samples,
-/// millivolts, time in milliseconds) is skipped and listed in [`ReadReport::skipped`]; the read fails only
-/// when none is left.
+/// Reads any CSV of measured samples whose columns name time, voltage and current (see the module doc: the generic
+/// names, the Battery Data Format's labels or machine names, NASA's record names, units in the names), with optional
+/// cell temperature, ambient temperature and cycle columns. Units are converted or refused, the sign comes from
+/// `opts.current_sign` (decided on the whole file under `Auto`), rows group by cycle when there is a cycle column, and
+/// each group (or the whole file) is cut at its charging runs into discharge records: each holds the rest before its
+/// load, the load (with any rests inside it) and the relaxation after, its time counted from its first sample. A cycle
+/// holding two discharges keeps the larger and notes the other; without a cycle column records are numbered 1, 2, ...
+/// in time order, and a time that steps back before the last two readings and runs on from there (a logger restarted)
+/// starts a new session on its own clock, noted ([`RecordStart::session`]: no rest is known across it).  File-level
+/// problems (unreadable, missing columns, a field that is not a number, time going backwards beyond two rows written in
+/// the wrong order, which are read in time order and noted, or a restart without a cycle column; with one, within a
+/// cycle), a unit it cannot read or a current too large to be amperes, a sign it cannot decide, no discharge at all)
+/// fail the read naming the file (and line). A record that fails on its own (too few samples, millivolts, time in
+/// milliseconds) is skipped and listed in [`ReadReport::skipped`]; the read fails only when none is left.
 pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, ReadReport), DoctorError> {
     let bytes = read_file(path)?;
     let mut lines = Lines::new(&bytes);
@@ -1025,7 +1027,7 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     let headers = rdr.headers().map_err(|e| csv_error(path, e, &mut lines))?.clone();
     let mut cols = Columns::find(&headers, path)?;
     // Where the comma does not separate fields it may be the decimal mark (a spreadsheet's locale).
-    let decimal_comma = delimiter != b',';
+    let decimal_comma = decimal_comma(&bytes, delimiter);
     for c in [&mut cols.time, &mut cols.voltage, &mut cols.current]
         .into_iter()
         .chain(&mut cols.temperature)
@@ -1066,8 +1068,10 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             ambient_c: cols.ambient.as_ref().map(|c| c.value(rec, path, line)).transpose()?,
         };
         // The reading after a restart confirms it by coming after it and before the clock it left; one that
-        // does not leaves the reading that stepped back a time the logger got wrong, refused as before.
-        if let Some(r) = restart.take() {
+        // does not leaves the reading that stepped back a time the logger got wrong, refused as before. One at
+        // the restart's own time (written again, or a clock coarser than the logging) waits for the next.
+        if let Some(r) = restart.filter(|r| row.time_s != r.time_s) {
+            restart = None;
             if !(r.time_s < row.time_s && row.time_s <= r.previous_s) {
                 return Err(r.error(path));
             }
@@ -1079,7 +1083,11 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
             let e = DoctorError::TimeNotIncreasing { path: path.to_path_buf(), line, time_s: row.time_s, previous_s };
             let between = |k: usize| (k == 0 || rows[k - 1].time_s < row.time_s) && row.time_s < rows[k].time_s;
             return match rows.binary_search_by(|r| r.time_s.total_cmp(&row.time_s)) {
-                Ok(k) if rows[k].same(&row) => Ok(Taken::Again(e)),
+                // Written again: a logger's buffer sends its last readings again, not the session's first hours
+                // back (without a cycle column, a clock back there with a like reading is a restart, below).
+                Ok(k) if rows[k].same(&row) && (cols.cycle.is_some() || previous_s - row.time_s <= AGAIN_WITHIN_S) => {
+                    Ok(Taken::Again(e))
+                }
                 Ok(k) if k + 1 == rows.len() => Ok(Taken::SameTime(e)),
                 Err(k) if k + 1 == rows.len() && between(k) => match unconfirmed.take() {
                     Some(first) => Err(first.error(path)),
@@ -1166,9 +1174,10 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     }
     let mut report = ReadReport { format: cols.format, ..ReadReport::default() };
     report.units = cols.conversions();
-    if decimal_comma {
+    if delimiter != b',' {
         let shown = if delimiter == b'\t' { "a tab".to_string() } else { format!("`{}`", delimiter as char) };
-        report.units.push(format!("fields separated by {shown}; a decimal comma read as a decimal point"));
+        let mark = if decimal_comma { "the comma" } else { "the point" };
+        report.units.push(format!("fields separated by {shown}, {mark} their decimal mark"));
     }
     let mut evidence = SignEvidence::default();
     for rows in groups.values() {
@@ -1191,11 +1200,6 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
     let mut any_discharge = false;
     let mut next_number = 1u32;
     for (cycle, rows) in &groups {
-        if !with_cycle && *cycle > 0 {
-            // A session after a restart: its records' numbers skip one, so that the record before its first is
-            // not one step back and no rest is taken across clocks that do not agree (`prior::rests_before`).
-            next_number += 1;
-        }
         let t: Vec<f64> = rows.iter().map(|r| r.time_s).collect();
         let i: Vec<f64> = rows.iter().map(|r| flip * r.current_a).collect();
         let mut segments = discharge_segments(&t, &i, opts, !with_cycle);
@@ -1260,7 +1264,9 @@ pub fn read_csv(path: &Path, opts: &ReadOptions) -> Result<(Vec<Discharge>, Read
                 Ok((d, filled)) => {
                     report.notes.extend(filled);
                     report.notes.extend(gap_note(&d, opts.gap_factor));
-                    report.starts.push(RecordStart { cycle: number, start_s: t0 });
+                    // Without a cycle column the groups are the logger's sessions, each on its own clock.
+                    let session = if with_cycle { 0 } else { *cycle };
+                    report.starts.push(RecordStart { cycle: number, start_s: t0, session });
                     out.push(d);
                 }
                 Err(e) => {
@@ -1330,16 +1336,21 @@ struct Col {
     offset: f64,
     /// The unit the column is read in (`s`, `ms`, `V`, `mV`, `A`, `mA`, `degC`, `K`, ...).
     unit: &'static str,
-    /// Whether a comma in a value is its decimal mark (a file whose fields another character separates).
+    /// Whether a comma in a value is its decimal mark ([`decimal_comma`]).
     decimal_comma: bool,
 }
 
 impl Col {
     fn value(&self, rec: &csv::StringRecord, path: &Path, line: u64) -> Result<f64, DoctorError> {
         let v = match self.decimal_comma {
+            // A point there is no decimal mark but a thousands separator, or another locale's: refused, not guessed.
             true => {
                 let raw = rec.get(self.index).unwrap_or("");
-                raw.trim().replacen(',', ".", 1).parse::<f64>().map_err(|_| bad_field(path, line, &self.header, raw))?
+                let text = raw.trim();
+                if text.contains('.') {
+                    return Err(bad_field(path, line, &self.header, raw));
+                }
+                text.replacen(',', ".", 1).parse::<f64>().map_err(|_| bad_field(path, line, &self.header, raw))?
             }
             false => number(rec, self.index, &self.header, path, line)?,
         } * self.scale
@@ -2043,6 +2054,10 @@ impl UnconfirmedSwap {
     }
 }
 
+/// How far back, s, a reading written again may lie in a CSV without a cycle column: further back, a reading like a
+/// kept one at its time is a restarted logger's (at rest, a cell reads the same to the logger's digits).
+const AGAIN_WITHIN_S: f64 = 3600.0;
+
 /// A reading of a CSV without a cycle column whose time falls before the last two kept ([`read_csv`]): a logger
 /// that restarted (its clock from 0, or set back), once the next reading comes after it; from it the readings are a
 /// new session on their own clock.
@@ -2059,7 +2074,7 @@ impl Restart {
         format!(
             "{}, line {line}: the time steps back from {previous_s:?} s to {time_s:?} s and runs on from there (a \
              logger restarted): the readings from here are read as a new session on its own clock; no rest is known \
-             between the sessions, and the records' numbers skip one there",
+             between the sessions",
             path.display()
         )
     }
@@ -2322,6 +2337,21 @@ fn read_file(path: &Path) -> Result<Vec<u8>, DoctorError> {
 pub fn delimiter(bytes: &[u8]) -> u8 {
     let header = bytes.split(|b| *b == b'\n').next().unwrap_or_default();
     [b',', b';', b'\t'].into_iter().find(|d| header.contains(d)).unwrap_or(b',')
+}
+
+/// Whether a CSV separated by `delimiter` writes its decimals with a comma: the first value after the header that
+/// holds a comma or a point says which the file uses (never where the comma separates fields). A value with the
+/// other mark is then refused (`1.000` in a file of decimal commas is a thousand, or a point in another locale).
+pub fn decimal_comma(bytes: &[u8], delimiter: u8) -> bool {
+    if delimiter == b',' {
+        return false;
+    }
+    let mark = bytes
+        .split(|b| *b == b'\n')
+        .skip(1)
+        .flat_map(|line| line.split(move |b| *b == delimiter))
+        .find_map(|field| field.iter().find(|b| **b == b',' || **b == b'.').copied());
+    mark == Some(b',')
 }
 
 /// Line numbers of records, counted over the file's bytes. The csv crate's `Position::line` names the line

@@ -106,7 +106,8 @@ pub fn short_starts(records: &[&Discharge], load_threshold_a: f64, drop_v: f64) 
 pub struct Discharge {
     /// Cell name (e.g. `B0005`, or the generic CSV's file stem).
     pub cell: String,
-    /// Cycle number within the cell, 1-based (NASA: the discharge's order among the cell's discharges).
+    /// Cycle number within the cell (NASA: the discharge's order among the cell's discharges, from 1; a CSV: its
+    /// cycle column's).
     pub cycle: u32,
     /// File the samples came from.
     pub source: PathBuf,

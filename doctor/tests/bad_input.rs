@@ -658,6 +658,20 @@ fn semicolons_tabs_and_decimal_commas_read_as_commas_and_points() {
         }
         assert!(report.units.iter().any(|u| u.contains(&format!("separated by {said}"))), "{name}: {:?}", report.units);
     }
+    // The first value with a mark sets the file's: a value with the other one (a thousands separator, `1.000` or
+    // `1,000`) is refused, named, not read as a decimal.
+    for (name, sep, comma, row, thousand) in [
+        ("semi2.csv", ";", true, "\n42;4,15;", "\n1.042;4,15;"),
+        ("tab2.csv", "\t", false, "\n42\t4.15\t", "\n1,042\t4.15\t"),
+    ] {
+        let path = write_with(name, sep, comma);
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.contains(row), "{name}");
+        write(&path, &text.replacen(row, thousand, 1));
+        let err = read_csv(&path, &ReadOptions::default()).unwrap_err().to_string();
+        let shown = thousand[1..].split(sep).next().unwrap();
+        assert!(err.contains(&format!("{name}, line 6: field `time_s` = `{shown}`")), "{name}: {err}");
+    }
     // A decimal comma in a comma-separated file (the field quoted): a bad field, named.
     let path = dir.path().join("quoted.csv");
     let mut text = std::fs::read_to_string(write_with("q.csv", ",", false)).unwrap();
@@ -668,12 +682,12 @@ fn semicolons_tabs_and_decimal_commas_read_as_commas_and_points() {
 }
 
 /// A general CSV without a cycle column whose logger restarted (its clock from 0 again) between discharges: every
-/// discharge is read, the restart said, and the record after it numbered so that no rest is taken across clocks
-/// that do not agree; a time that steps back on one reading only is refused naming its line, and a restart at the
+/// discharge is read, the restart said, and the records after it on a session of their own, so that no rest is
+/// taken across clocks that do not agree; a time that steps back on one reading only is refused naming its line, and a restart at the
 /// file's last reading is left out and said.
 #[test]
 fn a_logger_restart_in_a_csv_without_cycles_starts_a_new_session() {
-    use bcal_doctor::read::{numbering_step, read_csv, ReadOptions};
+    use bcal_doctor::read::{read_csv, ReadOptions};
     let dir = tempfile::tempdir().unwrap();
     let g = dir.path().join("life.csv");
     // (time, voltage, current) rows of a rest, a 2 A discharge and a relaxation, from `t0_s`, one every 10 s; a
@@ -696,7 +710,7 @@ fn a_logger_restart_in_a_csv_without_cycles_starts_a_new_session() {
     let (alone, _) = read_csv(&g, &ReadOptions::default()).unwrap();
     write(&g, &csv(&life));
     let (records, report) = read_csv(&g, &ReadOptions::default()).unwrap();
-    assert_eq!(records.iter().map(|d| d.cycle).collect::<Vec<_>>(), [1, 2, 4]);
+    assert_eq!(records.iter().map(|d| d.cycle).collect::<Vec<_>>(), [1, 2, 3]);
     for (a, b) in alone.iter().zip(&records) {
         assert_eq!((&a.time_s, &a.voltage_v, &a.current_a), (&b.time_s, &b.voltage_v, &b.current_a));
     }
@@ -704,9 +718,23 @@ fn a_logger_restart_in_a_csv_without_cycles_starts_a_new_session() {
     // The restart is the file's row 160 (line 162), at 0 s after 1590 s.
     let note = report.notes.iter().find(|n| n.contains("restarted")).expect("the restart is said");
     assert!(note.contains("life.csv, line 162: the time steps back from 1590.0 s to 0.0 s"), "{note}");
-    let starts: Vec<(u32, f64)> = report.starts.iter().map(|s| (s.cycle, s.start_s)).collect();
-    assert_eq!(starts, [(1, 0.0), (2, 800.0), (4, 0.0)]);
-    assert_eq!(numbering_step(&report.starts), 1, "the record before the restart is not one step back");
+    // Each start on its session's clock: no rest is taken between sessions (`prior::rests_before`, the lifetime).
+    let starts: Vec<(u32, f64, u32)> = report.starts.iter().map(|s| (s.cycle, s.start_s, s.session)).collect();
+    assert_eq!(starts, [(1, 0.0, 0), (2, 800.0, 0), (3, 0.0, 1)]);
+    // The session after the restart reading what the first read, to the last digit (a cell at rest, a logger of
+    // few digits): a session of its own, not readings written again; nor is a second reading at the restart's
+    // time (a clock coarser than the logging) more than a reading left out.
+    // (A buffer written again sends its last readings: a like reading more than an hour back is the restart's.)
+    let same: Vec<_> = [before.clone(), discharge(4000.0, 0.0), discharge(0.0, 0.0)].concat();
+    let mut coarse = [before.clone(), discharge(4000.0, 0.0), discharge(0.0, -0.001)].concat();
+    coarse.insert(241, (0.0, 4.148, 0.0));
+    for (rows, what) in [(&same, "the same readings"), (&coarse, "a second reading at 0 s")] {
+        write(&g, &csv(rows));
+        let (records, report) = read_csv(&g, &ReadOptions::default()).unwrap();
+        assert_eq!(records.len(), 4, "{what}: {:?}", report.notes);
+        assert_eq!(records[3].time_s, records[0].time_s, "{what}");
+        assert!(report.notes.iter().any(|n| n.contains("line 242") && n.contains("restarted")), "{what}");
+    }
     // One reading's time written wrong (back to 5 s amid a discharge, the next on the clock it left): refused.
     let mut wrong = life.clone();
     wrong[30].0 = 5.0;

@@ -59,8 +59,8 @@ pub struct CalibrateArgs {
     /// temperature dependence). Without it, the base model.
     #[arg(long, value_name = "DIAG")]
     pub model: Option<PathBuf>,
-    /// Cycles to judge, A..B (1-based; NASA: the order of the cell's discharges). Default: those after
-    /// --train-cycles.
+    /// Cycles to judge, A..B (NASA: the order of the cell's discharges from 1; a CSV: its cycle column's numbers, from
+    /// 0 or 1). Default: those after --train-cycles.
     #[arg(long, value_name = "A..B")]
     pub cycles: Option<String>,
     /// Training cycles, A..B: the capacity trend, the cell's setting and the first previous-cycle reference.

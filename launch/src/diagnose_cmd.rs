@@ -21,7 +21,7 @@ pub struct DiagnoseArgs {
     /// report gives it (default: the file's name).
     #[arg(long)]
     pub cell: Option<String>,
-    /// Training cycles A..B (inclusive, 1-based; NASA: order of the cell's discharges). Default, when
+    /// Training cycles A..B (inclusive; NASA: the order of the cell's discharges from 1; a CSV: its cycle numbers). Default, when
     /// --holdout is not given either: the first three quarters of the cycles `bcal calibrate` trains on (the
     /// first third of the life, at most 40; B0005: 1..30, held out 31..40), so the diagnosis feeds `bcal
     /// calibrate --model`, a short life's too (within them; two discharges: the first against the second). With --holdout:

@@ -161,9 +161,11 @@ fn replaced(_file: &std::fs::File, _path_meta: &std::fs::Metadata) -> bool {
 
 /// The layout of the lines, decided by the first one that is not empty or a `#` comment.
 enum Layout {
-    /// CSV under a header: where each quantity is and its unit, how many fields a row has, and what separates
-    /// them (`bcal_doctor::read::delimiter`: where it is not the comma, a comma is a decimal point).
-    Csv { columns: Box<ReadingColumns>, width: usize, delimiter: u8 },
+    /// CSV under a header: where each quantity is and its unit, how many fields a row has, what separates them
+    /// (`bcal_doctor::read::delimiter`) and, where that is not the comma, whether the decimal mark is the comma:
+    /// the first value with a comma or a point says (as `bcal_doctor::read::decimal_comma` reads a file), and a
+    /// value with the other mark is refused.
+    Csv { columns: Box<ReadingColumns>, width: usize, delimiter: u8, decimal_comma: std::cell::Cell<Option<bool>> },
     /// One JSON object per line, its keys read as a CSV header is.
     Json,
 }
@@ -208,29 +210,34 @@ impl Layout {
         let refs: Vec<&str> = names.iter().map(String::as_str).collect();
         let columns = reading_columns(&refs)
             .map_err(|e| format!("the header `{}`: {e}; {JSON_HINT}", bcal_common::text::shown(line, 80)))?;
-        Ok(Layout::Csv { columns: Box::new(columns), width: names.len(), delimiter })
+        let decimal_comma = std::cell::Cell::new((delimiter == b',').then_some(false));
+        Ok(Layout::Csv { columns: Box::new(columns), width: names.len(), delimiter, decimal_comma })
     }
 
     /// One reading from a data line, in s, V, A and deg C, current with the sign as written (the caller
     /// applies the stream's convention).
     fn parse(&self, line: &str) -> Result<Reading, String> {
-        let number = |field: &str, text: &str, decimal_comma: bool| -> Result<f64, String> {
+        let number = |field: &str, text: &str, decimal_comma: &std::cell::Cell<Option<bool>>| -> Result<f64, String> {
             let text = text.trim();
-            match decimal_comma {
-                true => text.replacen(',', ".", 1).parse::<f64>(),
-                false => text.parse::<f64>(),
+            if decimal_comma.get().is_none() && text.contains([',', '.']) {
+                decimal_comma.set(Some(text.contains(',')));
             }
-            .map_err(|_| format!("field `{field}` = `{}` is not a number", bcal_common::text::shown(text, 40)))
+            match decimal_comma.get() {
+                Some(true) if !text.contains('.') => text.replacen(',', ".", 1).parse::<f64>().ok(),
+                Some(true) => None,
+                _ => text.parse::<f64>().ok(),
+            }
+            .ok_or_else(|| format!("field `{field}` = `{}` is not a number", bcal_common::text::shown(text, 40)))
         };
         match self {
-            Layout::Csv { columns, width, delimiter } => {
+            Layout::Csv { columns, width, delimiter, decimal_comma } => {
                 let f = csv_fields(line, *delimiter)?;
                 if f.len() != *width {
                     return Err(format!("{} fields where the header has {width}", f.len()));
                 }
                 reading_of(columns, |c| match f[c.index].as_str() {
                     "" => Ok(None),
-                    text => number(&c.name, text, *delimiter != b',').map(Some),
+                    text => number(&c.name, text, decimal_comma).map(Some),
                 })
             }
             Layout::Json => {
@@ -767,7 +774,11 @@ mod tests {
         let want = Reading { time_s: 10.5, voltage_v: 3.9, current_a: 2.0, temperature_c: Some(24.25) };
         let l = Layout::from_first("time_s;voltage_v;current_a;temperature_c").unwrap();
         assert_eq!(l.parse("10,5;3,9;2;24,25").unwrap(), want);
+        // The first mark sets the stream's: a point then is a thousands separator or another locale, refused.
+        assert!(l.parse("10.5;3.9;2.0;24.25").unwrap_err().contains("` is not a number"));
+        let l = Layout::from_first("time_s;voltage_v;current_a;temperature_c").unwrap();
         assert_eq!(l.parse("10.5;3.9;2.0;24.25").unwrap(), want);
+        assert!(l.parse("1,050;3.9;2.0;24.25").unwrap_err().contains("`1,050` is not a number"));
         let l = Layout::from_first("time_s\tvoltage_v\tcurrent_a\ttemperature_c").unwrap();
         assert_eq!(l.parse("10.5\t3.9\t2\t24.25").unwrap(), want);
         let l = Layout::from_first("time_s,voltage_v,current_a,temperature_c").unwrap();

@@ -17,7 +17,7 @@ use std::path::PathBuf;
 ///
 /// `data` is a NASA PCoE folder (metadata.csv and data/; `cell` required, e.g. "B0005") or a CSV
 /// (time_s,voltage_v,current_a[,temperature_c][,cycle]). `cycles` and `holdout` are "A..B" ranges
-/// (1-based, inclusive; default: three quarters of the cycles `bcal calibrate` trains on against the last
+/// (inclusive; NASA cycles count from 1, a CSV's as its cycle column does; default: three quarters of the cycles `bcal calibrate` trains on against the last
 /// quarter, B0005 1..30 against 31..40; a life under 24 discharges: its first third against the rest),
 /// `stride` takes every
 /// N-th cycle, `cutoff_v` the discharge cut-off (default: the cell's documented protocol, else read off

@@ -1312,7 +1312,7 @@ mod tests {
             let capacity_ah = 1.90 - 0.004 * f64::from(c) - deficit_ah
                 + NOISE_AH * ((f64::from(c) * 2.3).sin() + (f64::from(c) * 5.1).cos()) / 2.0;
             clock_s += rest_of(c);
-            starts.push(RecordStart { cycle: c, start_s: clock_s });
+            starts.push(RecordStart { cycle: c, start_s: clock_s, session: 0 });
             let d = discharge(c, capacity_ah);
             clock_s += d.time_s.last().unwrap() - d.time_s[0];
             records.push(d);

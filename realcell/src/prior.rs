@@ -27,20 +27,21 @@ use bcal_doctor::Discharge;
 use serde::Serialize;
 use std::collections::BTreeMap;
 
-/// The rest before each record, s: the time from the end of the record of the cycle before (when present
-/// and both start times are known) to this record's start. Records with an unknown rest are absent. The
+/// The rest before each record, s: the time from the end of the record of the cycle before (when present,
+/// both start times are known and on one logger session's clock) to this record's start. Records with an unknown rest are absent. The
 /// cycle before is one step of the data's own numbering back, the step its consecutive records take most
 /// (1 for NASA's discharges; 2 for a log that numbers charges and discharges alike and keeps only the
 /// discharges, 1, 3, 5, ..., which lost every rest while the step was taken to be 1), over every record
 /// read (`starts`): a record after one that was not read (a missing file) has no known rest.
 pub fn rests_before(records: &[&Discharge], starts: &[RecordStart]) -> BTreeMap<u32, f64> {
-    let start_of: BTreeMap<u32, f64> = starts.iter().map(|s| (s.cycle, s.start_s)).collect();
-    let end_of: BTreeMap<u32, f64> = records
+    let start_of: BTreeMap<u32, (f64, u32)> = starts.iter().map(|s| (s.cycle, (s.start_s, s.session))).collect();
+    // (end, session) of each record whose start is known.
+    let end_of: BTreeMap<u32, (f64, u32)> = records
         .iter()
         .filter_map(|d| {
-            let s = start_of.get(&d.cycle)?;
+            let (s, session) = start_of.get(&d.cycle)?;
             let span = d.time_s.last()? - d.time_s.first()?;
-            Some((d.cycle, s + span))
+            Some((d.cycle, (s + span, *session)))
         })
         .collect();
     // The step of every record read (`starts`), not of the ones passed: a subset that left some out would
@@ -48,11 +49,15 @@ pub fn rests_before(records: &[&Discharge], starts: &[RecordStart]) -> BTreeMap<
     let step = bcal_doctor::read::numbering_step(starts);
     let mut out = BTreeMap::new();
     for d in records {
-        let (Some(start), Some(prev_end)) =
+        let (Some((start, session)), Some((prev_end, prev_session))) =
             (start_of.get(&d.cycle), d.cycle.checked_sub(step).and_then(|c| end_of.get(&c)))
         else {
             continue;
         };
+        // Two sessions of a logger that restarted: clocks that do not agree, no rest.
+        if session != prev_session {
+            continue;
+        }
         let rest = start - prev_end;
         // A clock that restarts per record gives overlaps: no schedule, no rest.
         if rest >= -60.0 {
@@ -336,9 +341,9 @@ mod tests {
         };
         let (a, b, c) = (d(1), d(2), d(4));
         let starts = [
-            RecordStart { cycle: 1, start_s: 0.0 },
-            RecordStart { cycle: 2, start_s: 5000.0 },
-            RecordStart { cycle: 4, start_s: 9000.0 },
+            RecordStart { cycle: 1, start_s: 0.0, session: 0 },
+            RecordStart { cycle: 2, start_s: 5000.0, session: 0 },
+            RecordStart { cycle: 4, start_s: 9000.0, session: 0 },
         ];
         let r = rests_before(&[&a, &b, &c], &starts);
         assert_eq!(r.get(&2), Some(&4000.0));
@@ -347,9 +352,18 @@ mod tests {
         // A log that numbers charges and discharges alike keeps the discharges 1, 3, 5, 9 (7 not read): the
         // rest before each is from the end of the discharge two numbers back, none after the missing one.
         let (a, b, c, e) = (d(1), d(3), d(5), d(9));
-        let starts = [1, 3, 5, 9].map(|cycle| RecordStart { cycle, start_s: 5000.0 * f64::from(cycle) });
+        let starts = [1, 3, 5, 9].map(|cycle| RecordStart { cycle, start_s: 5000.0 * f64::from(cycle), session: 0 });
         let r = rests_before(&[&a, &b, &c, &e], &starts);
         assert_eq!((r.get(&3), r.get(&5)), (Some(&9000.0), Some(&9000.0)));
         assert!(!r.contains_key(&1) && !r.contains_key(&9), "{r:?}");
+        // A logger that restarted after each discharge (a CSV's sessions, each clock set 100 s behind the last
+        // one's end): no rest across two sessions, however the clocks fall.
+        let (a, b, c) = (d(1), d(2), d(3));
+        let starts = [(1, 0.0, 0), (2, 7000.0, 1), (3, 14000.0, 2)].map(|(cycle, start_s, session)| RecordStart {
+            cycle,
+            start_s,
+            session,
+        });
+        assert!(rests_before(&[&a, &b, &c], &starts).is_empty());
     }
 }
