@@ -248,6 +248,11 @@ pub fn load_model(path: &Path) -> Result<DiagnosedModel, DoctorError> {
             latest.set(name, m);
         }
     }
+    // The model a live stream runs must be one the calibrators can run (values edited by hand, or from a fit
+    // that ran off: refused here, named, rather than met mid-stream).
+    extension_of(&causes, &latest, None)
+        .check("the last training cycles' model")
+        .map_err(|e| bad(format!("{e}; the diagnosis's values make no model the calibrators run: diagnose again")))?;
     let latest_cycles = last.iter().map(|t| t.cycle).collect();
     Ok(DiagnosedModel { cell: f.cell, path: file, causes, dropped, shared, latest, latest_cycles, cycles })
 }
@@ -373,6 +378,14 @@ mod tests {
         assert_eq!((m.shared.xp_shift, m.shared.kinetics_scale), (0.0, 1.0), "calibrate's per-cycle start is neutral");
         let ext = m.extension(None);
         assert_eq!((ext.xp_shift, ext.kinetics_scale), (0.03, 0.3 + 0.01 * 4.0));
+        // Values that make no model (an electrode shift past the electrode's range, edited by hand): refused when
+        // loaded, named, not met by a live stream's filter mid-run.
+        let cycles: Vec<_> = (1..=5).map(|c| cycle(c, 0.6)).collect();
+        let file = serde_json::json!({"cell": "B0005", "extended": {"causes": ["electrode_balance"], "params": {},
+            "train_cycles": cycles}});
+        std::fs::write(&p, file.to_string()).unwrap();
+        let e = load_model(&p).unwrap_err().to_string();
+        assert!(e.contains("xp_max") && e.contains("diagnose again"), "{e}");
         std::fs::write(&p, r#"{"cell":"B0005","extended":{"causes":["gremlins"],"params":{}}}"#).unwrap();
         let e = load_model(&p).unwrap_err().to_string();
         assert!(e.contains("gremlins") && e.contains("diagnosis.json"), "{e}");
