@@ -775,6 +775,34 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
     if !(2..=512).contains(&tr.window_points) {
         return Err(invalid("measured.tracker.window_points", tr.window_points.to_string(), "must be in 2..=512"));
     }
+    // The cut-off the calibrators predict the end at: a Li-ion cell's, as the scenario's.
+    if !(2.0..=4.0).contains(&tr.cutoff_v) {
+        return Err(invalid("measured.tracker.cutoff_v", tr.cutoff_v.to_string(), "must be in [2, 4] V"));
+    }
+    // The joint UKF's settings: noise the filter divides by, and a sigma-point spread it can weigh.
+    if let Some(u) = &m.ukf {
+        for (key, v) in [
+            ("measured.ukf.meas_std_v", u.meas_std_v),
+            ("measured.ukf.prior_std_z", u.prior_std_z[0]),
+            ("measured.ukf.prior_std_z", u.prior_std_z[1]),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(invalid(key, v.to_string(), "must be a finite number > 0"));
+            }
+        }
+        for (key, v) in [
+            ("measured.ukf.param_walk_per_sqrt_s", u.param_walk_per_sqrt_s),
+            ("measured.ukf.charge_walk_c_per_sqrt_s", u.charge_walk_c_per_sqrt_s),
+            ("measured.ukf.voltage_walk_v_per_sqrt_s", u.voltage_walk_v_per_sqrt_s),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(invalid(key, v.to_string(), "must be a finite number >= 0"));
+            }
+        }
+        if !(u.alpha.is_finite() && 1e-3 <= u.alpha && u.alpha <= 1.0) {
+            return Err(invalid("measured.ukf.alpha", u.alpha.to_string(), "must be in [0.001, 1]"));
+        }
+    }
     if sc.validation_episodes == 0 || sc.test_episodes == 0 {
         return Err(invalid("measured.scenario.validation_episodes", "0".into(), "validation and test need episodes"));
     }
@@ -970,6 +998,19 @@ mod tests {
                 "measured.cost.voltage_scale_v",
             ),
             ("[env]\nobservation = \"Measured\"\n[measured.cost]\nsubstep_s = 20.0\n", "measured.cost.substep_s"),
+            // A cell's config given to a live stream: a cut-off and a filter the calibrators can run.
+            ("[env]\nobservation = \"Measured\"\n[measured.tracker]\ncutoff_v = nan\n", "measured.tracker.cutoff_v"),
+            ("[env]\nobservation = \"Measured\"\n[measured.tracker]\ncutoff_v = 5.0\n", "measured.tracker.cutoff_v"),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.ukf]\nmeas_std_v = 0.0\nparam_walk_per_sqrt_s = 1e-5\n\
+                 charge_walk_c_per_sqrt_s = 0.05\nvoltage_walk_v_per_sqrt_s = 1e-4\nprior_std_z = [0.25, 0.15]\nalpha = 0.5\n",
+                "measured.ukf.meas_std_v",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.ukf]\nmeas_std_v = 0.003\nparam_walk_per_sqrt_s = 1e-5\n\
+                 charge_walk_c_per_sqrt_s = 0.05\nvoltage_walk_v_per_sqrt_s = 1e-4\nprior_std_z = [0.25, 0.15]\nalpha = 0.0\n",
+                "measured.ukf.alpha",
+            ),
             ("[env]\nobservation = \"Measured\"\n[measured.cost]\neod_weight = -1.0\n", "measured.cost.eod_weight"),
             (
                 "[env]\nobservation = \"Measured\"\n[measured.scenario.rest_jump]\nprobability = 1.5\n",
