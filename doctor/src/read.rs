@@ -1608,6 +1608,9 @@ const UNIT_WORDS: &[&str] = &[
     "celsius",
     "k",
     "kelvin",
+    "f",
+    "degf",
+    "fahrenheit",
 ];
 
 /// (scale, offset, unit name) from a quantity's unit word to the doctor's unit; `None` for a unit it does not
@@ -1636,6 +1639,7 @@ fn unit_of(q: Quantity, unit: Option<&str>) -> Option<(f64, f64, &'static str)> 
         Quantity::Temperature | Quantity::Ambient => match u {
             "" | "c" | "degc" | "deg c" | "celsius" => (1.0, 0.0, "degC"),
             "k" | "kelvin" => (1.0, -CELSIUS_TO_KELVIN, "K"),
+            "f" | "degf" | "deg f" | "fahrenheit" => (5.0 / 9.0, -32.0 * 5.0 / 9.0, "degF"),
             _ => return None,
         },
         Quantity::Cycle => match u {
@@ -1650,7 +1654,7 @@ fn accepted_units(q: Quantity) -> &'static str {
         Quantity::Time | Quantity::UnixTime => "s, ms, min or h",
         Quantity::Voltage => "V or mV",
         Quantity::Current => "A or mA",
-        Quantity::Temperature | Quantity::Ambient => "degC or K",
+        Quantity::Temperature | Quantity::Ambient => "degC, K or degF",
         Quantity::Cycle => "plain counts (unit 1)",
     }
 }
@@ -2524,6 +2528,8 @@ mod tests {
             ("temperature_t1_celsius", Quantity::Temperature, "degC"),
             ("Temperature (°C)", Quantity::Temperature, "degC"),
             ("temperature_k", Quantity::Temperature, "K"),
+            ("temperature_f", Quantity::Temperature, "degF"),
+            ("Temperature (F)", Quantity::Temperature, "degF"),
             ("Ambient Temperature / degC", Quantity::Ambient, "degC"),
             ("Cycle Count / 1", Quantity::Cycle, "1"),
             ("cycle_count", Quantity::Cycle, "1"),

@@ -658,6 +658,17 @@ fn semicolons_tabs_and_decimal_commas_read_as_commas_and_points() {
         }
         assert!(report.units.iter().any(|u| u.contains(&format!("separated by {said}"))), "{name}: {:?}", report.units);
     }
+    // A temperature in Fahrenheit (`temperature_f`) is converted, as one in K is, not dropped.
+    let path = dir.path().join("f.csv");
+    let body: String = rows
+        .iter()
+        .map(|r| format!("{},{},{},{}\n", r[0], r[1], r[2], r[3].parse::<f64>().unwrap() * 9.0 / 5.0 + 32.0))
+        .collect();
+    write(&path, &format!("time_s,voltage_v,current_a,temperature_f\n{body}"));
+    let (records, report) = read_csv(&path, &ReadOptions::default()).unwrap();
+    let (got, want) = (records[0].temperature_k.as_ref().unwrap(), plain[0].temperature_k.as_ref().unwrap());
+    assert!(got.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-9), "{got:?}");
+    assert!(report.units.iter().any(|u| u.contains("degF")), "{:?}", report.units);
     // The first value with a mark sets the file's: a value with the other one (a thousands separator, `1.000` or
     // `1,000`) is refused, named, not read as a decimal.
     for (name, sep, comma, row, thousand) in [
