@@ -135,6 +135,23 @@ pub fn split_cycles(
         return Err(DoctorError::NothingSelected { why: "the data holds no discharge record".into() });
     }
     let (train_r, held_r) = cycle_ranges(all, cycles, holdout);
+    // A record held out that was also fitted would judge the fit on what it saw.
+    if train_r.start() <= held_r.end() && held_r.start() <= train_r.end() {
+        return Err(DoctorError::NothingSelected {
+            why: format!(
+                "the training cycles {}..{} and the held-out cycles {}..{} overlap: hold out cycles the fit does not \
+                 see (e.g. --cycles {}..{} --holdout {}..{})",
+                train_r.start(),
+                train_r.end(),
+                held_r.start(),
+                held_r.end(),
+                train_r.start(),
+                train_r.end(),
+                train_r.end().saturating_add(1),
+                held_r.end().max(&train_r.end().saturating_add(1))
+            ),
+        });
+    }
     let pick = |r: &RangeInclusive<u32>| -> Vec<Discharge> {
         let wanted: Vec<u32> = r.clone().step_by(stride.max(1) as usize).collect();
         all.iter().filter(|d| wanted.contains(&d.cycle)).cloned().collect()
@@ -232,6 +249,9 @@ mod tests {
         assert_eq!(life(2), (1..=1, 2..=2));
         let (t, h) = split_cycles(&all, Some(2..=4), None, 2).unwrap();
         assert_eq!((t.iter().map(|d| d.cycle).collect::<Vec<_>>(), h[0].cycle), (vec![2, 4], 5));
+        // Held-out cycles the fit also sees: refused, naming both ranges.
+        let e = split_cycles(&all, Some(1..=3), Some(3..=5), 1).unwrap_err().to_string();
+        assert!(e.contains("1..3") && e.contains("3..5") && e.contains("overlap"), "{e}");
         let e = split_cycles(&all, Some(20..=30), None, 1).unwrap_err();
         assert!(e.to_string().contains("no training record in cycles 20..=30"), "{e}");
     }
