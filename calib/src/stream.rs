@@ -1362,6 +1362,16 @@ impl<'a> Stream<'a> {
             Some(held) if charge_held => held,
             _ => (self.cal.estimate(), self.cal.interval()),
         };
+        // A charge past its first minute has ended the discharge: its end is the one measured (the cut-off
+        // crossed), else unknown (a log too coarse to read the crossing), and what it delivered likewise; the
+        // filter following the charge predicts no end (it ran ahead of the clock, the charge counted as drawn).
+        let (eod_s, eod_lo_s, eod_hi_s, delivered_ah, delivered_lo_ah, delivered_hi_ah) =
+            if charge_held && self.loaded_n > 0 {
+                let ended_s = self.eod_track.ended_s;
+                (ended_s, None, None, ended_s.and(self.capacity_ah), None, None)
+            } else {
+                (eod_s, eod_lo_s, eod_hi_s, delivered_ah, delivered_lo_ah, delivered_hi_ah)
+            };
         Ok(Estimate {
             time_s: r.time_s,
             q_mobile: d.q_mobile_c,
@@ -1394,8 +1404,9 @@ impl<'a> Stream<'a> {
     /// after a gap) is no discharge to learn from or carry: the one before it is.
     fn new_discharge(&mut self, start_s: f64) {
         let Some((setup, net)) = &self.rebuild else { return };
-        // A charge that goes on into the new discharge shows the new calibrator's start.
-        self.charge_start_estimate = None;
+        // A charge that goes on into the new discharge shows the new calibrator's start; the one that ended
+        // the last discharge held what its filter knew at the charge's start (before it read the charge).
+        let held = self.charge_start_estimate.take();
         let spec = &setup.spec.tracker;
         for src in &mut self.sources {
             // Predictions of a discharge that stopped above its cut-off are never scored.
@@ -1444,7 +1455,10 @@ impl<'a> Stream<'a> {
         // The rest: from the last reading that discharged (a charge seen in between is part of it).
         let rest_s = self.last_loaded_t_s.or(self.last_t_s).map(|t| (start_s - t).max(0.0));
         if discharged && !piece {
-            let end = self.end_fit.take().unwrap_or_else(|| self.cal.estimate());
+            // Where the cut-off was not read (a coarse log), the estimate it ended with: at the charge's start,
+            // not after the filter read the charge.
+            let (held_end, held_iv) = held.map_or((None, None), |(d, iv)| (Some(d), iv));
+            let end = self.end_fit.take().or(held_end).unwrap_or_else(|| self.cal.estimate());
             let mean_z = self.prior_mean.map(|m| spec.to_z(&m));
             let end_z = spec.to_z(&end);
             self.ends.push(Carried { end_z, rest_s: self.rest_before_s, mean_z });
@@ -1452,7 +1466,7 @@ impl<'a> Stream<'a> {
             self.carried = Some(end);
             // Its own posterior, read as 1.645 standard deviations of its 90 % interval: the width a
             // discharge after it carries while too few changes are known to learn one.
-            self.carried_sd_z = self.cal.interval().map(|iv| {
+            self.carried_sd_z = held_iv.or_else(|| self.cal.interval()).map(|iv| {
                 let (lo, hi) = (
                     spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[0], r_o_ohm: iv.r_o_ohm[0] }),
                     spec.to_z(&Degradation { q_mobile_c: iv.q_mobile_c[1], r_o_ohm: iv.r_o_ohm[1] }),
@@ -2944,6 +2958,30 @@ mod tests {
         assert!(shown[1..3].iter().all(|e| (e.q_mobile, e.r_o) == (shown[0].q_mobile, shown[0].r_o)));
         let without = fed(&setup, &[rest, next]);
         assert_ne!(with.calibrator().state(), without.calibrator().state(), "the short charge is read");
+    }
+
+    /// A log too coarse to read its cut-off (its last loaded reading above it) with a charge right after: once
+    /// the charge has run a minute the discharge is over (no end predicted from the filter reading the charge, no
+    /// charge counted as delivered), and the next discharge starts from what the filter knew when the charge
+    /// began, as after a gap, not from the filter that read the charge (which ran qMobile off).
+    #[test]
+    fn a_charge_ends_a_discharge_whose_cut_off_was_not_read() {
+        let (readings, starts, setup) = two_discharges();
+        let cut = setup.spec.tracker.cutoff_v;
+        let stop = (starts[0]..starts[1]).find(|&k| readings[k].current_a > 0.1 && readings[k].voltage_v < cut + 0.1);
+        let stop = stop.expect("the first discharge reaches its cut-off");
+        let end_s = readings[stop - 1].time_s;
+        let charging = charge(end_s + 60.0, 90, -1.5, 3.6, 0.5);
+        let next = readings[starts[1]];
+        assert!(next.time_s > charging.last().unwrap().time_s + 60.0);
+        let mut charged = fed(&setup, &readings[..stop]);
+        let during: Vec<Estimate> = charging.iter().map(|r| charged.step(r).unwrap()).collect();
+        for e in &during[4..] {
+            assert!(e.eod_s.is_none() && e.delivered_ah.is_none() && e.eod_hi_s.is_none(), "during the charge: {e:?}");
+        }
+        let mut gapped = fed(&setup, &readings[..stop]);
+        let (a, b) = (charged.step(&next).unwrap(), gapped.step(&next).unwrap());
+        assert_eq!((a.discharge, a.q_mobile, a.r_o), (b.discharge, b.q_mobile, b.r_o));
     }
 
     /// The estimate (qMobile, Ro) a stream of `setup` shows after `readings`.
