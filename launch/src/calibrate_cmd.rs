@@ -328,6 +328,13 @@ pub fn run(a: CalibrateArgs) -> anyhow::Result<()> {
         println!("{}..{}", r.start(), r.end());
         return Ok(());
     }
+    if let Some(c) = &a.config {
+        bail!(
+            "--config {} is for --follow (a live stream's setting); with --data each calibrator is set up on the \
+             training cycles: leave --config out (--model gives a diagnosed model)",
+            c.display()
+        );
+    }
     let (Some(data), Some(out)) = (a.data.clone(), a.out.clone()) else {
         bail!("give --data PATH and --out DIR (or --follow - for live readings)");
     };

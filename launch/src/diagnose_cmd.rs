@@ -141,8 +141,14 @@ fn load(a: &DiagnoseArgs) -> anyhow::Result<Loaded> {
 pub fn run(a: DiagnoseArgs) -> anyhow::Result<()> {
     let Loaded { cell, all, starts, train_r, held_r, train, held } = load(&a)?;
     let cut = crate::calibrate_cmd::cutoff(a.cutoff_v, &a.data, &cell, &train);
-    if let Some((v, why)) = &cut {
-        eprintln!("cut-off {v} V: {why}");
+    match &cut {
+        Some((v, why)) => eprintln!("cut-off {v} V: {why}"),
+        None => eprintln!(
+            "cut-off: none given (--cutoff-v) nor documented for {}: a record ending under load at or below {} V is \
+             taken as complete, one above it as cut short (give the cell's cut-off with --cutoff-v)",
+            a.data.display(),
+            bcal_doctor::record::DEFAULT_CUTOFF_V
+        ),
     }
     let mut cfg = DiagnoseConfig {
         cutoff_v: cut.map(|c| c.0),

@@ -68,6 +68,7 @@ fn bad_values_get_clear_errors() {
         (&["dataset", "generate", "--experiment", "quadruple"], "invalid value"),
         (&["calibrate", "--data", "x.csv", "--out", "o", "--ambient-c", "150"], "not an ambient temperature in deg C"),
         (&["diagnose", "--data", "x.csv", "--ambient-c=-100"], "between -73.15 and 126.85"),
+        (&["calibrate", "--data", "x.csv", "--out", "o", "--config", "c.toml"], "--config c.toml is for --follow"),
     ];
     for (args, want) in cases {
         let o = bcal(args, dir.path());
