@@ -112,7 +112,7 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
 
     // A temperature or cut-off that is not a number is refused before anything is read.
     let (ok, err) = calibrate(&[&common[..], &["--ambient-c", "nan"]].concat());
-    assert!(!ok && err.contains("--ambient-c NaN: not a finite number"), "{err}");
+    assert!(!ok && err.contains("`nan` is not an ambient temperature in deg C"), "{err}");
 
     // A NASA folder needs its cell.
     let (ok, err) = calibrate(&["--data", dir.path().to_str().unwrap(), "--out", out]);
