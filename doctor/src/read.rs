@@ -1346,11 +1346,7 @@ impl Col {
             // A point there is no decimal mark but a thousands separator, or another locale's: refused, not guessed.
             true => {
                 let raw = rec.get(self.index).unwrap_or("");
-                let text = raw.trim();
-                if text.contains('.') {
-                    return Err(bad_field(path, line, &self.header, raw));
-                }
-                text.replacen(',', ".", 1).parse::<f64>().map_err(|_| bad_field(path, line, &self.header, raw))?
+                decimal(raw, true).ok_or_else(|| bad_field(path, line, &self.header, raw))?
             }
             false => number(rec, self.index, &self.header, path, line)?,
         } * self.scale
@@ -2354,8 +2350,25 @@ pub fn decimal_comma(bytes: &[u8], delimiter: u8) -> bool {
         .split(|b| *b == b'\n')
         .skip(1)
         .flat_map(|line| line.split(move |b| *b == delimiter))
-        .find_map(|field| field.iter().find(|b| **b == b',' || **b == b'.').copied());
-    mark == Some(b',')
+        .find_map(|field| decimal_mark(&String::from_utf8_lossy(field)));
+    mark == Some(true)
+}
+
+/// The decimal mark a value shows: Some(true) for a comma, Some(false) for a point, None for neither (its first
+/// one, as [`decimal_comma`] reads a file's and a live stream a stream's).
+pub fn decimal_mark(text: &str) -> Option<bool> {
+    text.chars().find(|c| *c == ',' || *c == '.').map(|c| c == ',')
+}
+
+/// A value under its file's decimal mark: with `decimal_comma` a point is refused (a thousands separator, or
+/// another locale's mark: not guessed) and the comma read as a point; else as Rust reads a number.
+pub fn decimal(text: &str, decimal_comma: bool) -> Option<f64> {
+    let text = text.trim();
+    match decimal_comma {
+        true if text.contains('.') => None,
+        true => text.replacen(',', ".", 1).parse().ok(),
+        false => text.parse().ok(),
+    }
 }
 
 /// Line numbers of records, counted over the file's bytes. The csv crate's `Position::line` names the line

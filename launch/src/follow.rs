@@ -219,15 +219,11 @@ impl Layout {
     fn parse(&self, line: &str) -> Result<Reading, String> {
         let number = |field: &str, text: &str, decimal_comma: &std::cell::Cell<Option<bool>>| -> Result<f64, String> {
             let text = text.trim();
-            if decimal_comma.get().is_none() && text.contains([',', '.']) {
-                decimal_comma.set(Some(text.contains(',')));
+            if decimal_comma.get().is_none() {
+                decimal_comma.set(bcal_doctor::read::decimal_mark(text));
             }
-            match decimal_comma.get() {
-                Some(true) if !text.contains('.') => text.replacen(',', ".", 1).parse::<f64>().ok(),
-                Some(true) => None,
-                _ => text.parse::<f64>().ok(),
-            }
-            .ok_or_else(|| format!("field `{field}` = `{}` is not a number", bcal_common::text::shown(text, 40)))
+            bcal_doctor::read::decimal(text, decimal_comma.get() == Some(true))
+                .ok_or_else(|| format!("field `{field}` = `{}` is not a number", bcal_common::text::shown(text, 40)))
         };
         match self {
             Layout::Csv { columns, width, delimiter, decimal_comma } => {
