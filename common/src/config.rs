@@ -740,7 +740,7 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
         finite_range(key, l.power_w, 0.1, 40.0)?;
         finite_range(key, l.current_a, 0.01, 10.0)?;
     }
-    if !(2.0..=4.0).contains(&sc.cutoff_v) {
+    if !crate::measured::CUTOFF_RANGE_V.contains(&sc.cutoff_v) {
         return Err(invalid("measured.scenario.cutoff_v", sc.cutoff_v.to_string(), "must be in [2, 4] V"));
     }
     // The estimate's range must hold every true parameter the data can have.
@@ -776,7 +776,7 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
         return Err(invalid("measured.tracker.window_points", tr.window_points.to_string(), "must be in 2..=512"));
     }
     // The cut-off the calibrators predict the end at: a Li-ion cell's, as the scenario's.
-    if !(2.0..=4.0).contains(&tr.cutoff_v) {
+    if !crate::measured::CUTOFF_RANGE_V.contains(&tr.cutoff_v) {
         return Err(invalid("measured.tracker.cutoff_v", tr.cutoff_v.to_string(), "must be in [2, 4] V"));
     }
     // The joint UKF's settings: noise the filter divides by, and a sigma-point spread it can weigh.

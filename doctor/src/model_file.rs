@@ -22,6 +22,7 @@ use crate::DoctorError;
 use bcal_common::battery::Degradation;
 use bcal_common::measured::extension::{ModelExtension, SUPPORTED_CAUSES};
 use bcal_common::measured::scenario::Sample;
+use bcal_common::measured::TrackerSpec;
 use bcal_common::text::shown;
 use serde::Deserialize;
 use std::collections::BTreeMap;
@@ -48,6 +49,9 @@ pub struct DiagnosedModel {
     pub latest_cycles: Vec<u32>,
     /// The cycles the diagnosis fitted or judged (its model has seen them).
     pub cycles: Vec<u32>,
+    /// The cut-off the diagnosis was made at, where it was given or documented (None: the doctor's default,
+    /// no fact of the cell).
+    pub cutoff_v: Option<f64>,
 }
 
 /// How many of the last training cycles give a live stream its per-cycle values (their median: one odd
@@ -72,6 +76,16 @@ impl DiagnosedModel {
         reference_k: Option<f64>,
     ) -> Option<(Degradation, ModelExtension)> {
         fit_discharge(&self.cell, &self.causes, &self.shared, samples, cutoff_v, reference_k)
+    }
+
+    /// The cut-off a live stream without a cell config or a cut-off of its own predicts at: the diagnosis's,
+    /// where it was the cell's (given or documented), set in `tracker`. The sentence to say, if it was set.
+    /// (The prior stays the tracker's: starting it at the last training cycles' fits instead was measured on
+    /// B0005 / B0006 / B0018 as streams, docs/follow.md, and gained nothing.)
+    pub fn settle_stream(&self, tracker: &mut TrackerSpec) -> Option<String> {
+        let v = self.cutoff_v?;
+        tracker.cutoff_v = v;
+        Some(format!("cut-off {v} V, the diagnosis's (give --cutoff-v for another)"))
     }
 
     /// What the calibrators run instead of the diagnosis's model, when they cannot carry all of it: one
@@ -117,6 +131,16 @@ struct File {
     extended: Extended,
     #[serde(default)]
     records: Vec<Record>,
+    #[serde(default)]
+    settings: Option<Settings>,
+}
+
+/// What a diagnosis was made with: the cut-off, and whether it was the cell's (given or documented).
+#[derive(Deserialize)]
+struct Settings {
+    cutoff_v: Option<f64>,
+    #[serde(default)]
+    cutoff_given: bool,
 }
 
 #[derive(Deserialize)]
@@ -254,7 +278,12 @@ pub fn load_model(path: &Path) -> Result<DiagnosedModel, DoctorError> {
         .check("the last training cycles' model")
         .map_err(|e| bad(format!("{e}; the diagnosis's values make no model the calibrators run: diagnose again")))?;
     let latest_cycles = last.iter().map(|t| t.cycle).collect();
-    Ok(DiagnosedModel { cell: f.cell, path: file, causes, dropped, shared, latest, latest_cycles, cycles })
+    let cutoff_v = f
+        .settings
+        .filter(|s| s.cutoff_given)
+        .and_then(|s| s.cutoff_v)
+        .filter(|v| bcal_common::measured::CUTOFF_RANGE_V.contains(v));
+    Ok(DiagnosedModel { cell: f.cell, path: file, causes, dropped, shared, latest, latest_cycles, cycles, cutoff_v })
 }
 
 /// The capacity lifetime model of a diagnosis (`diagnosis.json`'s `lifetime`, see [`crate::lifetime`]), for a
@@ -420,6 +449,7 @@ mod tests {
             latest: ExtParams::default(),
             latest_cycles: vec![],
             cycles: vec![],
+            cutoff_v: None,
         };
         let (q, ext) = m.refit(&samples, 2.5, Some(297.15)).expect("a load window to fit");
         assert!((ext.kinetics_scale / 0.3 - 1.0).abs() < 0.2, "kinetics {}", ext.kinetics_scale);
@@ -429,5 +459,34 @@ mod tests {
         let (q, ext) = base(&samples).expect("a load window to fit");
         assert_eq!(ext, ModelExtension::default(), "the base model stays as it is");
         assert!(q.q_mobile_c.is_finite() && q.r_o_ohm > 0.0, "{q:?}");
+    }
+
+    /// A live stream without a cell config predicts at the diagnosis's cut-off where the diagnosis had the
+    /// cell's own, not the doctor's default.
+    #[test]
+    fn a_stream_without_a_config_takes_the_diagnosis_cut_off() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("diagnosis.json");
+        let write = |settings: serde_json::Value| {
+            let file = serde_json::json!({"cell": "B0005", "settings": settings,
+                "extended": {"causes": [], "params": {}}});
+            std::fs::write(&p, file.to_string()).unwrap();
+            load_model(&p).unwrap()
+        };
+        let m = write(serde_json::json!({"cutoff_v": 2.7, "cutoff_given": true}));
+        let mut t = TrackerSpec::default();
+        let said = m.settle_stream(&mut t).expect("a cut-off taken");
+        assert!(t.cutoff_v == 2.7 && said.contains("2.7 V"), "{said}");
+        assert_eq!(t.prior, TrackerSpec::default().prior, "the prior stays the tracker's");
+        // The doctor's default, or a value no cell ends at, is no fact of the cell.
+        for settings in [
+            serde_json::json!({"cutoff_v": 2.5, "cutoff_given": false}),
+            serde_json::json!({"cutoff_v": 42.0, "cutoff_given": true}),
+            serde_json::json!({}),
+        ] {
+            let mut t = TrackerSpec::default();
+            assert!(write(settings).settle_stream(&mut t).is_none());
+            assert_eq!(t.cutoff_v, TrackerSpec::default().cutoff_v);
+        }
     }
 }

@@ -87,7 +87,8 @@ pub struct CalibrateArgs {
     #[arg(long, value_delimiter = ',')]
     pub calibrator: Vec<String>,
     /// Cut-off voltage of the end-of-discharge predictions, V (default: the cell's documented protocol, else
-    /// what the training records show: where their discharges end under load).
+    /// what the training records show: where their discharges end under load; with --follow the config's,
+    /// else the --model diagnosis's where it was the cell's own, else 3.0).
     #[arg(long, value_parser = crate::cli::positive_f64)]
     pub cutoff_v: Option<f64>,
     /// Ambient temperature for a generic CSV without a temperature column, deg C.

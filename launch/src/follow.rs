@@ -321,6 +321,12 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     if let Some(v) = a.cutoff_v {
         setup.spec.tracker.cutoff_v = v;
     }
+    // Without the cell's config or a cut-off given, the diagnosis's cut-off where it was the cell's own.
+    if let (None, None, Some(m)) = (&config, a.cutoff_v, &diagnosed) {
+        if let Some(said) = m.settle_stream(&mut setup.spec.tracker) {
+            eprintln!("--model: {said}");
+        }
+    }
     // A diagnosis's capacity lifetime model moves the carried value when the cell's config gave none.
     if let (None, Some(p)) = (&setup.spec.lifetime, &a.model) {
         setup.spec.lifetime = bcal_doctor::model_file::load_lifetime(p)?;
@@ -357,6 +363,13 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
 
     let stop = Arc::new(AtomicBool::new(false));
     stop_on_signals(stop.clone())?;
+    if a.source != "-" && Path::new(&a.source).is_dir() {
+        bail!(
+            "--follow {}: a folder, not a log: give the file another process writes (a folder of records is read \
+             by bcal calibrate --data)",
+            a.source
+        );
+    }
     if a.source != "-" && !Path::new(&a.source).is_file() {
         bail!("--follow {}: no such file (give a file another process writes, or - for standard input)", a.source);
     }
@@ -379,7 +392,7 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     let mut out = stdout.lock();
     let mut layout: Option<Layout> = None;
     let mut skipped: Vec<u64> = Vec::new();
-    let mut watch = SignWatch::default();
+    let mut watch = Watches { sign: SignWatch::default(), temperature: TemperatureWatch::new(&spec) };
     let mut last = None;
     let mut step_us: Vec<f64> = Vec::new();
     let mut last_line_at = Instant::now();
@@ -421,7 +434,10 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
         }
         let Some(lay) = &layout else {
             layout = Some(Layout::from_first(&line).map_err(|why| anyhow::anyhow!("line {line_no}: {why}"))?);
-            if matches!(layout, Some(Layout::Csv { .. })) {
+            if let Some(Layout::Csv { columns, .. }) = &layout {
+                if columns.temperature.is_none() && watch.temperature.thermal {
+                    bail!("line {line_no}: {}", TemperatureWatch::NO_COLUMN);
+                }
                 continue;
             }
             // A JSON first line is a reading too: take it below.
@@ -450,6 +466,43 @@ pub fn run(a: FollowArgs) -> anyhow::Result<()> {
     }
     eprintln!("{}", summary(&ended, &stream, &skipped, last.as_ref(), &step_us));
     Ok(())
+}
+
+/// What the loop watches the readings for, to say once on stderr.
+struct Watches {
+    sign: SignWatch,
+    temperature: TemperatureWatch,
+}
+
+/// A model with the doctor's `thermal` runs on the measured temperature: a stream without one runs it at the
+/// ambient, which a CSV header without the column refuses (as `bcal calibrate --data` refuses such records)
+/// and a JSON line without the key says, once.
+struct TemperatureWatch {
+    thermal: bool,
+    seen: bool,
+    said: bool,
+}
+
+impl TemperatureWatch {
+    const NO_COLUMN: &'static str = "the header has no temperature column, and the model's `thermal` cause runs on \
+                                     the cell's measured temperature: give readings with temperature_c, or --model \
+                                     a diagnosis without `thermal` (bcal diagnose names the causes)";
+
+    fn new(spec: &bcal_common::measured::TrackerSpec) -> Self {
+        Self { thermal: spec.use_measured_temperature, seen: false, said: false }
+    }
+
+    fn see(&mut self, r: &Reading) -> Option<&'static str> {
+        self.seen |= r.temperature_c.is_some();
+        if !self.thermal || self.seen || self.said {
+            return None;
+        }
+        self.said = true;
+        Some(
+            "no temperature, nor any before: the model's `thermal` cause runs at the ambient (--ambient-c, else the \
+             model's) until a reading gives one",
+        )
+    }
 }
 
 /// Watches for a charge whose voltage falls: a discharge written with the other sign (a stream cannot be read
@@ -538,14 +591,17 @@ fn take(
     line_no: u64,
     sign: f64,
     stream: &mut Stream,
-    watch: &mut SignWatch,
+    watch: &mut Watches,
     step_us: &mut Vec<f64>,
     skipped: &mut Vec<u64>,
 ) -> Option<Estimate> {
     let started = Instant::now();
     let result = layout.parse(line).and_then(|r| {
         let r = Reading { current_a: sign * r.current_a, ..r };
-        if let Some(why) = watch.see(&r, sign < 0.0) {
+        if let Some(why) = watch.sign.see(&r, sign < 0.0) {
+            eprintln!("line {line_no}: {why}");
+        }
+        if let Some(why) = watch.temperature.see(&r) {
             eprintln!("line {line_no}: {why}");
         }
         stream.step(&r).map_err(|e| e.to_string())

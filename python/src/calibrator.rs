@@ -41,9 +41,9 @@ self_cell::self_cell!(
 /// followed to the cut-off). `config`: a bcal config TOML (`bcal cell-config` writes one per cell) whose
 /// `measured.tracker` sets ranges, prior and cut-off. `ambient_c`: the temperature of readings that give none
 /// before any other did within half an hour, deg C (default the model's 18.95 C). `cutoff_v`: the cut-off of
-/// the EOD predictions, V (default the config's, else 3.0). The joint UKF's settings are the config's or the RL
-/// run's (tuned on validation by `bcal train`), else the defaults; an RL policy runs as it was trained (on the
-/// window fit or as a correction of the joint UKF).
+/// the EOD predictions, V (default the config's, else the diagnosis's where it was the cell's own, else 3.0).
+/// The joint UKF's settings are the config's or the RL run's (tuned on validation by `bcal train`), else the
+/// defaults; an RL policy runs as it was trained (on the window fit or as a correction of the joint UKF).
 /// Raises ValueError (bad kind or files) and FileNotFoundError / OSError (unreadable files).
 #[pyclass(module = "bcal")]
 pub struct Calibrator {
@@ -168,6 +168,10 @@ impl Calibrator {
         if let Some(v) = cutoff_v {
             setup.spec.tracker.cutoff_v =
                 bcal_common::simulate::positive(v).map_err(|why| value_error(format!("cutoff_v: {why}")))?;
+        }
+        // Without the cell's config or a cut-off given, the diagnosis's cut-off where it was the cell's own.
+        if let (None, None, Some(m)) = (&config_spec, cutoff_v, &diagnosed) {
+            m.settle_stream(&mut setup.spec.tracker);
         }
         // A diagnosis's capacity lifetime model moves the carried value when the cell's config gave none.
         if let (None, Some(p)) = (&setup.spec.lifetime, &model) {

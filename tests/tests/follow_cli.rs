@@ -238,6 +238,37 @@ fn follow_refuses_a_header_without_the_columns_and_a_missing_file() {
     let status = p.wait_timeout(WAIT).expect("ends");
     assert!(!status.success());
     assert!(p.stderr().contains("--follow /nonexistent/live.csv: no such file"), "{}", p.stderr());
+    let dir = tempfile::tempdir().unwrap();
+    let mut p = Piped::start("bcal", &["calibrate", "--follow", dir.path().to_str().unwrap()]);
+    let status = p.wait_timeout(WAIT).expect("ends");
+    assert!(!status.success());
+    assert!(p.stderr().contains("a folder, not a log") && p.stderr().contains("--data"), "{}", p.stderr());
+}
+
+/// A stream on a diagnosis without the cell's config predicts at the cut-off the diagnosis had from the cell's
+/// protocol, and says so; a cut-off given wins; the prior stays the setting's.
+#[test]
+fn follow_on_a_diagnosis_predicts_at_its_cut_off() {
+    let dir = tempfile::tempdir().unwrap();
+    let diag = dir.path().join("diagnosis.json");
+    let cycles: Vec<_> =
+        (1..=6).map(|c| serde_json::json!({"cycle": c, "q_mobile_c": 6400.0 + f64::from(c), "r_o_ohm": 0.1})).collect();
+    let file = serde_json::json!({"cell": "B0005", "settings": {"cutoff_v": 2.7, "cutoff_given": true},
+        "extended": {"causes": [], "params": {}, "train_cycles": cycles}});
+    std::fs::write(&diag, file.to_string()).unwrap();
+    for (extra, cut) in [(None, "2.7"), (Some("2.9"), "2.9")] {
+        let mut args = vec!["calibrate", "--follow", "-", "--model", diag.to_str().unwrap()];
+        if let Some(v) = extra {
+            args.extend(["--cutoff-v", v]);
+        }
+        let mut p = Piped::start("bcal", &args);
+        p.write_line("time_s,voltage_v,current_a");
+        p.close_stdin();
+        assert!(p.wait_timeout(WAIT).expect("ends").success(), "{}", p.stderr());
+        let err = p.stderr();
+        assert!(err.contains(&format!("cut-off {cut} V, prior q_mobile 5500 C, r_o 0.15 ohm")), "{err}");
+        assert_eq!(err.contains("--model: cut-off 2.7 V, the diagnosis's"), extra.is_none(), "{err}");
+    }
 }
 
 #[test]
@@ -259,4 +290,39 @@ fn follow_runs_an_rl_policy_file() {
     assert!(p.stderr().contains("follow: rl on standard input"), "{}", p.stderr());
     // The policy's actions move the estimate off the prior.
     assert!(q.iter().any(|x| (x - 5500.0).abs() > 1.0), "{q:?}");
+}
+
+/// A model with the doctor's `thermal` runs on the measured temperature: a CSV stream without the column is
+/// refused at its header, naming what to give, as `bcal calibrate --data` refuses such records; JSON lines
+/// without one run at the ambient, said once.
+#[test]
+fn follow_on_a_thermal_model_needs_temperatures() {
+    let dir = tempfile::tempdir().unwrap();
+    let diag = dir.path().join("diagnosis.json");
+    let file = serde_json::json!({"cell": "B0055", "extended": {"causes": ["thermal"],
+        "params": {"ro_activation_k": 2000.0}}});
+    std::fs::write(&diag, file.to_string()).unwrap();
+    let args = ["calibrate", "--follow", "-", "--model", diag.to_str().unwrap()];
+    let mut p = Piped::start("bcal", &args);
+    p.write_line("time_s,voltage_v,current_a");
+    p.close_stdin();
+    assert!(!p.wait_timeout(WAIT).expect("ends").success());
+    let err = p.stderr();
+    assert!(err.contains("line 1: the header has no temperature column") && err.contains("temperature_c"), "{err}");
+    let mut p = Piped::start("bcal", &args);
+    for k in 0..3 {
+        p.write_line(&format!("{{\"time_s\": {}, \"voltage_v\": 4.1, \"current_a\": 2.0}}", 10 * k));
+    }
+    p.close_stdin();
+    assert!(p.wait_timeout(WAIT).expect("ends").success(), "{}", p.stderr());
+    let err = p.stderr();
+    assert_eq!(err.matches("runs at the ambient").count(), 1, "{err}");
+    assert!(err.contains("line 1: no temperature, nor any before"), "{err}");
+    // With temperatures, nothing is said.
+    let mut p = Piped::start("bcal", &args);
+    p.write_line("time_s,voltage_v,current_a,temperature_c");
+    p.write_line("0,4.1,2.0,5.0");
+    p.close_stdin();
+    assert!(p.wait_timeout(WAIT).expect("ends").success(), "{}", p.stderr());
+    assert!(!p.stderr().contains("runs at the ambient"), "{}", p.stderr());
 }

@@ -22,6 +22,9 @@ pub use tracker::{ActionMode, TrackerSpec, OBS_DIM};
 /// Largest current a cell under test plausibly carries, A: a larger one is refused as milliamperes, by the
 /// readers and by a live stream alike. The model is an 18650-sized cell (about 2 Ah); 100 A is 50 C for it.
 pub const MAX_CELL_CURRENT_A: f64 = 100.0;
+
+/// The cut-offs a Li-ion cell's discharge may end at, V: what a config, a diagnosis or a flag may set.
+pub const CUTOFF_RANGE_V: std::ops::RangeInclusive<f64> = 2.0..=4.0;
 /// The temperatures a working Li-ion cell reads, deg C: outside them the column is in kelvin or broken (a
 /// kelvin column read as Celsius would run the model 273 K hot), by the readers and by a live stream alike.
 pub const CELL_TEMPERATURE_RANGE_C: [f64; 2] = [-60.0, 120.0];
