@@ -604,7 +604,23 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                 .into(),
         });
     }
-    if let Some(c) = input.model.as_ref().and_then(|m| judged.iter().find(|r| m.cycles.contains(&r.cycle))) {
+    // Another cell's diagnosis runs as given (a sibling's model for a cell with few cycles of its own), said;
+    // its cycle numbers are that cell's, so they hold nothing against this one's.
+    let other_cell = input.model.as_ref().filter(|m| !m.cell.trim().eq_ignore_ascii_case(input.cell.trim()));
+    if let Some(m) = other_cell {
+        progress(&format!(
+            "--model {}: a diagnosis of {}, not of {}: calibrating {} on another cell's diagnosed model (its causes \
+             and fitted values); diagnose {} itself for its own (bcal diagnose --cell {})",
+            m.path.display(),
+            m.cell,
+            input.cell,
+            input.cell,
+            input.cell,
+            input.cell
+        ));
+    }
+    let own = input.model.as_ref().filter(|_| other_cell.is_none());
+    if let Some(c) = own.and_then(|m| judged.iter().find(|r| m.cycles.contains(&r.cycle))) {
         return Err(CalibrateError::Model {
             path: model_path,
             why: format!(

@@ -24,18 +24,27 @@ pub const R_AGEING_CEILING: f64 = 2.5;
 /// What the derivation read off the training cycles, for the report.
 #[derive(Clone, Debug, Serialize)]
 pub struct CellFacts {
+    /// The training records' median current, A, and the lowest and highest (the simulated cells' range).
     pub current_a: f64,
+    pub current_range_a: [f64; 2],
     /// The training records' median power, W, where most of them held a power (None: a current).
     pub power_w: Option<f64>,
     pub interval_s: [f64; 2],
     pub rest_s: [f64; 2],
+    /// The training records' median ambient, deg C, and the lowest and highest.
     pub ambient_c: f64,
+    pub ambient_range_c: [f64; 2],
     pub fit_q_mobile_c: [f64; 2],
     pub fit_r_o_ohm: [f64; 2],
 }
 
 fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
     bcal_common::stats::quantile(&mut v, q).unwrap_or(f64::NAN)
+}
+
+/// The lowest and highest of `v`.
+fn span(v: Vec<f64>) -> [f64; 2] {
+    [quantile(v.clone(), 0.0), quantile(v, 1.0)]
 }
 
 /// The cell's measured-only setting from its training records and their fits (each with its model: the
@@ -49,13 +58,17 @@ pub fn cell_spec(
     cutoff_v: f64,
 ) -> (MeasuredSpec, CellFacts) {
     let fits: Vec<Degradation> = fits_with_models.iter().map(|f| f.0).collect();
-    let current_a = quantile(train.iter().map(|r| r.current_a).collect(), 0.5);
+    // Simulated cells are drawn across every current, power and ambient the training cycles held (a cell
+    // cycled at 1, 2 and 4 A, or at 24 and 44 C, trains on all of them), 5 % and 1 K beyond.
+    let currents: Vec<f64> = train.iter().map(|r| r.current_a).collect();
+    let (current_a, current_range_a) = (quantile(currents.clone(), 0.5), span(currents));
     let intervals: Vec<f64> =
         train.iter().flat_map(|r| r.samples.windows(2).map(|w| w[1].t_s - w[0].t_s)).filter(|d| *d > 0.0).collect();
     let interval_s = [quantile(intervals.clone(), 0.1).round().max(1.0), quantile(intervals, 0.9).round().max(1.0)];
     let rests: Vec<f64> = train.iter().map(|r| r.load_on_s - r.samples[0].t_s).collect();
     let rest_s = [quantile(rests.clone(), 0.1).clamp(1.0, 600.0), quantile(rests, 0.9).clamp(1.0, 600.0)];
-    let ambient_c = quantile(train.iter().map(|r| r.ambient_k - KELVIN_0C).collect(), 0.5);
+    let ambients: Vec<f64> = train.iter().map(|r| r.ambient_k - KELVIN_0C).collect();
+    let (ambient_c, ambient_range_c) = (quantile(ambients.clone(), 0.5), span(ambients));
     let model = ModelExtension {
         reference_k: Some(ambient_c + KELVIN_0C),
         ..fits_with_models.last().map(|f| f.1.clone()).unwrap_or_default()
@@ -77,12 +90,16 @@ pub fn cell_spec(
             Load::CurrentA(_) => None,
         })
         .collect();
-    let power_w = (2 * powers.len() > train.len()).then(|| quantile(powers, 0.5));
+    let power_w = (2 * powers.len() > train.len()).then(|| quantile(powers.clone(), 0.5));
     let (load_kind, power_range_w) = match power_w {
-        Some(w) => (LoadKind::ConstantPower, [0.95 * w, 1.05 * w]),
+        Some(_) => {
+            let [lo, hi] = span(powers);
+            (LoadKind::ConstantPower, [0.95 * lo, 1.05 * hi])
+        }
         None => (LoadKind::ConstantCurrent, [1.0, 1.0]),
     };
-    let loads = SplitLoads { power_w: power_range_w, current_a: [0.95 * current_a, 1.05 * current_a] };
+    let loads =
+        SplitLoads { power_w: power_range_w, current_a: [0.95 * current_range_a[0], 1.05 * current_range_a[1]] };
     let scenario = ScenarioConfig {
         q_mobile_c: q_data,
         r_o_ohm: r_data,
@@ -95,7 +112,7 @@ pub fn cell_spec(
         validation: loads.clone(),
         test: loads,
         thermal,
-        ambient_c: [ambient_c - 1.0, ambient_c + 1.0],
+        ambient_c: [ambient_range_c[0] - 1.0, ambient_range_c[1] + 1.0],
         cutoff_v,
         model: model.clone(),
         ..ScenarioConfig::default()
@@ -111,10 +128,12 @@ pub fn cell_spec(
     };
     let facts = CellFacts {
         current_a,
+        current_range_a,
         power_w,
         interval_s,
         rest_s,
         ambient_c,
+        ambient_range_c,
         fit_q_mobile_c: [q_lo, q_hi],
         fit_r_o_ohm: [r_lo, r_hi],
     };
@@ -176,6 +195,23 @@ mod tests {
         c.measured = spec;
         c.validate().unwrap();
         assert_eq!((facts.power_w, &c.measured.scenario.load_kinds[..]), (None, &[LoadKind::ConstantCurrent][..]));
+
+        // Training cycles at two currents and two ambients (2 A at 24 C, 4 A at 43 C): the simulated cells are
+        // drawn across both, not around the median alone (which left half the cycles unseen).
+        let mut mixed = train.clone();
+        mixed.push(CellRecord { cycle: 4, current_a: 4.0, ambient_k: 316.15, ..rec(4, 18.0) });
+        mixed.push(CellRecord { cycle: 5, current_a: 4.0, ambient_k: 316.15, ..rec(5, 18.0) });
+        let fits5 = [fits.clone(), fits[1..].to_vec()].concat();
+        let (spec, facts) = cell_spec(&mixed, &fits5, 2.7);
+        assert_eq!((facts.current_a, facts.current_range_a), (2.0, [2.0, 4.0]));
+        assert!((facts.ambient_range_c[0] - 24.0).abs() < 1e-9 && (facts.ambient_range_c[1] - 43.0).abs() < 1e-9);
+        for split in [&spec.scenario.train, &spec.scenario.validation, &spec.scenario.test] {
+            assert!((split.current_a[0] - 1.9).abs() < 1e-12 && (split.current_a[1] - 4.2).abs() < 1e-12, "{split:?}");
+        }
+        let [lo, hi] = spec.scenario.ambient_c;
+        assert!((lo - 23.0).abs() < 1e-9 && (hi - 44.0).abs() < 1e-9, "{:?}", spec.scenario.ambient_c);
+        c.measured = spec;
+        c.validate().unwrap();
     }
 
     /// Training discharges held at constant power (7.5 W, the simulator's cell) give a setting of simulated

@@ -198,6 +198,19 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
     .unwrap();
     let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "1..6", "--calibrator", "ukf"], &model[..]].concat());
     assert!(!ok && err.contains("diagnosed on cycle 7"), "{err}");
+    // The same cycles of another cell: its numbers hold nothing against this cell's; run, and said.
+    std::fs::write(
+        &diag,
+        r#"{"cell":"B0099","extended":{"causes":["electrode_balance"],"params":{}},
+            "records":[{"cycle":6,"role":"train"},{"cycle":7,"role":"heldout"}]}"#,
+    )
+    .unwrap();
+    let quick = ["--train-cycles", "1..6", "--calibrator", "ukf", "--quick"];
+    let args = [&common[..], &quick[..], &model[..]].concat();
+    let out = Command::new(bcal_tests::bin("bcal")).arg("calibrate").args(&args).output().unwrap();
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(said.contains("a diagnosis of B0099, not of cell:") && said.contains("--cell cell)"), "{said}");
 }
 
 /// A diagnosis naming causes a calibrator's model cannot carry (`ocv`, `voltage_offset`) goes through
