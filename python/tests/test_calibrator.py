@@ -239,3 +239,17 @@ def test_prediction_state_and_spec(discharge):
     assert h["q_mobile"] == e["q_mobile"] and h["eod_s"] < e["eod_s"]
     with pytest.raises(ValueError, match="cutoff_v: 0 must be greater than 0"):
         make("fit", cutoff_v=0.0)
+
+
+def test_a_diagnosis_gives_its_cut_off_where_it_was_the_cell_s_own(tmp_path):
+    # As `bcal calibrate --follow --model`: the diagnosis's cut-off when none is given, not the doctor's default.
+    def diagnosis(given: bool):
+        d = tmp_path / f"given-{given}"
+        d.mkdir(exist_ok=True)
+        (d / "diagnosis.json").write_text(json.dumps({
+            "cell": "B0005", "settings": {"cutoff_v": 2.7, "cutoff_given": given},
+            "extended": {"causes": [], "params": {}}}))
+        return d
+    assert make("ukf", model=diagnosis(True)).spec["cutoff_v"] == 2.7
+    assert make("ukf", model=diagnosis(True), cutoff_v=3.1).spec["cutoff_v"] == 3.1
+    assert make("ukf", model=diagnosis(False)).spec["cutoff_v"] == 3.0
