@@ -450,6 +450,9 @@ impl TrainConfig {
             return Err(bad("lac.hidden", &format!("{:?}", l.hidden), "needs 1.. layers of width 1..4096"));
         }
         positive("lac.lr", l.lr)?;
+        if l.lr > 1.0 {
+            return Err(bad("lac.lr", &l.lr, "must be in (0, 1]"));
+        }
         if !(l.lr_final_fraction.is_finite() && (0.0..=1.0).contains(&l.lr_final_fraction)) {
             return Err(bad("lac.lr_final_fraction", &l.lr_final_fraction, "must be in [0, 1]"));
         }
@@ -473,8 +476,14 @@ impl TrainConfig {
             return Err(bad("lac.init_lambda", &l.init_lambda, "must be in (0, 1]"));
         }
         positive("lac.init_beta", l.init_beta)?;
-        if !l.target_entropy_per_action.is_finite() {
-            return Err(bad("lac.target_entropy_per_action", &l.target_entropy_per_action, "must be finite"));
+        // A squashed Gaussian in [-1, 1] has at most the uniform's entropy per action, ln 2: a target above it
+        // is never met, and the temperature grows without bound.
+        if !(l.target_entropy_per_action.is_finite() && l.target_entropy_per_action <= std::f64::consts::LN_2) {
+            return Err(bad(
+                "lac.target_entropy_per_action",
+                &l.target_entropy_per_action,
+                "must be at most ln 2 = 0.69 nats (a uniform action in [-1, 1])",
+            ));
         }
         if let Some(h) = l.target_entropy {
             if !h.is_finite() {
@@ -506,6 +515,9 @@ impl TrainConfig {
         }
         if !(n.time_budget_s.is_finite() && n.time_budget_s >= 0.0) {
             return Err(bad("learner.time_budget_s", &n.time_budget_s, "must be >= 0 (0 = no limit)"));
+        }
+        if !(1..=256).contains(&n.torch_threads) {
+            return Err(bad("learner.torch_threads", &n.torch_threads, "must be in 1..=256"));
         }
         if n.max_updates == 0 && n.time_budget_s == 0.0 {
             return Err(bad("learner.max_updates", &0, "set max_updates or time_budget_s, or training never ends"));
@@ -646,6 +658,21 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
     finite_range("measured.scenario.rest_s", sc.rest_s, 1.0, 3600.0)?;
     finite_range("measured.scenario.segment_hold_s", sc.segment_hold_s, 1.0, 36_000.0)?;
     finite_range("measured.scenario.ambient_c", sc.ambient_c, -30.0, 60.0)?;
+    if !(0.0..=1.0).contains(&sc.segment_rest_probability) {
+        return Err(invalid(
+            "measured.scenario.segment_rest_probability",
+            sc.segment_rest_probability.to_string(),
+            "must be in [0, 1]",
+        ));
+    }
+    // A discharge needs time to reach its cut-off (a 1 A discharge of a 2 Ah cell takes two hours).
+    if !(sc.max_duration_s.is_finite() && (600.0..=1e6).contains(&sc.max_duration_s)) {
+        return Err(invalid(
+            "measured.scenario.max_duration_s",
+            sc.max_duration_s.to_string(),
+            "must be in [600, 1e6] s",
+        ));
+    }
     if !(0.0..=1.0).contains(&sc.unknown_request_probability) {
         return Err(invalid(
             "measured.scenario.unknown_request_probability",
@@ -681,6 +708,16 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
         if !(v.is_finite() && lo <= v && v < hi) {
             return Err(invalid(key, v.to_string(), &format!("must be in [{lo}, {hi})")));
         }
+    }
+    if !(m.correction.shift_max_sd.is_finite() && (0.0..=10.0).contains(&m.correction.shift_max_sd)) {
+        return Err(invalid(
+            "measured.correction.shift_max_sd",
+            m.correction.shift_max_sd.to_string(),
+            "must be in [0, 10] standard deviations",
+        ));
+    }
+    if !(tr.noise_floor_v.is_finite() && tr.noise_floor_v > 0.0 && tr.noise_floor_v <= 1.0) {
+        return Err(invalid("measured.tracker.noise_floor_v", tr.noise_floor_v.to_string(), "must be in (0, 1] V"));
     }
     if let Some(rule) = &m.correction.adaptive {
         if let Some((field, value, why)) = rule.check() {
@@ -963,6 +1000,26 @@ mod tests {
             ("[learner]\nmax_updates = 0\ntime_budget_s = 0.0\n", "learner.max_updates"),
             ("[actors]\ncount = 1000\n", "actors.count"),
             ("[lac]\nlr_final_fraction = 1.5\n", "lac.lr_final_fraction"),
+            // Found by a fuzz of the CLI (2026-11-30): each trained, or failed later with no word of why.
+            ("[lac]\nlr = 1e300\n", "lac.lr"),
+            ("[lac]\ntarget_entropy_per_action = 100.0\n", "lac.target_entropy_per_action"),
+            ("[learner]\ntorch_threads = 100000\n", "learner.torch_threads"),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.scenario]\nsegment_rest_probability = 2.0\n",
+                "measured.scenario.segment_rest_probability",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.scenario]\nmax_duration_s = 0.0\n",
+                "measured.scenario.max_duration_s",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.correction]\nshift_max_sd = -2.0\n",
+                "measured.correction.shift_max_sd",
+            ),
+            (
+                "[env]\nobservation = \"Measured\"\n[measured.tracker]\nnoise_floor_v = 0.0\n",
+                "measured.tracker.noise_floor_v",
+            ),
             // The measured-only setting: what the model cannot integrate stably or the data cannot hold.
             (
                 "[env]\nobservation = \"Measured\"\n[measured.scenario.sensor]\nvoltage_noise_v = -0.003\n",

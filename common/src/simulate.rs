@@ -101,6 +101,18 @@ impl SimulateRequest {
         positive(self.q_mobile).map_err(bad("q_mobile", self.q_mobile))?;
         non_negative(self.r_o).map_err(bad("ro", self.r_o))?;
         positive(self.dt_s).map_err(bad("dt_s", self.dt_s))?;
+        // Explicit Euler on the ohmic lag (time constant t_o) is stable only below 2 t_o, as the config checks.
+        let limit_s = 2.0 * BatteryParams::default().t_o_s;
+        if self.dt_s >= limit_s {
+            return Err(SimulateError::BadArgument {
+                name: "dt_s",
+                value: self.dt_s,
+                why: format!(
+                    "must be below {limit_s:.2} s: explicit Euler on the ohmic lag is unstable beyond 2 t_o (1 s is \
+                     the reference's step)"
+                ),
+            });
+        }
         let (name, first, make): (&'static str, f64, fn(f64) -> Load) = match (self.load_w, self.current_a) {
             (Some(p), None) => ("load_w", p, Load::PowerW),
             (None, Some(i)) => ("current_a", i, Load::CurrentA),
@@ -155,6 +167,17 @@ pub fn simulate(req: &SimulateRequest) -> Result<Trace, SimulateError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A step past the explicit-Euler limit gave an end at 75 s (dt 15) and voltages of -7 V (dt 30): refused.
+    #[test]
+    fn a_step_past_the_stability_limit_is_refused() {
+        let req = |dt_s| SimulateRequest { load_w: Some(8.0), dt_s, ..SimulateRequest::default() };
+        for dt_s in [12.2, 15.0, 30.0, 1e6] {
+            let e = simulate(&req(dt_s)).unwrap_err().to_string();
+            assert!(e.contains("unstable beyond 2 t_o") && e.contains("12.17"), "{e}");
+        }
+        assert!(simulate(&req(12.0)).is_ok());
+    }
 
     #[test]
     fn eight_watts_ends_at_the_reference_eod() {

@@ -63,7 +63,7 @@ pub struct SimulateArgs {
     /// Turn on the thermal state (bulk temperature tb with self-heating); adds a `tb_k` column.
     #[arg(long)]
     pub thermal: bool,
-    /// Euler time step, s.
+    /// Euler time step, s (below 12.17 s, twice the ohmic lag, where explicit Euler stays stable).
     #[arg(long, default_value_t = 1.0, value_parser = positive_f64)]
     pub dt: f64,
     /// Stop after this many steps if VEOD is never reached.
@@ -130,6 +130,17 @@ pub fn ambient_c(s: &str) -> Result<f64, String> {
         Ok(c)
     } else {
         Err(format!("`{}` is not an ambient temperature in deg C (between {lo:.2} and {hi:.2})", s.trim()))
+    }
+}
+
+/// The seconds a process gets to exit after SIGTERM: 0 to an hour (a negative, NaN or astronomical grace
+/// made no duration, and panicked after the run had started).
+pub fn grace_s(s: &str) -> Result<f64, String> {
+    let v = parse_number(s)?;
+    if (0.0..=3600.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("`{}` is not a grace in seconds from 0 to 3600", s.trim()))
     }
 }
 

@@ -117,6 +117,10 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     let config = if config_path.exists() { Some(TrainConfig::from_file(&config_path)?) } else { None };
     // The policy, if there is one: a damaged file is an error, a missing one only skips RL.
     let (policy_path, choice) = match &a.policy {
+        // A policy named and missing is a mistake, not a run without one.
+        Some(p) if !p.is_file() => {
+            bail!("--policy {}: no such file (a .bcalpol a bcal train run wrote, e.g. RUN/policy.bcalpol)", p.display())
+        }
         Some(p) => (p.clone(), "given with --policy".to_string()),
         None => {
             let (file, why) = a.policy_choice.file_and_why(config.as_ref());

@@ -144,6 +144,24 @@ pub fn spawn(
     for (k, v) in env {
         cmd.env(k, v);
     }
+    // A supervisor killed with `kill -9` cannot stop its tree: each child takes SIGTERM when its parent dies
+    // (Linux's PR_SET_PDEATHSIG) and stops as on Ctrl-C, instead of running on and publishing into the next run
+    // of its folder. (The signal follows the thread that forked: the supervision loop runs on the main thread,
+    // which lives as long as the process.)
+    let parent = std::process::id();
+    // SAFETY: between fork and exec the closure calls only async-signal-safe functions (prctl, getppid, raise).
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The parent died before the call: nobody will signal.
+            if libc::getppid() as u32 != parent {
+                libc::raise(libc::SIGTERM);
+            }
+            Ok(())
+        });
+    }
     let child = cmd.spawn()?;
     let pid = child.id().map(|p| p as i32).unwrap_or(-1);
     Ok(Supervised { role, child, pid, restarts: 0 })

@@ -26,9 +26,9 @@ use std::time::{Duration, Instant};
 pub struct TrainArgs {
     /// Starting point of the config: `measured` (calibration from sensor readings: voltage, current,
     /// temperature), `paper-tuned` (the paper's full-state setting, hyperparameters measured on the
-    /// validation split) or `paper` (the paper's setting and hyperparameters).
-    #[arg(long, value_enum, default_value_t = Preset::Measured)]
-    pub preset: Preset,
+    /// validation split) or `paper` (the paper's setting and hyperparameters). Default measured.
+    #[arg(long, value_enum)]
+    pub preset: Option<Preset>,
     /// TOML config file; absent keys take the preset's values (see `bcal train --print-config`).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -59,35 +59,94 @@ pub struct TrainArgs {
     /// Print the effective config as TOML and exit.
     #[arg(long)]
     pub print_config: bool,
-    /// Seconds a process gets to exit after SIGTERM before it is killed.
-    #[arg(long, default_value_t = 20.0)]
+    /// Seconds a process gets to exit after SIGTERM before it is killed (0 to 3600).
+    #[arg(long, default_value_t = 20.0, value_parser = crate::cli::grace_s, allow_hyphen_values = true)]
     pub grace_s: f64,
 }
 
 /// What `bcal train` finished with (the caller may go on to evaluate).
 pub struct TrainOutcome {
     pub run_dir: PathBuf,
+    pub stopped: Stopped,
+}
+
+/// Why the supervision ended without an error.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Stopped {
+    /// The learner met its budget.
+    Finished,
+    /// Ctrl-C or SIGTERM to `bcal train`: the tree stopped, the learner checkpointed on its way out.
+    Signal { name: &'static str, exit_code: i32 },
+    /// The learner exited cleanly before its budget without being asked (a signal from outside the
+    /// supervisor): the run ends with its checkpoint.
+    LearnerStopped,
 }
 
 pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     let out = train(a)?;
-    println!("run folder: {}", out.run_dir.display());
-    println!("next: bcal eval --run {}", out.run_dir.display());
-    Ok(())
+    let dir = out.run_dir.display();
+    match out.stopped {
+        Stopped::Finished => {
+            println!("run folder: {dir}");
+            println!("next: bcal eval --run {dir}");
+            Ok(())
+        }
+        // Stopped before its budget: said, with how to go on, and a signal's exit status, so a script running
+        // `bcal train` then `bcal eval` (launch/run.sh) stops too.
+        Stopped::Signal { name, exit_code } => {
+            eprintln!(
+                "stopped by {name} before the training budget; its last checkpoint is kept: continue with bcal train \
+                 --run {dir} --resume, or evaluate what it has with bcal eval --run {dir}"
+            );
+            std::process::exit(exit_code)
+        }
+        Stopped::LearnerStopped => bail!(
+            "the learner stopped before the training budget without being asked (a signal from outside bcal \
+             train?); its last checkpoint is kept: continue with bcal train --run {dir} --resume"
+        ),
+    }
 }
 
 pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
     let run_dir = resolve_run_dir(&a)?;
+    let preset = a.preset.unwrap_or(Preset::Measured);
     let mut cfg = if a.resume {
         let p = run_dir.join("config.toml");
         if !p.exists() {
             bail!("--resume: {} has no config.toml; is this a bcal run folder?", run_dir.display());
         }
+        // The run trains on to its own config: a setting given now would be ignored, or mix two settings.
+        let given: Vec<&str> = [
+            a.config.is_some().then_some("--config"),
+            a.preset.is_some().then_some("--preset"),
+            a.experiment.is_some().then_some("--experiment"),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        if !given.is_empty() {
+            bail!(
+                "--resume continues {} on its own config.toml; {} cannot change it (--budget-s, --max-updates, \
+                 --actors and --seed can): train a new run for another setting",
+                run_dir.display(),
+                given.join(", ")
+            );
+        }
+        // Without a checkpoint the learner starts again from update 0 and overwrites what the run holds.
+        let trained = ["policy.bcalpol", "metrics.jsonl"].iter().any(|f| run_dir.join(f).exists());
+        if trained && !run_dir.join("checkpoints").join("LATEST").exists() {
+            bail!(
+                "--resume: {} holds a trained policy but no checkpoint to continue from (checkpoints/LATEST is \
+                 missing); resuming would start again from update 0 and overwrite it: restore checkpoints/ or train a \
+                 new run (--name)",
+                run_dir.display()
+            );
+        }
         TrainConfig::from_file(&p)?
     } else {
         match &a.config {
-            Some(p) => TrainConfig::from_file_over(p, a.preset)?,
-            None => a.preset.config(),
+            Some(p) => TrainConfig::from_file_over(p, preset)?,
+            None => preset.config(),
         }
     };
     if let Some(e) = a.experiment {
@@ -173,7 +232,7 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
         "training {} / {} observation (preset {}{}) with {} actor(s) x {} envs, budget {} s / {} updates, run folder {}",
         cfg.experiment,
         Task::observation_label(cfg.env.observation),
-        a.preset.name(),
+        preset.name(),
         a.config.as_ref().map(|p| format!(" + {}", p.display())).unwrap_or_default(),
         v.actor_count,
         cfg.actors.envs_per_actor,
@@ -183,7 +242,7 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
     );
     let policy = RestartPolicy { max_restarts: cfg.actors.max_restarts, ..RestartPolicy::default() };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
-    rt.block_on(watch(
+    let stopped = rt.block_on(watch(
         run_dir.clone(),
         v.actor_count,
         a.resume,
@@ -191,7 +250,7 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
         Duration::from_secs_f64(a.grace_s),
         cfg.learner.time_budget_s,
     ))?;
-    Ok(TrainOutcome { run_dir })
+    Ok(TrainOutcome { run_dir, stopped })
 }
 
 /// The joint UKF the correction policy learns on: every setting of the evaluator's grid on the validation
@@ -304,7 +363,7 @@ async fn watch(
     policy: RestartPolicy,
     grace: Duration,
     budget_s: f64,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<Stopped> {
     let bin = supervisor::bin_dir()?;
     for exe in ["bcal-replay", "bcal-learner", "bcal-actor"] {
         if !bin.join(exe).exists() {
@@ -341,7 +400,7 @@ async fn watch(
     let mut rng = <rand::rngs::SmallRng as rand::SeedableRng>::seed_from_u64(u64::from(std::process::id()));
     let mut pending: Vec<(Instant, Role, u32)> = Vec::new();
     let mut tick = tokio::time::interval(Duration::from_millis(250));
-    let mut outcome: Option<anyhow::Result<()>> = None;
+    let mut outcome: Option<anyhow::Result<Stopped>> = None;
     let ctrl_c = tokio::signal::ctrl_c();
     tokio::pin!(ctrl_c);
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
@@ -351,11 +410,11 @@ async fn watch(
             _ = &mut ctrl_c => {
                 note("Ctrl-C: stopping");
                 eprintln!("\nstopping (Ctrl-C again to kill at once)...");
-                outcome = Some(Ok(()));
+                outcome = Some(Ok(Stopped::Signal { name: "Ctrl-C", exit_code: 130 }));
             }
             _ = sigterm.recv() => {
                 note("SIGTERM: stopping");
-                outcome = Some(Ok(()));
+                outcome = Some(Ok(Stopped::Signal { name: "SIGTERM", exit_code: 143 }));
             }
             _ = tick.tick() => {
                 progress.update();
@@ -385,7 +444,8 @@ async fn watch(
                     let d = decide(s.role, exit, done, s.restarts, &policy);
                     note(&format!("{} exited: {exit:?} -> {d:?}", s.role.name()));
                     match d {
-                        Decision::Finish => outcome = Some(Ok(())),
+                        Decision::Finish if done => outcome = Some(Ok(Stopped::Finished)),
+                        Decision::Finish => outcome = Some(Ok(Stopped::LearnerStopped)),
                         Decision::Abort => {
                             outcome = Some(Err(anyhow::anyhow!(
                                 "{} failed {} times ({exit:?}); see {}",
@@ -434,7 +494,7 @@ async fn watch(
     }
     progress.update();
     progress.finish();
-    outcome.unwrap_or(Ok(()))
+    outcome.unwrap_or(Ok(Stopped::Finished))
 }
 
 /// Follows metrics.jsonl and shows a progress bar (or log lines when stdout is not a terminal).

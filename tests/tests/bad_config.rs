@@ -58,3 +58,32 @@ fn a_process_refuses_a_bad_config_in_its_run_folder() {
         assert!(err.contains("lac.lr"), "{exe}: {err}");
     }
 }
+
+/// Found by a fuzz of the CLI (2026-11-30). `--resume` continues a run on its own config: a setting given
+/// with it is refused (it was ignored while the banner claimed it), and a run holding a trained policy but no
+/// checkpoint is refused (it started again from update 0 and overwrote the policy). A grace that makes no
+/// duration is refused by the parser (it panicked after the run had started), and `bcal eval --policy` naming
+/// no file is refused (RL was dropped unsaid).
+#[test]
+fn resume_grace_and_eval_policy_mistakes_are_refused_before_anything_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let cfg = bcal_common::config::Preset::Measured.config();
+    std::fs::write(run.join("config.toml"), cfg.to_toml()).unwrap();
+    std::fs::write(run.join("policy.bcalpol"), b"a trained policy").unwrap();
+    let bcal = |args: &[&str]| {
+        let out = Command::new(bcal_tests::bin("bcal")).args(args).output().unwrap();
+        (out.status.code(), String::from_utf8_lossy(&out.stderr).into_owned())
+    };
+    let r = run.to_str().unwrap();
+    let (code, err) = bcal(&["train", "--run", r, "--resume", "--preset", "paper"]);
+    assert!(code == Some(1) && err.contains("--preset cannot change it"), "{err}");
+    let (code, err) = bcal(&["train", "--run", r, "--resume"]);
+    assert!(code == Some(1) && err.contains("no checkpoint to continue from"), "{err}");
+    assert_eq!(std::fs::read(run.join("policy.bcalpol")).unwrap(), b"a trained policy", "the policy was touched");
+    let (code, err) = bcal(&["train", "--run", r, "--resume", "--grace-s=-1"]);
+    assert!(code == Some(2) && err.contains("grace in seconds"), "{err}");
+    let (code, err) = bcal(&["eval", "--run", r, "--quick", "--policy", "/nonexistent/p.bcalpol"]);
+    assert!(code == Some(1) && err.contains("--policy /nonexistent/p.bcalpol: no such file"), "{err}");
+}

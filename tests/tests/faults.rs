@@ -4,7 +4,8 @@
 //!   the victim, the others carry on (and reconnect), the learner resumes from its last checkpoint, the
 //!   replay from its snapshot when snapshots are on;
 //! - the whole tree killed with `kill -9`: its stale iceoryx2 resources do not stop the next run;
-//! - Ctrl-C stops the tree within seconds, leaving a usable checkpoint and no stray process;
+//! - Ctrl-C stops the tree within seconds, leaving a usable checkpoint and no stray process (exit 130, the
+//!   resume said); `kill -9` of the supervisor alone leaves no stray either;
 //! - a full disk while checkpointing: a clear error, the previous checkpoint kept;
 //! - a peer built with another wire layout: refused with a clear message, never fed garbage;
 //! - shared memory: not writable by other users.
@@ -102,7 +103,7 @@ fn kill9_of_an_actor_restarts_it_and_training_goes_on() {
     eprintln!("actor-0 restarted and publishing again {restart_s:.1} s after kill -9");
 
     let (code, took) = ctrl_c(&mut t);
-    assert_eq!(code, Some(0), "{}", t.logs());
+    assert_eq!(code, Some(130), "{}", t.logs());
     eprintln!("Ctrl-C stop took {:.1} s", took.as_secs_f64());
 }
 
@@ -158,7 +159,7 @@ fn kill9_of_the_learner_resumes_from_its_checkpoint_while_actors_keep_their_weig
     assert_eq!(t.pid("actor-0"), Some(actor));
     assert_eq!(t.pid("replay"), Some(replay));
     let (code, _) = ctrl_c(&mut t);
-    assert_eq!(code, Some(0), "{}", t.logs());
+    assert_eq!(code, Some(130), "{}", t.logs());
     eprintln!("learner killed after checkpoint {step}; resumed at update {}", after[0]);
 }
 
@@ -214,7 +215,7 @@ fn replay_kill9(snapshots: bool) {
         killed_at.elapsed().as_secs_f64()
     );
     let (code, _) = ctrl_c(&mut t);
-    assert_eq!(code, Some(0), "{}", t.logs());
+    assert_eq!(code, Some(130), "{}", t.logs());
 }
 
 #[test]
@@ -236,7 +237,7 @@ fn ctrl_c_stops_the_tree_within_seconds_with_a_usable_checkpoint_and_no_strays()
     wait_update(&t, 150, Duration::from_secs(90));
     let before = t.last_update();
     let (code, took) = ctrl_c(&mut t);
-    assert_eq!(code, Some(0), "{}", t.logs());
+    assert_eq!(code, Some(130), "{}", t.logs());
     assert!(took < Duration::from_secs(15), "stopping took {took:?}\n{}", t.logs());
     let pids = t.started();
     assert_eq!(pids.len(), 4, "{pids:?}");
@@ -249,7 +250,7 @@ fn ctrl_c_stops_the_tree_within_seconds_with_a_usable_checkpoint_and_no_strays()
     t.resume(&[]);
     wait_update(&t, step + 100, Duration::from_secs(90));
     let (code, _) = ctrl_c(&mut t);
-    assert_eq!(code, Some(0), "{}", t.logs());
+    assert_eq!(code, Some(130), "{}", t.logs());
     eprintln!("Ctrl-C stopped 4 processes in {:.1} s; resumed from checkpoint {step}", took.as_secs_f64());
 }
 
@@ -269,8 +270,46 @@ fn stale_resources_of_a_killed_run_do_not_block_the_next_run() {
     let received = wait_until(Duration::from_secs(60), || field(&t.json("replay.json"), "received_total") > 0);
     assert!(received, "no transition reached the resumed replay\n{}", t.logs());
     let (code, _) = ctrl_c(&mut t);
-    assert_eq!(code, Some(0), "{}", t.logs());
+    assert_eq!(code, Some(130), "{}", t.logs());
     eprintln!("after kill -9 of the whole tree, the resumed run trained from {step} on");
+}
+
+/// `kill -9` of the supervisor alone: its children take SIGTERM as it dies (PR_SET_PDEATHSIG) and stop as on
+/// Ctrl-C, leaving no stray (a fuzz of the CLI, 2026-11-30, found the replay and an actor running on for minutes,
+/// and the orphan actor publishing into the next `--resume` of the folder); the resumed run trains on.
+#[test]
+fn kill9_of_the_supervisor_leaves_no_strays_and_the_run_resumes() {
+    let _s = serial();
+    let mut t = Train::start(supervised_config(1), &[]);
+    wait_update(&t, 150, Duration::from_secs(90));
+    let pids = t.started();
+    assert_eq!(pids.len(), 3, "{pids:?}");
+    t.sup.signal(libc::SIGKILL);
+    let _ = t.sup.wait_timeout(Duration::from_secs(10));
+    let gone = wait_until(Duration::from_secs(40), || pids.iter().all(|(_, p)| !alive(*p)));
+    let strays: Vec<_> = pids.iter().filter(|(_, p)| alive(*p)).collect();
+    assert!(gone, "stray processes after kill -9 of the supervisor: {strays:?}\n{}", t.logs());
+    let step = latest_step(&t).expect("a checkpoint");
+    t.resume(&[]);
+    wait_update(&t, step + 100, Duration::from_secs(90));
+    let (code, _) = ctrl_c(&mut t);
+    assert_eq!(code, Some(130), "{}", t.logs());
+}
+
+/// SIGTERM to the learner alone (from outside the supervisor): it checkpoints and exits cleanly before its
+/// budget, and `bcal train` ends saying so, with how to continue, and exit 1 (it ended with exit 0 and "next:
+/// bcal eval", as if the budget had been met: a fuzz of the CLI, 2026-11-30).
+#[test]
+fn a_learner_stopped_from_outside_ends_the_run_saying_so() {
+    let _s = serial();
+    let mut t = Train::start(supervised_config(1), &[]);
+    wait_update(&t, 150, Duration::from_secs(90));
+    signal(t.pid("learner").expect("a learner"), libc::SIGTERM);
+    let code = t.sup.wait_timeout(Duration::from_secs(60)).and_then(|s| s.code());
+    let out = std::fs::read_to_string(t.run_dir.parent().unwrap().join("supervisor.out")).unwrap_or_default();
+    assert_eq!(code, Some(1), "{out}\n{}", t.logs());
+    assert!(out.contains("the learner stopped before the training budget") && out.contains("--resume"), "{out}");
+    assert!(!out.contains("next: bcal eval"), "{out}");
 }
 
 #[test]
