@@ -79,7 +79,7 @@ pub enum Stopped {
     Signal { name: &'static str, exit_code: i32 },
     /// The learner exited cleanly before its budget without being asked (a signal from outside the
     /// supervisor): the run ends with its checkpoint.
-    LearnerStopped,
+    ByLearner,
 }
 
 pub fn run(a: TrainArgs) -> anyhow::Result<()> {
@@ -100,7 +100,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
             );
             std::process::exit(exit_code)
         }
-        Stopped::LearnerStopped => bail!(
+        Stopped::ByLearner => bail!(
             "the learner stopped before the training budget without being asked (a signal from outside bcal \
              train?); its last checkpoint is kept: continue with bcal train --run {dir} --resume"
         ),
@@ -445,7 +445,7 @@ async fn watch(
                     note(&format!("{} exited: {exit:?} -> {d:?}", s.role.name()));
                     match d {
                         Decision::Finish if done => outcome = Some(Ok(Stopped::Finished)),
-                        Decision::Finish => outcome = Some(Ok(Stopped::LearnerStopped)),
+                        Decision::Finish => outcome = Some(Ok(Stopped::ByLearner)),
                         Decision::Abort => {
                             outcome = Some(Err(anyhow::anyhow!(
                                 "{} failed {} times ({exit:?}); see {}",
