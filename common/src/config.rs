@@ -520,7 +520,12 @@ impl TrainConfig {
             return Err(bad("learner.torch_threads", &n.torch_threads, "must be in 1..=256"));
         }
         if n.max_updates == 0 && n.time_budget_s == 0.0 {
-            return Err(bad("learner.max_updates", &0, "set max_updates or time_budget_s, or training never ends"));
+            return Err(bad(
+                "learner.max_updates",
+                &0,
+                "set learner.max_updates or learner.time_budget_s (bcal train --max-updates or --budget-s), or \
+                 training never ends",
+            ));
         }
         let a = &self.actors;
         if a.envs_per_actor == 0 {
@@ -794,7 +799,7 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
     if !(in_range(prior[0], tr.q_mobile_range_c) && in_range(prior[1], tr.r_o_range_ohm)) {
         return Err(invalid(
             "measured.tracker.prior",
-            format!("{:?}", tr.prior),
+            format!("q_mobile_c = {}, r_o_ohm = {}", tr.prior.q_mobile_c, tr.prior.r_o_ohm),
             "must lie inside the estimate ranges",
         ));
     }
@@ -840,8 +845,13 @@ fn check_measured(m: &crate::measured::env::MeasuredSpec) -> Result<(), ConfigEr
             return Err(invalid("measured.ukf.alpha", u.alpha.to_string(), "must be in [0.001, 1]"));
         }
     }
-    if sc.validation_episodes == 0 || sc.test_episodes == 0 {
-        return Err(invalid("measured.scenario.validation_episodes", "0".into(), "validation and test need episodes"));
+    for (key, n) in [
+        ("measured.scenario.validation_episodes", sc.validation_episodes),
+        ("measured.scenario.test_episodes", sc.test_episodes),
+    ] {
+        if n == 0 {
+            return Err(invalid(key, "0".into(), "validation and test need episodes"));
+        }
     }
     Ok(())
 }

@@ -820,15 +820,15 @@ pub fn evaluate_measured(
                 headline_traces.push((*key, traces));
             }
             progress(&format!(
-                "{:>4.1} mV{} {key}: NRMSE q {:.2} % r {:.2} % (second half {:.2} / {:.2}), coverage {:?}/{:?}{}",
+                "{:>4.1} mV{} {key}: NRMSE q {:.2} % r {:.2} % (second half {:.2} / {:.2}), coverage {} / {} %{}",
                 v * 1e3,
                 if is_other { format!(", model error {:.1}", cond.model_error.probability) } else { String::new() },
                 m.nrmse_pct.q_mobile.unwrap_or(f64::NAN),
                 m.nrmse_pct.r_o.unwrap_or(f64::NAN),
                 m.second_half_nrmse_pct.q_mobile.unwrap_or(f64::NAN),
                 m.second_half_nrmse_pct.r_o.unwrap_or(f64::NAN),
-                m.coverage_90_pct.q_mobile.map(|x| (x * 10.0).round() / 10.0),
-                m.coverage_90_pct.r_o.map(|x| (x * 10.0).round() / 10.0),
+                m.coverage_90_pct.q_mobile.map_or("-".into(), |x| format!("{x:.1}")),
+                m.coverage_90_pct.r_o.map_or("-".into(), |x| format!("{x:.1}")),
                 m.step_us.map_or(String::new(), |us| format!(", {us:.2} us/step"))
             ));
             scores.insert(key.to_string(), m);

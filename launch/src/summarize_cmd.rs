@@ -21,6 +21,30 @@ pub struct SummarizeArgs {
 
 pub fn run(a: SummarizeArgs) -> anyhow::Result<()> {
     let mut inputs = Vec::new();
+    // Each run counts once, and every run is a seed of one setting (their config.toml alike but the seed).
+    let mut seen: Vec<(PathBuf, &PathBuf)> = Vec::new();
+    let mut setting: Option<(String, &PathBuf)> = None;
+    for dir in &a.runs {
+        let canonical = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.clone());
+        if let Some((_, first)) = seen.iter().find(|(c, _)| *c == canonical) {
+            anyhow::bail!("{} and {} are the same run: give each run once", first.display(), dir.display());
+        }
+        seen.push((canonical, dir));
+        if let Ok(mut c) = bcal_common::config::TrainConfig::from_file(&dir.join("config.toml")) {
+            c.seed = 0;
+            let toml = c.to_toml();
+            match &setting {
+                Some((first, first_dir)) if *first != toml => anyhow::bail!(
+                    "{} and {} were trained on different settings (their config.toml differ beyond the seed): \
+                     summarize the seeds of one setting",
+                    first_dir.display(),
+                    dir.display()
+                ),
+                Some(_) => {}
+                None => setting = Some((toml, dir)),
+            }
+        }
+    }
     for dir in &a.runs {
         let path = dir.join(&a.report);
         let text = std::fs::read_to_string(&path).with_context(|| {

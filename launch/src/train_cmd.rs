@@ -42,7 +42,7 @@ pub struct TrainArgs {
     #[arg(long)]
     pub run: Option<PathBuf>,
     /// Training time budget in seconds (overrides learner.time_budget_s).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub budget_s: Option<f64>,
     /// Stop after this many learner updates (overrides learner.max_updates).
     #[arg(long)]
@@ -447,11 +447,13 @@ async fn watch(
                         Decision::Finish if done => outcome = Some(Ok(Stopped::Finished)),
                         Decision::Finish => outcome = Some(Ok(Stopped::ByLearner)),
                         Decision::Abort => {
+                            let log = logs.join(format!("{}.log", s.role.name()));
                             outcome = Some(Err(anyhow::anyhow!(
-                                "{} failed {} times ({exit:?}); see {}",
+                                "{} failed {} times ({exit:?}){}; see {}",
                                 s.role.name(),
                                 s.restarts + 1,
-                                logs.join(format!("{}.log", s.role.name())).display()
+                                last_error(&log).map_or(String::new(), |e| format!(", last with: {e}")),
+                                log.display()
                             )))
                         }
                         Decision::Restart => {
@@ -495,6 +497,27 @@ async fn watch(
     progress.update();
     progress.finish();
     outcome.unwrap_or(Ok(Stopped::Finished))
+}
+
+/// The last error a child wrote to its log (from the line starting `error` or holding `panicked at`, with its
+/// causes, up to 400 characters), so the supervisor's own error says why it gave up, not only where to look.
+fn last_error(log: &Path) -> Option<String> {
+    let text = std::fs::read_to_string(log).ok()?;
+    let lines: Vec<&str> = text.lines().collect();
+    let k = lines
+        .iter()
+        .rposition(|l| l.trim_start().to_ascii_lowercase().starts_with("error") || l.contains("panicked at"))?;
+    // What follows the line belongs to it: a panic's message, an error's causes (anyhow's "Caused by:" list),
+    // up to a backtrace.
+    let said: Vec<&str> = lines[k..]
+        .iter()
+        .take(12)
+        .map(|l| l.trim())
+        .take_while(|l| !l.starts_with("Stack backtrace") && !l.starts_with("note: run with"))
+        .filter(|l| !l.is_empty() && *l != "Caused by:")
+        .collect();
+    let said = said.join(" ");
+    Some(bcal_common::text::shown(&said, 400))
 }
 
 /// Follows metrics.jsonl and shows a progress bar (or log lines when stdout is not a terminal).

@@ -87,3 +87,32 @@ fn resume_grace_and_eval_policy_mistakes_are_refused_before_anything_starts() {
     let (code, err) = bcal(&["eval", "--run", r, "--quick", "--policy", "/nonexistent/p.bcalpol"]);
     assert!(code == Some(1) && err.contains("--policy /nonexistent/p.bcalpol: no such file"), "{err}");
 }
+
+/// `bcal summarize` takes each run once and only seeds of one setting (a fuzz of the CLI, 2026-11-30: the same
+/// run twice counted as two seeds with no spread, and runs of two measured settings were averaged).
+#[test]
+fn summarize_refuses_a_run_twice_and_runs_of_two_settings() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = bcal_common::config::Preset::Measured.config();
+    for (name, seed, lr) in [("a", 1, 2e-3), ("b", 2, 2e-3), ("c", 3, 1e-3)] {
+        let run = dir.path().join(name);
+        std::fs::create_dir_all(&run).unwrap();
+        (c.seed, c.lac.lr) = (seed, lr);
+        std::fs::write(run.join("config.toml"), c.to_toml()).unwrap();
+    }
+    let summarize = |runs: &[&str]| {
+        let out = Command::new(bcal_tests::bin("bcal"))
+            .arg("summarize")
+            .args(runs.iter().map(|r| dir.path().join(r)))
+            .output()
+            .unwrap();
+        (out.status.code(), String::from_utf8_lossy(&out.stderr).into_owned())
+    };
+    let (code, err) = summarize(&["a", "a"]);
+    assert!(code == Some(1) && err.contains("are the same run"), "{err}");
+    let (code, err) = summarize(&["a", "c"]);
+    assert!(code == Some(1) && err.contains("different settings"), "{err}");
+    // Seeds of one setting pass this check (and meet the next: no report yet).
+    let (code, err) = summarize(&["a", "b"]);
+    assert!(code == Some(1) && err.contains("evaluate the run first"), "{err}");
+}

@@ -312,6 +312,35 @@ fn a_learner_stopped_from_outside_ends_the_run_saying_so() {
     assert!(!out.contains("next: bcal eval"), "{out}");
 }
 
+/// A damaged checkpoint on `--resume`: the learner refuses it (its log names the file and what to do), and when
+/// its restarts are spent `bcal train`'s own error carries that line, not only "see learner.log" (a fuzz of the
+/// CLI, 2026-11-30).
+#[test]
+fn a_damaged_checkpoint_on_resume_is_named_by_bcal_train_itself() {
+    let _s = serial();
+    let mut cfg = supervised_config(1);
+    cfg.actors.max_restarts = 1;
+    let mut t = Train::start(cfg, &[]);
+    wait_update(&t, 150, Duration::from_secs(90));
+    let (code, _) = ctrl_c(&mut t);
+    assert_eq!(code, Some(130), "{}", t.logs());
+    let step = std::fs::read_to_string(t.run_dir.join("checkpoints/LATEST")).unwrap();
+    let folder = t.run_dir.join("checkpoints").join(step.trim());
+    let damaged = std::fs::read_dir(&folder)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|x| x == "safetensors"))
+        .expect("a tensor file in the checkpoint");
+    let bytes = std::fs::read(&damaged).unwrap();
+    std::fs::write(&damaged, &bytes[..bytes.len() / 2]).unwrap();
+    t.resume(&[]);
+    let code = t.sup.wait_timeout(Duration::from_secs(120)).and_then(|s| s.code());
+    let out = std::fs::read_to_string(t.run_dir.parent().unwrap().join("supervisor-resumed.out")).unwrap_or_default();
+    assert_eq!(code, Some(1), "{out}\n{}", t.logs());
+    let error = out.lines().find(|l| l.starts_with("error: learner failed")).unwrap_or_default();
+    assert!(error.contains("last with:") && error.contains("safetensors"), "{out}");
+}
+
 #[test]
 fn a_full_disk_while_checkpointing_is_a_clear_error_and_the_previous_checkpoint_stays() {
     let _s = serial();
