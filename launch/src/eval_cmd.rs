@@ -149,6 +149,18 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
             );
         }
     }
+    // A measured-only policy of another setting (other cells or another calibrator) would be evaluated in its
+    // own setting under this run's name: refused, as one of another observation is.
+    if let (Some(m), Some(c)) = (policy.as_ref().and_then(|p| p.task.measured()), &config) {
+        if c.env.observation == Observation::Measured && !same_setting(m, &c.measured) {
+            bail!(
+                "the policy {} was trained on another measured setting than the run {} (its config.toml: other \
+                 cells or another calibrator): evaluate it in its own run, or pass a policy of this run",
+                policy_path.display(),
+                run_dir.display()
+            );
+        }
+    }
     // The setting: the policy's task, else the run's observation, else the paper's.
     let measured_spec = match (&policy, &config) {
         (Some(p), _) => p.task.measured().cloned(),
@@ -299,6 +311,32 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
 }
 
 /// The measured-only evaluation (issue 12) of a run: every calibrator on test cells read through the sensor.
+/// Whether two measured settings hold the same cells and calibrator: their scenario and tracker alike, floats
+/// within 1e-9 relative (a policy's task went through JSON, which may move a value's last bit), the recorded
+/// discharges' path aside (training writes it absolute into the task).
+fn same_setting(a: &MeasuredSpec, b: &MeasuredSpec) -> bool {
+    fn close(x: &serde_json::Value, y: &serde_json::Value) -> bool {
+        use serde_json::Value::{Array, Number, Object};
+        match (x, y) {
+            (Number(p), Number(q)) => match (p.as_f64(), q.as_f64()) {
+                (Some(p), Some(q)) => (p - q).abs() <= 1e-9 * p.abs().max(q.abs()).max(1e-300),
+                _ => p == q,
+            },
+            (Array(p), Array(q)) => p.len() == q.len() && p.iter().zip(q).all(|(p, q)| close(p, q)),
+            (Object(p), Object(q)) => {
+                p.len() == q.len() && p.iter().all(|(k, v)| q.get(k).is_some_and(|w| close(v, w)))
+            }
+            _ => x == y,
+        }
+    }
+    let setting = |s: &MeasuredSpec| {
+        let mut scenario = s.scenario.clone();
+        scenario.recorded.path = None;
+        serde_json::json!({ "scenario": scenario, "tracker": s.tracker })
+    };
+    close(&setting(a), &setting(b))
+}
+
 fn run_measured(
     a: &EvalArgs,
     spec: &MeasuredSpec,
