@@ -88,7 +88,7 @@ fn resume_grace_and_eval_policy_mistakes_are_refused_before_anything_starts() {
     assert!(code == Some(1) && err.contains("--policy /nonexistent/p.bcalpol: no such file"), "{err}");
     // A measured-only policy of another setting (here: another cut-off) was evaluated in its own setting under
     // this run's name.
-    let policy_of = |name: &str, mut spec: bcal_common::measured::env::MeasuredSpec| {
+    let policy_of = |name: &str, spec: bcal_common::measured::env::MeasuredSpec| {
         let task = bcal_common::task::Task::Measured(spec);
         let layout =
             bcal_common::policy::PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: vec![8] };
