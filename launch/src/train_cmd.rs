@@ -165,6 +165,20 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
         cfg.seed = s;
     }
     let v = cfg.validate()?;
+    // The budget counts every leg of a run: one already spent trains nothing (it did so silently).
+    if a.resume {
+        if let Some((trained_s, updates)) = trained_so_far(&run_dir) {
+            let (budget_s, max_updates) = (cfg.learner.time_budget_s, cfg.learner.max_updates);
+            if (budget_s > 0.0 && trained_s >= budget_s) || (max_updates > 0 && updates >= max_updates) {
+                bail!(
+                    "--resume: {} has trained {trained_s:.0} s and {updates} updates, its budget is {budget_s} s / \
+                     {max_updates} updates (0: no limit), counted over every leg: nothing is left to train; give a \
+                     larger --budget-s or --max-updates",
+                    run_dir.display()
+                );
+            }
+        }
+    }
     if a.print_config {
         print!("{}", cfg.to_toml());
         std::process::exit(0);
@@ -251,6 +265,15 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
         cfg.learner.time_budget_s,
     ))?;
     Ok(TrainOutcome { run_dir, stopped })
+}
+
+/// Seconds of training and updates of a run's last checkpoint (its `meta.json`), if it has one.
+fn trained_so_far(run_dir: &Path) -> Option<(f64, u64)> {
+    let dir = run_dir.join("checkpoints");
+    let step = std::fs::read_to_string(dir.join("LATEST")).ok()?;
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join(step.trim()).join("meta.json")).ok()?).ok()?;
+    Some((meta.get("trained_s")?.as_f64()?, meta.get("update_step")?.as_u64()?))
 }
 
 /// The joint UKF the correction policy learns on: every setting of the evaluator's grid on the validation

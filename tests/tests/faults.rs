@@ -294,6 +294,11 @@ fn kill9_of_the_supervisor_leaves_no_strays_and_the_run_resumes() {
     wait_update(&t, step + 100, Duration::from_secs(90));
     let (code, _) = ctrl_c(&mut t);
     assert_eq!(code, Some(130), "{}", t.logs());
+    // A budget already spent (the budget counts every leg) is refused, naming it, not run for nothing.
+    t.resume(&["--budget-s", "1"]);
+    let code = t.sup.wait_timeout(Duration::from_secs(30)).and_then(|s| s.code());
+    let out = std::fs::read_to_string(t.run_dir.parent().unwrap().join("supervisor-resumed.out")).unwrap_or_default();
+    assert!(code == Some(1) && out.contains("nothing is left to train"), "{out}");
 }
 
 /// SIGTERM to the learner alone (from outside the supervisor): it checkpoints and exits cleanly before its
