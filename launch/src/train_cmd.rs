@@ -133,7 +133,9 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
             );
         }
         // Without a checkpoint the learner starts again from update 0 and overwrites what the run holds.
-        let trained = ["policy.bcalpol", "metrics.jsonl"].iter().any(|f| run_dir.join(f).exists());
+        // (A run stopped before its first checkpoint and policy has nothing to lose, and starts again.)
+        let trained = std::fs::read_dir(&run_dir)
+            .is_ok_and(|entries| entries.flatten().any(|e| e.file_name().to_string_lossy().ends_with(".bcalpol")));
         if trained && !run_dir.join("checkpoints").join("LATEST").exists() {
             bail!(
                 "--resume: {} holds a trained policy but no checkpoint to continue from (checkpoints/LATEST is \
