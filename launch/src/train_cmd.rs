@@ -269,7 +269,8 @@ pub fn train(a: TrainArgs) -> anyhow::Result<TrainOutcome> {
     Ok(TrainOutcome { run_dir, stopped })
 }
 
-/// Seconds of training and updates of a run's last checkpoint (its `meta.json`), if it has one.
+/// Seconds of training and updates of a run's last checkpoint (its `meta.json`: `trained_s` and `update_step` of
+/// `bcal_learner::checkpoint::CheckpointMeta`, read here without the learner's libtorch), if it has one.
 fn trained_so_far(run_dir: &Path) -> Option<(f64, u64)> {
     let dir = run_dir.join("checkpoints");
     let step = std::fs::read_to_string(dir.join("LATEST")).ok()?;

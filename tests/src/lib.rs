@@ -522,10 +522,23 @@ impl Drop for Piped {
 /// non-zero weights: a policy whose actions move the estimate, for tests of `--calibrator rl:FILE` and the
 /// Python package's `Calibrator("rl")`. `tests/examples/write_policy.rs` writes one from the command line.
 pub fn write_test_policy(path: &Path) {
-    use bcal_common::policy::{PolicyFile, PolicyLayout};
     let task = Task::Measured(bcal_common::measured::env::MeasuredSpec::default());
+    save_policy(path, task, |k| 0.3 * (k as f32 * 1.618).sin());
+}
+
+/// A policy file of `task` with zero weights (hidden layer of 8), saved as `dir/name`: what the CLI's
+/// checks of a policy read (its task, observation and layout), not a trained one.
+pub fn zero_policy(dir: &Path, name: &str, task: Task) -> PathBuf {
+    let path = dir.join(name);
+    save_policy(&path, task, |_| 0.0);
+    path
+}
+
+/// A policy of `task` (one hidden layer of 8), weight k `weight(k)`, saved at `path`.
+fn save_policy(path: &Path, task: Task, weight: impl Fn(usize) -> f32) {
+    use bcal_common::policy::{PolicyFile, PolicyLayout};
     let layout = PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: vec![8] };
-    let params = (0..layout.n_params()).map(|k| 0.3 * (k as f32 * 1.618).sin()).collect();
+    let params = (0..layout.n_params()).map(weight).collect();
     let pf = PolicyFile { params, layout, task, experiment: bcal_common::dataset::Experiment::Multi, update_step: 1 };
-    pf.save(path).expect("write the test policy");
+    pf.save(path).expect("write the policy file");
 }

@@ -88,24 +88,9 @@ fn resume_grace_and_eval_policy_mistakes_are_refused_before_anything_starts() {
     assert!(code == Some(1) && err.contains("--policy /nonexistent/p.bcalpol: no such file"), "{err}");
     // A measured-only policy of another setting (here: another cut-off) was evaluated in its own setting under
     // this run's name.
-    let policy_of = |name: &str, spec: bcal_common::measured::env::MeasuredSpec| {
-        let task = bcal_common::task::Task::Measured(spec);
-        let layout =
-            bcal_common::policy::PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: vec![8] };
-        let pf = bcal_common::policy::PolicyFile {
-            params: vec![0.0; layout.n_params()],
-            layout,
-            task,
-            experiment: bcal_common::dataset::Experiment::Multi,
-            update_step: 1,
-        };
-        let path = dir.path().join(name);
-        pf.save(&path).unwrap();
-        path
-    };
     let mut other = cfg.measured.clone();
     other.tracker.cutoff_v = 2.8;
-    let p = policy_of("other.bcalpol", other);
+    let p = bcal_tests::zero_policy(dir.path(), "other.bcalpol", bcal_common::task::Task::Measured(other));
     let (code, err) = bcal(&["eval", "--run", r, "--quick", "--policy", p.to_str().unwrap()]);
     assert!(code == Some(1) && err.contains("another measured setting"), "{err}");
 }

@@ -5,7 +5,6 @@
 
 use bcal_common::battery::{BatteryModel, Degradation, Load};
 use bcal_common::measured::env::MeasuredSpec;
-use bcal_common::policy::{PolicyFile, PolicyLayout};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -68,20 +67,6 @@ fn write_cycles_under(dir: &Path, offset_v: f64, load: Load) -> PathBuf {
         _ => dir.join(format!("cell_offset_{offset_v}.csv")),
     };
     std::fs::write(&path, text).unwrap();
-    path
-}
-
-fn policy(dir: &Path, name: &str, task: bcal_common::task::Task) -> PathBuf {
-    let layout = PolicyLayout { obs_dim: task.obs_dim(), act_dim: task.act_dim(), hidden: vec![8] };
-    let pf = PolicyFile {
-        params: vec![0.0; layout.n_params()],
-        layout,
-        task,
-        experiment: bcal_common::dataset::Experiment::Multi,
-        update_step: 1,
-    };
-    let path = dir.join(name);
-    pf.save(&path).unwrap();
     path
 }
 
@@ -157,7 +142,7 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
         dt_s: 1.0,
         cost_log_e0: 0.0,
     };
-    let p = policy(dir.path(), "paper.bcalpol", bcal_common::task::Task::Paper(paper));
+    let p = bcal_tests::zero_policy(dir.path(), "paper.bcalpol", bcal_common::task::Task::Paper(paper));
     let rl = format!("rl:{}", p.display());
     let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "1..6", "--calibrator", &rl]].concat());
     assert!(!ok && err.contains("FullState") && err.contains("paper.bcalpol"), "{err}");
@@ -170,7 +155,8 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
             "records":[{"cycle":1,"role":"train"},{"cycle":2,"role":"heldout"}]}"#,
     )
     .unwrap();
-    let p = policy(dir.path(), "base.bcalpol", bcal_common::task::Task::Measured(MeasuredSpec::default()));
+    let p =
+        bcal_tests::zero_policy(dir.path(), "base.bcalpol", bcal_common::task::Task::Measured(MeasuredSpec::default()));
     let rl = format!("rl:{}", p.display());
     let model = ["--model", diag.to_str().unwrap()];
     let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "1..6", "--calibrator", &rl], &model[..]].concat());
@@ -184,7 +170,7 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
         correction: bcal_common::measured::env::CorrectionSpec { shift_max_sd: 1.0, ..Default::default() },
         ..MeasuredSpec::default()
     };
-    let q = policy(dir.path(), "other.bcalpol", bcal_common::task::Task::Measured(other));
+    let q = bcal_tests::zero_policy(dir.path(), "other.bcalpol", bcal_common::task::Task::Measured(other));
     let ensemble = format!("rl:{},rl:{}", p.display(), q.display());
     let (ok, err) = calibrate(&[&common[..], &["--train-cycles", "1..6", "--calibrator", &ensemble]].concat());
     assert!(!ok && err.contains("cannot join") && err.contains("other.bcalpol"), "{err}");
