@@ -18,27 +18,36 @@ const BISECTIONS: usize = 25;
 /// The part of the rest before the load the model is run through, s (NASA's records rest under a minute).
 const REST_RUN_S: f64 = 600.0;
 
+/// The mean voltage of a discharge's readings at rest before its load (`samples` from its start), V: what its
+/// starting charge is read off, and what tells a start from a partial charge
+/// ([`bcal_common::measured::short_start`]). None when the first reading is already loaded.
+pub fn rest_voltage_v(samples: &[Sample]) -> Option<f64> {
+    let rest: Vec<f64> =
+        samples.iter().take_while(|s| s.current_a.abs() < REST_CURRENT_A).map(|s| s.voltage_v).collect();
+    (!rest.is_empty()).then(|| rest.iter().sum::<f64>() / rest.len() as f64)
+}
+
 /// The qMobile, C, under which the model's voltage reaches `spec.cutoff_v` at `end_s`, given the
 /// discharge's readings from its rest on (`samples`, in time order; those after `end_s` are ignored) and
 /// Ro `r_o_ohm`. None without a rest reading before the load, without a reading before `end_s`, or when no
 /// qMobile within the calibrator's range puts the end there.
 pub fn q_mobile_to_end(spec: &TrackerSpec, samples: &[Sample], end_s: f64, r_o_ohm: f64) -> Option<f64> {
     let model = spec.model.model().ok()?;
-    let rest: Vec<f64> =
-        samples.iter().take_while(|s| s.current_a.abs() < REST_CURRENT_A).map(|s| s.voltage_v).collect();
+    let rest_n = samples.iter().take_while(|s| s.current_a.abs() < REST_CURRENT_A).count();
     let (first, upto) = (samples.first()?, samples.partition_point(|s| s.t_s <= end_s));
-    if rest.is_empty() || upto < 2 || upto <= rest.len() {
+    let rest_v = rest_voltage_v(samples)?;
+    if upto < 2 || upto <= rest_n {
         return None;
     }
     let temperature_k = |s: &Sample| if spec.use_measured_temperature { s.temperature_k } else { model.params.tb0_k };
     let t0_k = temperature_k(first);
-    let xn0 = xn_from_rest_voltage(&model, rest.iter().sum::<f64>() / rest.len() as f64, t0_k);
+    let xn0 = xn_from_rest_voltage(&model, rest_v, t0_k);
     let ref_k = spec.model.reference_k.unwrap_or(first.temperature_k);
     // The model starts at rest where the last [`REST_RUN_S`] of the rest begin: a rest logged for hours
     // (a live stream's) would otherwise be run through on every bisection step (seconds at the cut-off after
     // a rest of a few hundred thousand readings), for a state the rest current barely moves.
-    let load_on_s = samples[rest.len()].t_s;
-    let from = samples[..rest.len()].partition_point(|s| s.t_s < load_on_s - REST_RUN_S).min(rest.len() - 1);
+    let load_on_s = samples[rest_n].t_s;
+    let from = samples[..rest_n].partition_point(|s| s.t_s < load_on_s - REST_RUN_S).min(rest_n - 1);
     // The model's voltage at the end minus the cut-off under qMobile `q` (an emptied model reads below).
     let margin_v = |q: f64| {
         let d = Degradation { q_mobile_c: q, r_o_ohm };

@@ -54,8 +54,8 @@ use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{Request, Sample, KELVIN_0C};
 use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::measured::{
-    current_glitch, LoadMean, CURRENT_GLITCH_A, GLITCH_RUN_READINGS, LOADED_A, MAX_CELL_CURRENT_A, MAX_LOADED_S,
-    MAX_RECORD_CHARGE_AH,
+    current_glitch, short_start, LoadMean, CURRENT_GLITCH_A, GLITCH_RUN_READINGS, LOADED_A, MAX_CELL_CURRENT_A,
+    MAX_LOADED_S, MAX_RECORD_CHARGE_AH, SHORT_START_CARRY_DROP_V, SHORT_START_NEIGHBOURS,
 };
 use bcal_common::policy::PolicyNet;
 use bcal_common::task::Task;
@@ -510,6 +510,12 @@ pub struct Stream<'a> {
     carried: Option<Degradation>,
     /// That discharge's posterior standard deviations, z units (None: its calibrator gives no interval).
     carried_sd_z: Option<[f64; 2]>,
+    /// The rest voltages before the load of the last [`SHORT_START_NEIGHBOURS`] discharges, V ...
+    rests_v: VecDeque<f64>,
+    /// ... and whether the current discharge started so far short of a full charge, as they show
+    /// ([`SHORT_START_CARRY_DROP_V`]), that its end fit does not measure the cell: it hands on what was carried
+    /// into it, as `bcal calibrate`'s records do (`bcal_realcell::carry::over_cut_short`).
+    short_start: bool,
     /// The prior mean the current discharge started from (None for the first: the setting's own prior).
     prior_mean: Option<Degradation>,
     /// The cell's life ([`MeasuredSpec::lifetime`]), following the finished discharges.
@@ -909,6 +915,8 @@ impl<'a> Stream<'a> {
             range_edges: RangeEdges::default(),
             carried: None,
             carried_sd_z: None,
+            rests_v: VecDeque::new(),
+            short_start: false,
             prior_mean: None,
             life: None,
             discharged: 0,
@@ -1454,7 +1462,10 @@ impl<'a> Stream<'a> {
         }
         // The rest: from the last reading that discharged (a charge seen in between is part of it).
         let rest_s = self.last_loaded_t_s.or(self.last_t_s).map(|t| (start_s - t).max(0.0));
-        if discharged && !piece {
+        // A discharge started from a partial charge hands on what was carried into it, and measured nothing the
+        // width or the life can learn from.
+        let short = self.short_start && self.carried.is_some();
+        if discharged && !piece && !short {
             // Where the cut-off was not read (a coarse log), the estimate it ended with: at the charge's start,
             // not after the filter read the charge.
             let (held_end, held_iv) = held.map_or((None, None), |(d, iv)| (Some(d), iv));
@@ -1489,11 +1500,13 @@ impl<'a> Stream<'a> {
                 Condition { ambient_c: self.ambient_k - KELVIN_0C, current_a: self.load.current_a().unwrap_or(0.0) };
             if let Some(t) = self.life.as_mut() {
                 t.advance_to(self.discharged, self.rest_before_s, at);
-                if let Some(c) = self.capacity_ah {
+                if let Some(c) = self.capacity_ah.filter(|_| !short) {
                     t.observe(c);
                 }
             }
-            self.last_discharge = Some((self.capacity_ah, at));
+            if !short {
+                self.last_discharge = Some((self.capacity_ah, at));
+            }
         }
         let end = self.carried.expect("set above");
         // The lifetime model's change since the last discharge (none without a model or a measured capacity).
@@ -1561,7 +1574,20 @@ impl<'a> Stream<'a> {
     }
 
     /// What the current discharge has measured, cleared for the next one.
+    /// At a discharge's load-on: its rest voltage against the last [`SHORT_START_NEIGHBOURS`] discharges'
+    /// ([`Stream::short_start`]; not judged before there are as many).
+    fn see_rest(&mut self) {
+        let Some(v) = crate::end_fit::rest_voltage_v(&self.samples) else { return };
+        self.short_start = self.rests_v.len() == SHORT_START_NEIGHBOURS
+            && short_start(v, self.rests_v.make_contiguous(), SHORT_START_CARRY_DROP_V).is_some();
+        self.rests_v.push_back(v);
+        if self.rests_v.len() > SHORT_START_NEIGHBOURS {
+            self.rests_v.pop_front();
+        }
+    }
+
     fn reset_discharge(&mut self) {
+        self.short_start = false;
         self.voltage_change = None;
         self.voltage_changes.clear();
         self.capacity_ah = None;
@@ -1586,6 +1612,9 @@ impl<'a> Stream<'a> {
     /// known), learns the calibrator's bias and its line in the voltage change per share again, and decides
     /// again at which shares the prior alone and the two twins predict.
     fn track_eod(&mut self, r: &Reading, eod_s: [Option<f64>; N_SOURCES], dv: Option<f64>) {
+        if r.current_a > LOAD_THRESHOLD_A && self.eod_track.load_on_s.is_none() && self.eod_track.ended_s.is_none() {
+            self.see_rest();
+        }
         let t = &mut self.eod_track;
         let cutoff_v = self.spec.cutoff_v;
         if t.ended_s.is_some() {
@@ -2310,6 +2339,53 @@ mod tests {
         assert_eq!(a, b, "the first discharge is the same either way");
         let q_end = ours.last().unwrap().q_mobile;
         assert!((q_end / truth - 1.0).abs() < 0.2, "the last discharge ends at {q_end} C, truth {truth} C");
+    }
+
+    /// Five discharges of one cell, the fourth from 40 % of a full charge: it reaches its cut-off like the
+    /// others, but its rest shows the short start against the three before it, so it hands on what was
+    /// carried into it (its own end fit, read from a starting charge on the flat of the voltage curve, is not
+    /// what the cell holds) and the fifth starts where the fourth did; the full starts are not taken for short.
+    #[test]
+    fn a_discharge_started_from_a_partial_charge_hands_on_what_was_carried_into_it() {
+        let cfg = ScenarioConfig::default();
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(4);
+        let first = draw_spec(&cfg, bcal_common::dataset::Split::Validation, &mut rng);
+        let socs = [1.0, 1.0, 1.0, 0.4, 1.0];
+        let (readings, starts) = joined(
+            &cfg,
+            socs.iter().enumerate().map(|(k, &soc0)| EpisodeSpec {
+                soc0,
+                noise_seed: first.noise_seed + k as u64,
+                kind: LoadKind::ConstantCurrent,
+                profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (30.0, Load::CurrentA(2.0))]),
+                rest_s: 30.0,
+                ..first.clone()
+            }),
+        );
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let mut ours = Vec::new();
+        let mut short = Vec::new();
+        for r in &readings {
+            ours.push(stream.step(r).unwrap());
+            short.push(stream.short_start);
+        }
+        assert_eq!(stream.discharges(), 5);
+        let cutoff_v = setup.spec.tracker.cutoff_v;
+        let ended = |k: usize| {
+            let to = starts.get(k + 1).copied().unwrap_or(readings.len());
+            readings[starts[k]..to].iter().any(|r| r.current_a > LOAD_THRESHOLD_A && r.voltage_v < cutoff_v)
+        };
+        assert!((0..5).all(ended), "every discharge reaches its cut-off");
+        let seen: Vec<bool> = (0..5).map(|k| short[starts.get(k + 1).copied().unwrap_or(readings.len()) - 1]).collect();
+        assert_eq!(seen, [false, false, false, true, false]);
+        let (fourth, fifth) = (ours[starts[3]].q_mobile, ours[starts[4]].q_mobile);
+        assert!(
+            (fifth - fourth).abs() <= 8.0 * f64::EPSILON * fourth.abs(),
+            "the fifth starts at {fifth} C, not where the short fourth did: {fourth} C"
+        );
+        let truth = first.truth.q_mobile_c;
+        assert!((fifth / truth - 1.0).abs() < 0.03, "the fifth starts at {fifth} C, truth {truth} C");
     }
 
     /// Twelve discharges of one cell joined end to end: each discharge's predictions are scored at 10, 50

@@ -81,9 +81,8 @@ pub struct LifetimeConfig {
     pub cutoff_v: Option<f64>,
     /// A discharge whose rest voltage before the load sits this far below its neighbours' started from a
     /// partial charge ([`crate::record::short_starts`]): it delivers less than the cell holds, so its
-    /// capacity is left out of the series (named in the notes), V. Default 0.05: full-charge starts of
-    /// NASA's cells spread within 25 mV of their median (40 mV once above it, B0006 cycle 90), while the
-    /// first discharges of B0029 and B0055 start 77 and 361 mV below, 0.15 and 0.52 Ah short of the next.
+    /// capacity is left out of the series (named in the notes), V. Default
+    /// [`bcal_common::measured::SHORT_START_DROP_V`].
     pub partial_start_v: f64,
 }
 
@@ -104,7 +103,7 @@ impl Default for LifetimeConfig {
             load_threshold_a: 0.05,
             v_floor_v: 2.9,
             cutoff_v: None,
-            partial_start_v: 0.05,
+            partial_start_v: bcal_common::measured::SHORT_START_DROP_V,
         }
     }
 }

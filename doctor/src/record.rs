@@ -15,6 +15,7 @@ use crate::error::DoctorError;
 use bcal_common::battery::{BatteryModel, BatteryParams};
 use bcal_common::measured::cellmodel::{ocv_v, xn_from_rest_voltage};
 use bcal_common::measured::load_mean::alternates;
+use bcal_common::measured::SHORT_START_NEIGHBOURS;
 use serde::Serialize;
 use std::path::PathBuf;
 
@@ -71,15 +72,12 @@ pub fn infer_cutoff_v(ds: &[Discharge], load_threshold_a: f64) -> Option<f64> {
 /// `record::tests`), a full cell that a lower threshold would call partial.
 pub const PARTIAL_START_DROP_V: f64 = 0.2;
 
-/// How many records on each side a record's rest voltage is compared with by [`short_starts`].
-pub const SHORT_START_NEIGHBOURS: usize = 3;
-
 /// The records among `records` (one cell's, any order) that started from a partial charge as their own
-/// neighbours show it: the rest voltage before the load lies more than `drop_v` below the median of the
-/// [`SHORT_START_NEIGHBOURS`] records with a rest on each side, by cycle. The model rule
-/// ([`Discharge::start_state`], 200 mV against the model's full-cell voltage) must allow for an electrode
-/// balance that drifts over the life; a cell's neighbours drift with it, so a short start shows at a
-/// quarter of that (B0029 cycle 1: 77 mV below its neighbours, 0.15 Ah short of the next discharge).
+/// neighbours show it ([`bcal_common::measured::short_start`]): the rest voltage before the load lies more than
+/// `drop_v` below the median of the [`SHORT_START_NEIGHBOURS`] records with a rest on each side, by cycle,
+/// where the model rule ([`Discharge::start_state`], 200 mV against the model's full-cell voltage) must allow
+/// for an electrode balance that drifts over the life (B0029 cycle 1: 77 mV below its neighbours, 0.15 Ah
+/// short of the next discharge).
 /// Returns each flagged cycle with its rest voltage and the neighbours' median, V.
 pub fn short_starts(records: &[&Discharge], load_threshold_a: f64, drop_v: f64) -> Vec<(u32, f64, f64)> {
     let mut rests: Vec<(u32, f64)> =
@@ -87,15 +85,13 @@ pub fn short_starts(records: &[&Discharge], load_threshold_a: f64, drop_v: f64) 
     rests.sort_by_key(|r| r.0);
     let mut out = Vec::new();
     for (k, &(cycle, v)) in rests.iter().enumerate() {
-        let mut around: Vec<f64> = rests[k.saturating_sub(SHORT_START_NEIGHBOURS)..k]
+        let around: Vec<f64> = rests[k.saturating_sub(SHORT_START_NEIGHBOURS)..k]
             .iter()
             .chain(rests.iter().skip(k + 1).take(SHORT_START_NEIGHBOURS))
             .map(|r| r.1)
             .collect();
-        if let Some(m) = bcal_common::stats::quantile(&mut around, 0.5) {
-            if v < m - drop_v {
-                out.push((cycle, v, m));
-            }
+        if let Some(m) = bcal_common::measured::short_start(v, &around, drop_v) {
+            out.push((cycle, v, m));
         }
     }
     out

@@ -11,8 +11,11 @@ extra_infos/...} and the truth of every discharge (qMobile, Ro, current, ambient
 Cells (ids of the protocols they mimic; not NASA's data): B0038 (1 / 2 / 4 A, 24 and 44 C in blocks, 2.2 V),
 B0042 (4 C with a 22 C block, 4 A with every fourth at 1 A, a block stopped under load at 40-60 %, 2.2 V),
 B0045 (1 A at 4 C, 2.0 V), B0033 (4 A at 24 C, 2.0 V), B0041 (a cold cell of high resistance: 42 discharges
-at 4 A that deliver about 0.02 Ah above 2.7 V, then 25 at 1 A, 2.0 V). Generated 2026-11-29 for the blind
-test of that day's note; `doctor/tests/data/progpy-4a-4c-late.csv` is B0042's cycle 57.
+at 4 A that deliver about 0.02 Ah above 2.7 V, then 25 at 1 A, 2.0 V), B0049 (README_49_50_51_52: 2 A at 4 C,
+2.0 V, 25 discharges, four of them started from a charge cut short, at 55, 25, 5 and 40 % of full, as NASA's
+cells whose control software crashed hold runs "where the capacity as well as voltage levels were very low";
+added 2026-11-30). Generated 2026-11-29 for the blind test of that day's note; `doctor/tests/data/progpy-4a-4c-late.csv`
+is B0042's cycle 57.
 
 Model: progpy 1.9 BatteryElectroChemEOD, stepped with its own `next_state` (forward Euler), dt = 1 s (steps
 shortened to land on logging times; the step that crosses the cut-off is re-done in dt/10 sub-steps, twice if
@@ -27,7 +30,9 @@ The written Temperature_measured is that tb (+ 0.2 K noise); the model's voltage
 
 Initial state: full charge, x0 qnS/qnB = qMax * xnMax * (VolSFraction | 1 - VolSFraction) set explicitly per
 discharge (progpy 1.9's parameter callbacks do NOT update qnS/qnB when qMobile changes; without this the cell
-would start with the 7600 C default's charge whatever qMobile says). Open-circuit voltage at start ~4.19 V.
+would start with the 7600 C default's charge whatever qMobile says). Open-circuit voltage at start ~4.19 V. A
+part-charged start (`partial`) moves the charge not put back into the positive electrode, lithium conserved, at
+rest (surface and bulk alike).
 """
 
 import argparse
@@ -52,7 +57,9 @@ V_NOISE, I_NOISE, T_NOISE = 0.004, 0.005, 0.2
 
 
 def design(cell, rng):
-    """Per-discharge protocol of a cell: list of dicts (current, ambient, cutoff, early stop, long rest before)."""
+    """Per-discharge protocol of a cell: list of dicts (current, ambient, cutoff, early stop, long rest before,
+    part-charged start)."""
+    partial = {}
     if cell == "B0038":
         n, cutoff = 47, 2.2
         cur = rng.choice([1.0, 2.0, 4.0], size=n)
@@ -87,6 +94,17 @@ def design(cell, rng):
         early = {}
         q0, r0, fade, rise = 7000.0, 0.40, 0.25, 0.30
         t0 = dt_.datetime(2010, 6, 3, 20, 31, 2)
+    elif cell == "B0049":
+        # NASA's "experiment control software crashed" cells: 2 A at 4 C, a short life, and discharges whose
+        # capacity and voltages were very low (here: charges cut short, the cell starting part-charged)
+        n, cutoff = 25, 2.0
+        cur = np.full(n, 2.0)
+        amb = [4] * n
+        rests = {9: 3.0, 17: 5.0}
+        early = {}
+        partial = {6: 0.55, 12: 0.25, 13: 0.05, 20: 0.4}
+        q0, r0, fade, rise = 7150.0, 0.120, 0.12, 0.25
+        t0 = dt_.datetime(2010, 9, 1, 11, 2, 47)
     elif cell == "B0033":
         n, cutoff = 100, 2.0
         cur = np.full(n, 4.0)
@@ -98,7 +116,7 @@ def design(cell, rng):
     else:
         raise ValueError(cell)
     return dict(n=n, cutoff=cutoff, cur=cur, amb=amb, rests=rests, early=early, q0=q0, r0=r0, fade=fade,
-                rise=rise, t0=t0)
+                rise=rise, t0=t0, partial=partial)
 
 
 def aging(d, rng):
@@ -120,7 +138,8 @@ def aging(d, rng):
     return q, r, rec, jumps
 
 
-def set_full(m, q, ro, amb_c):
+def set_full(m, q, ro, amb_c, frac=1.0):
+    """The cell at rest, charged to `frac` of its mobile charge (1: full)."""
     m.parameters["qMobile"] = float(q)
     m.parameters["Ro"] = float(ro)
     p = m.parameters
@@ -128,15 +147,22 @@ def set_full(m, q, ro, amb_c):
     x0 = dict(p["x0"])
     x0["qnS"] = qmax * p["xnMax"] * p["VolSFraction"]
     x0["qnB"] = qmax * p["xnMax"] * (1 - p["VolSFraction"])
+    if frac < 1.0:
+        # the charge not put back stays in the positive electrode (lithium conserved)
+        moved = qmax * p["xnMax"] * (1 - frac)
+        x0["qnS"] -= moved * p["VolSFraction"]
+        x0["qnB"] -= moved * (1 - p["VolSFraction"])
+        x0["qpS"] = qmax * p["xpMin"] * p["VolSFraction"] + moved * p["VolSFraction"]
+        x0["qpB"] = qmax * p["xpMin"] * (1 - p["VolSFraction"]) + moved * (1 - p["VolSFraction"])
     x0["tb"] = amb_c + 273.15
     x0["Vo"] = x0["Vsn"] = x0["Vsp"] = 0.0
     p["x0"] = x0
     return m.initialize()
 
 
-def simulate(m, q, ro, cur, amb_c, cutoff, t_on, relax_s, sample_dt, rng):
+def simulate(m, q, ro, cur, amb_c, cutoff, t_on, relax_s, sample_dt, rng, frac=1.0):
     """One discharge record. Returns rows (t, v, i, T, loaded) true values, plus summary."""
-    x = set_full(m, q, ro, amb_c)
+    x = set_full(m, q, ro, amb_c, frac)
     T_amb = amb_c + 273.15
     dT = 0.0
     t = 0.0
@@ -292,7 +318,11 @@ def gen_cell(args):
             full_rows, full_info = simulate(m, q[k], r[k], cur, amb, d["cutoff"], t_on, relax, sdt,
                                             np.random.default_rng(seed * 1000 + k))
             stop_t = early * (full_info["t_cut"] - t_on)
-        rows, info = simulate_wrap(m, q[k], r[k], cur, amb, d["cutoff"], t_on, relax, sdt, early, stop_t, rng)
+        frac = d["partial"].get(k, 1.0)
+        if frac < 1.0:
+            rows, info = simulate(m, q[k], r[k], cur, amb, d["cutoff"], t_on, relax, sdt, rng, frac)
+        else:
+            rows, info = simulate_wrap(m, q[k], r[k], cur, amb, d["cutoff"], t_on, relax, sdt, early, stop_t, rng)
         fn = None
         meta_rows = []
         # a charge row before every discharge but the first, occasionally an impedance row
@@ -331,6 +361,7 @@ def gen_cell(args):
                                   rest_before_h=round(rest_h, 3), t_on_s=round(t_on, 3),
                                   eod_from_load_s=round(t_cut - t_on, 2) if t_cut is not None else "",
                                   early_stop_frac=round(early, 3) if early is not None else "",
+                                  start_frac=frac,
                                   q_to_cutoff_ah=round(q_cut, 5), capacity_2p7_ah=round(q27, 5),
                                   max_self_heat_k=round(info["max_dT"], 2), n_rows=len(rows)))
             out["meta"].append(row)
@@ -388,15 +419,15 @@ def main():
     ap.add_argument("--out", default=os.path.join("blind", "data-root"))
     ap.add_argument("--truth", default=os.path.join("blind", "truth.csv"))
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--cells", default="B0038,B0042,B0045,B0033,B0041")
+    ap.add_argument("--cells", default="B0038,B0042,B0045,B0033,B0041,B0049")
     ap.add_argument("--extra-infos", default=os.path.join(here, "..", "..", "..", "shared", "data", "nasa-pcoe",
                                                           "extra_infos"),
                     help="NASA's experiment descriptions (bcal reads the cut-offs from them)")
     a = ap.parse_args()
     os.makedirs(os.path.join(a.out, "data"), exist_ok=True)
     cells = a.cells.split(",")
-    seeds = {"B0038": 38, "B0042": 42, "B0045": 45, "B0033": 33, "B0041": 41}
-    uid0 = {"B0038": 10000, "B0042": 20000, "B0045": 30000, "B0033": 40000, "B0041": 50000}
+    seeds = {"B0038": 38, "B0042": 42, "B0045": 45, "B0033": 33, "B0041": 41, "B0049": 49}
+    uid0 = {"B0038": 10000, "B0042": 20000, "B0045": 30000, "B0033": 40000, "B0041": 50000, "B0049": 60000}
     jobs = [(c, {"root": a.out, "meta": [], "uid0": uid0[c]}, seeds[c]) for c in cells]
     with Pool(a.jobs) as pool:
         res = pool.map(gen_cell_full, jobs)
@@ -415,7 +446,8 @@ def main():
     ei = os.path.join(a.out, "extra_infos")
     os.makedirs(ei, exist_ok=True)
     src = a.extra_infos
-    for fn in ["README_33_34_36.txt", "README_38_39_40.txt", "README_41_42_43_44.txt", "README_45_46_47_48.txt"]:
+    for fn in ["README_33_34_36.txt", "README_38_39_40.txt", "README_41_42_43_44.txt", "README_45_46_47_48.txt",
+               "README_49_50_51_52.txt"]:
         if os.path.exists(os.path.join(src, fn)):
             with open(os.path.join(src, fn)) as fi, open(os.path.join(ei, fn), "w") as fo:
                 fo.write(fi.read())

@@ -357,6 +357,7 @@ impl CellHistory {
             r.rest_before_s = rests.get(&r.cycle).copied();
         }
         crate::record::set_currents_before(train.iter_mut());
+        crate::record::set_short_starts_seen(train.iter_mut());
         let life = lifetime_model(train_ds, starts, cutoff_v);
         let tuning = life.as_ref().map(|l| &l.tuning);
         let carrying = Carrying::end_fits(spec, tuning, train, train_fits, neutral, &rests, cutoff_v);
@@ -558,6 +559,7 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
         r.rest_before_s = rests.get(&r.cycle).copied();
     }
     crate::record::set_currents_before(train.iter_mut().chain(judged.iter_mut()));
+    crate::record::set_short_starts_seen(train.iter_mut().chain(judged.iter_mut()));
     summary.records = judged.len();
     summary.reaching_cutoff = judged.iter().filter(|r| r.eod_s.is_some()).count();
     summary.cut_short = judged.iter().filter(|r| r.eod_s.is_none()).map(|r| r.cycle).collect();
@@ -681,8 +683,9 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let end_knee_median = carrying.knees.median();
     progress(&format!(
         "prior: each discharge hands on its end fit (the qMobile that puts the model's end at the measured one; {} \
-         of {} discharges kept their voltage fit, out of range, or handed on the fit carried into them, cut short; knee against it {:.4} Ah from a full \
-         cell, {:.4} Ah from the discharge's own start); {}; width \
+         of {} discharges kept their voltage fit, out of range, or handed on the fit carried into them, cut short \
+         or started far short of full; knee against it {:.4} Ah from a full cell, {:.4} Ah from the discharge's \
+         own start); {}; width \
          learned on {} consecutive training fits ({} after a rest of more than a day): {}",
         carrying.kept_voltage_fit + judged_kept,
         train.len() + judged.len(),

@@ -13,8 +13,8 @@
 //! the end fit the better joint UKF on every judged life (docs/realcell.md, "what a discharge hands on").
 //! The references that carry a fit (the previous cycle's, the oracle's) keep the voltage fit and its knee.
 //! A discharge whose end no qMobile within the calibrator's range reaches hands on its voltage fit. One that
-//! stopped above its cut-off hands on what was carried into it ([`over_cut_short`]): a fit on part of a
-//! discharge does not pin qMobile down.
+//! stopped above its cut-off, or started from a partial charge as the discharges before it show, hands on what
+//! was carried into it ([`over_cut_short`]): a fit on part of a discharge does not pin qMobile down.
 
 use crate::prior::{learn_width, PriorWalk, RestWidth};
 use crate::record::CellRecord;
@@ -26,8 +26,8 @@ use bcal_doctor::lifetime::LifetimeModel;
 use std::collections::BTreeMap;
 
 /// Every record's end fit (its voltage fit's Ro and model), with how many records kept their voltage fit
-/// (no qMobile in range reaches the end) or, cut short, handed on what was carried into them
-/// ([`over_cut_short`]; `before_first`: what the first record starts from).
+/// (no qMobile in range reaches the end) or, cut short or started far short of full, handed on what was carried
+/// into them ([`over_cut_short`]; `before_first`: what the first record starts from).
 pub fn end_fits(
     spec: &TrackerSpec,
     records: &[CellRecord],
@@ -42,18 +42,21 @@ pub fn end_fits(
         .map(|(r, (d, ext))| {
             let s = TrackerSpec { model: ext.clone(), cutoff_v, ..spec.clone() };
             let q = r.eod_s.and_then(|end| bcal_calib::end_fit::q_mobile_to_end(&s, &r.samples, end, d.r_o_ohm));
-            kept += usize::from(q.is_none());
+            kept += usize::from(q.is_none() || !r.measured_its_charge());
             (q.map_or(*d, |q| Degradation { q_mobile_c: q, ..*d }), ext.clone())
         })
         .collect();
     (over_cut_short(records, &out, before_first), kept)
 }
 
-/// `fits` (one per record) with each record that stopped above its cut-off handing on what was carried into
-/// it: the fit of the record before (`before_first` before the first; without it the record keeps its own).
-/// The offline fit of part of a discharge makes that part's voltage right with a qMobile the part does not
-/// pin down: B0055's discharges cut at 40 % and 25 % of their load (as NASA's B0049-B0052 records end where
-/// the software crashed) fit 30 % and 57 % low, and the discharge after each started there.
+/// `fits` (one per record) with each record that did not measure the charge the cell holds (stopped above its
+/// cut-off, or started from a partial charge: [`CellRecord::measured_its_charge`]) handing on what was carried
+/// into it: the fit of the record before (`before_first` before the first; without it the record keeps its
+/// own). The offline fit of part of a discharge makes that part's voltage right with a qMobile the part does
+/// not pin down: B0055's discharges cut at 40 % and 25 % of their load (as NASA's B0049-B0052 records end where
+/// the software crashed) fit 30 % and 57 % low, and the discharge after each started there; a synthetic cell
+/// started at 40 % of its charge (`examples/blind/progpy_cells.py`, "B0049" cycle 21) fits 10 % high, its
+/// starting charge read off a rest voltage on the flat of the curve.
 pub fn over_cut_short(
     records: &[CellRecord],
     fits: &[(Degradation, ModelExtension)],
@@ -61,7 +64,7 @@ pub fn over_cut_short(
 ) -> Vec<(Degradation, ModelExtension)> {
     let mut out: Vec<(Degradation, ModelExtension)> = Vec::with_capacity(fits.len());
     for (r, f) in records.iter().zip(fits) {
-        let carried = if r.eod_s.is_some() { None } else { out.last().or(before_first).cloned() };
+        let carried = if r.measured_its_charge() { None } else { out.last().or(before_first).cloned() };
         out.push(carried.unwrap_or_else(|| f.clone()));
     }
     out
@@ -219,6 +222,38 @@ mod tests {
             assert!(*v > 0.0 && e.abs() < 0.25 * v, "knee against the end fit {e} C, the voltage fit {v} C");
         }
         assert_eq!(c.knees.eod_c.len(), records.len(), "every record started at rest and reached its end");
+    }
+
+    /// A discharge started at 40 % of a full charge (the simulator's own cell, read as a cycler logs it) reaches
+    /// its cut-off like any other, but what it delivered is not what the cell holds: the rests before it show
+    /// the short start, and it hands on the fit carried into it, so the discharge after it starts from the last
+    /// whole one (before: its own end fit, read from a starting charge on the flat of the voltage curve). The
+    /// full starts around it, 3 mV noise on their rests, are not taken for short ones.
+    #[test]
+    fn a_discharge_started_from_a_partial_charge_hands_on_what_was_carried_into_it() {
+        let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
+        let spec = TrackerSpec { cutoff_v: cfg.cutoff_v, ..TrackerSpec::default() };
+        let socs = [1.0, 1.0, 1.0, 0.4, 1.0];
+        let (mut records, mut fits) = (Vec::new(), Vec::new());
+        for (k, soc0) in socs.iter().enumerate() {
+            let truth = Degradation { q_mobile_c: 7400.0 - 40.0 * k as f64, r_o_ohm: 0.12 };
+            records.push(crate::testing::simulated_record(&cfg, truth, *soc0, 11 + k as u64, k as u32 + 1));
+            fits.push((truth, ModelExtension::default()));
+        }
+        crate::record::set_short_starts_seen(records.iter_mut());
+        let seen: Vec<bool> = records.iter().map(|r| r.short_start_seen).collect();
+        assert_eq!(
+            seen,
+            [false, false, false, true, false],
+            "rests {:?}",
+            records.iter().map(|r| r.rest_before_load_v()).collect::<Vec<_>>()
+        );
+        assert!(records[3].eod_s.is_some() && !records[3].measured_its_charge());
+        let (carried, _) = end_fits(&spec, &records, &fits, None, cfg.cutoff_v);
+        assert_eq!(carried[3], carried[2], "the short start hands on what was carried into it");
+        assert_ne!(carried[4], carried[3], "the whole discharge after it hands on its own");
+        let c = Carrying::end_fits(&spec, None, &records, &fits, &ModelExtension::default(), &BTreeMap::new(), 2.5);
+        assert_eq!(c.before[4].prior, c.fits[2].0, "the discharge after it starts from the last whole one");
     }
 
     /// The validation records (the last quarter) start from a width learned on the pairs before them: a

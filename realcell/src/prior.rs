@@ -170,8 +170,9 @@ pub fn learn_width(
     for (r, (fit, _)) in train.iter().zip(fits) {
         let rest = rests.get(&r.cycle).copied();
         let consecutive = walk.last.is_some_and(|(c, _, _, _)| c + 1 == r.cycle);
-        // A record cut short measured no fit of its own (it hands on the one carried into it): no pair.
-        if consecutive && r.eod_s.is_some() {
+        // A record cut short or started short measured no fit of its own (it hands on the one carried into
+        // it): no pair.
+        if consecutive && r.measured_its_charge() {
             let p = walk.prior(r, rest, fit);
             let (z, m) = (spec.to_z(fit), spec.to_z(&p.mean));
             residuals.push((probe.h(rest), [z[0] - m[0], z[1] - m[1]]));
@@ -200,6 +201,7 @@ mod tests {
             rest_before_s: rest_s,
             current_before_a: None,
             partial_start: false,
+            short_start_seen: false,
             stated_tail_ah: None,
             samples: Vec::new(),
         }

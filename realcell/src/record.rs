@@ -7,6 +7,7 @@
 use bcal_calib::eod::charge_to_ah;
 use bcal_common::battery::Load;
 use bcal_common::measured::scenario::{Request, Sample};
+use bcal_common::measured::{short_start, SHORT_START_CARRY_DROP_V, SHORT_START_NEIGHBOURS};
 use bcal_doctor::Discharge;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -46,6 +47,10 @@ pub struct CellRecord {
     /// among them: for the scores only). The charge it delivered is not the cell's capacity, so its
     /// capacity is not scored; its end of discharge is.
     pub partial_start: bool,
+    /// Whether it started so far short of a full charge, as the rests of the discharges before it show
+    /// ([`set_short_starts_seen`]; no look-ahead), that its end fit does not measure the cell: it hands on what
+    /// was carried into it, as one cut short does ([`CellRecord::measured_its_charge`]).
+    pub short_start_seen: bool,
     /// The charge the discharges before it drew between the voltage the source's stated capacity is drawn to
     /// and the cut-off, Ah ([`set_stated_tails`]; None where the stated capacity is the charge to the cut-off):
     /// what a capacity predicted to the cut-off holds beyond the stated one.
@@ -60,6 +65,25 @@ pub fn set_currents_before<'r>(records: impl IntoIterator<Item = &'r mut CellRec
     for r in records {
         r.current_before_a = last;
         last = r.loaded_current().whole().or(last);
+    }
+}
+
+/// Sets each record's [`CellRecord::short_start_seen`] against the rest voltages of the
+/// [`SHORT_START_NEIGHBOURS`] records before it ([`SHORT_START_CARRY_DROP_V`] below their median) in `records` (in order: every record kept, training and judged,
+/// as [`set_currents_before`]; none judged before there are as many). A short start stays among the
+/// neighbours, so a cell whose charger changed for good is held against its new rests after two discharges.
+pub fn set_short_starts_seen<'r>(records: impl IntoIterator<Item = &'r mut CellRecord>) {
+    let mut before_v: std::collections::VecDeque<f64> = std::collections::VecDeque::new();
+    for r in records {
+        let rest_v = r.rest_before_load_v();
+        r.short_start_seen = before_v.len() == SHORT_START_NEIGHBOURS
+            && rest_v.is_some_and(|v| short_start(v, before_v.make_contiguous(), SHORT_START_CARRY_DROP_V).is_some());
+        if let Some(v) = rest_v {
+            before_v.push_back(v);
+            if before_v.len() > SHORT_START_NEIGHBOURS {
+                before_v.pop_front();
+            }
+        }
     }
 }
 
@@ -92,6 +116,19 @@ impl CellRecord {
     /// The load its predictions assume at its end ([`load_mean`]; a current of 0 A with no loaded reading).
     pub fn load(&self) -> Load {
         load_mean(&self.samples).load().unwrap_or(Load::CurrentA(0.0))
+    }
+
+    /// The mean voltage of its readings at rest before the load came on, V (None without one), as its end fit
+    /// reads its starting charge off it.
+    pub fn rest_before_load_v(&self) -> Option<f64> {
+        bcal_calib::end_fit::rest_voltage_v(&self.samples)
+    }
+
+    /// Whether its end measured the charge the cell holds: it reached its cut-off, not from a partial charge as
+    /// far as the discharges before it tell ([`CellRecord::short_start_seen`]). One that did not hands on what
+    /// was carried into it ([`crate::carry::over_cut_short`]) and gives the prior's width no pair.
+    pub fn measured_its_charge(&self) -> bool {
+        self.eod_s.is_some() && !self.short_start_seen
     }
 
     /// Duration of the discharge from the load-on to the cut-off, s.
@@ -191,6 +228,7 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
         rest_before_s: None,
         current_before_a: None,
         partial_start: false,
+        short_start_seen: false,
         stated_tail_ah: None,
         samples,
     })
@@ -397,6 +435,7 @@ pub(crate) fn test_discharge(
         rest_before_s: None,
         current_before_a: None,
         partial_start: false,
+        short_start_seen: false,
         stated_tail_ah: None,
         samples,
     };

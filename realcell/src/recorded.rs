@@ -92,6 +92,7 @@ mod tests {
             rest_before_s: None,
             current_before_a: None,
             partial_start: false,
+            short_start_seen: false,
             stated_tail_ah: None,
             samples,
         };

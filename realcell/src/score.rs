@@ -281,6 +281,7 @@ mod tests {
             rest_before_s: Some(2.0 * 86_400.0),
             current_before_a: None,
             partial_start: false,
+            short_start_seen: false,
             stated_tail_ah: None,
         };
         // Predicts an end 50 s late with an interval of +-100 s and a capacity of 1.2 Ah within [1.1, 1.3].

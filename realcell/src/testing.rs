@@ -67,6 +67,7 @@ pub fn simulated_record_under(
         rest_before_s: None,
         current_before_a: None,
         partial_start: false,
+        short_start_seen: false,
         stated_tail_ah: None,
         samples,
     }
