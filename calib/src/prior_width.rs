@@ -83,6 +83,49 @@ impl RestWidth {
     }
 }
 
+/// Fewest pairs that moved their current by more than [`MOVED_RATIO`] for [`CurrentSlope`] to be learned (the
+/// twins by current take as many, [`crate::recentre`]).
+pub const MIN_MOVED_PAIRS: usize = 3;
+/// A current this many times the last discharge's, or its inverse, moved.
+pub const MOVED_RATIO: f64 = 1.2;
+
+/// How the end fit a discharge hands on moves with the current (issue 18, "across discharges"): on a cell
+/// cycled at several currents the qMobile that puts the model's end at the measured one holds the model's error
+/// at that current (the blind "B0038" of `examples/blind/progpy_cells.py` fits 1.3 % above its qMobile at 1 A,
+/// 0.2 % at 4 A), so a discharge at another current than the last one's starts off by that much. The slope of
+/// the log of each carried fit over its prior mean (the lifetime model's move alone) against the log of the
+/// ratio of its first loaded reading's current to the last discharge's, least squares through the origin over
+/// the consecutive pairs that measured their charge, as they end (no look-ahead; `bcal_realcell::prior`'s walk,
+/// a live stream's own discharges in [`crate::stream`]); none (no move) until [`MIN_MOVED_PAIRS`] of them moved
+/// by more than [`MOVED_RATIO`], so a cell at one current keeps every prior to the bit. A stream chooses the
+/// prior again at the load-on (the rest before it says nothing of qMobile; its readings are read again);
+/// `bcal calibrate` starts the discharge from the moved prior.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct CurrentSlope {
+    sxy: f64,
+    sxx: f64,
+    /// Pairs observed, and how many of them moved their current.
+    pub pairs: usize,
+    pub moved: usize,
+}
+
+impl CurrentSlope {
+    /// Adds a pair: `x` the log of the ratio of the currents, `y` the log of the carried fit over the prior mean.
+    pub fn push(&mut self, x: f64, y: f64) {
+        if x.is_finite() && y.is_finite() {
+            self.sxy += x * y;
+            self.sxx += x * x;
+            self.pairs += 1;
+            self.moved += usize::from(x.abs() > MOVED_RATIO.ln());
+        }
+    }
+
+    /// The slope, per unit of the log of the current's ratio (None: too few moves yet).
+    pub fn learned(&self) -> Option<f64> {
+        (self.moved >= MIN_MOVED_PAIRS && self.sxx > 0.0).then(|| self.sxy / self.sxx)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -40,7 +40,7 @@
 use crate::adaptive::{AdaptiveRule, AdaptiveUkf};
 use crate::correction::CorrectionCalibrator;
 use crate::joint_ukf::JointUkf;
-use crate::prior_width::{RestWidth, LONG_REST_S};
+use crate::prior_width::{CurrentSlope, RestWidth, LONG_REST_S};
 use crate::recentre::{Previous, Start, Transition, VoltageChange};
 use crate::record_learner::{EndRecord, LoadedMean};
 use crate::tracker_based::{RlCalibrator, Uncalibrated, WindowFitCalibrator};
@@ -512,6 +512,13 @@ pub struct Stream<'a> {
     carried_sd_z: Option<[f64; 2]>,
     /// The rest voltages before the load of the last [`SHORT_START_NEIGHBOURS`] discharges, V ...
     rests_v: VecDeque<f64>,
+    /// How the carried qMobile moves with the current ([`CurrentSlope`]), learned on the discharges followed ...
+    current_slope: CurrentSlope,
+    /// ... the current of this discharge's first loaded reading and of the last discharge's, A ...
+    load_on_a: Option<f64>,
+    last_load_on_a: Option<f64>,
+    /// ... and the setting this discharge was built from, its prior chosen again at the load-on by them.
+    discharge_setup: Option<Setup>,
     /// ... and whether the current discharge started so far short of a full charge, as they show
     /// ([`SHORT_START_CARRY_DROP_V`]), that its end fit does not measure the cell: it hands on what was carried
     /// into it, as `bcal calibrate`'s records do (`bcal_realcell::carry::over_cut_short`).
@@ -917,6 +924,10 @@ impl<'a> Stream<'a> {
             carried_sd_z: None,
             rests_v: VecDeque::new(),
             short_start: false,
+            current_slope: CurrentSlope::default(),
+            load_on_a: None,
+            last_load_on_a: None,
+            discharge_setup: None,
             prior_mean: None,
             life: None,
             discharged: 0,
@@ -1205,6 +1216,10 @@ impl<'a> Stream<'a> {
         } else if self.charge_start_estimate.is_none() && self.cal_read {
             self.charge_start_estimate = Some((self.cal.estimate(), self.cal.interval()));
         }
+        if loaded && self.loaded_n == 0 && self.load_on_a.is_none() && !self.joined_under_load {
+            self.load_on_a = Some(r.current_a);
+            self.choose_prior_at_load_on();
+        }
         self.step_calibrators(&s);
         // A calibrator that had read nothing has its start (and its prior as an estimate) only now.
         if charging && self.charge_start_estimate.is_none() {
@@ -1456,6 +1471,7 @@ impl<'a> Stream<'a> {
             self.cal = build(setup, *net).expect("the stream's calibrator was built from this setting");
             self.cal_read = false;
             self.prior_cal = prior_alone(setup);
+            self.discharge_setup = None;
             self.rest_before_s = None;
             self.reset_discharge();
             return;
@@ -1473,6 +1489,10 @@ impl<'a> Stream<'a> {
             let mean_z = self.prior_mean.map(|m| spec.to_z(&m));
             let end_z = spec.to_z(&end);
             self.ends.push(Carried { end_z, rest_s: self.rest_before_s, mean_z });
+            // Against the prior mean before the load-on moved it, as `bcal calibrate`'s walk learns it.
+            if let (Some(now), Some(before), Some(m)) = (self.load_on_a, self.last_load_on_a, self.prior_mean) {
+                self.current_slope.push((now / before).ln(), (end.q_mobile_c / m.q_mobile_c).ln());
+            }
             self.range_edges.push(end_z);
             self.carried = Some(end);
             // Its own posterior, read as 1.645 standard deviations of its 90 % interval: the width a
@@ -1485,6 +1505,9 @@ impl<'a> Stream<'a> {
                 let sd = |k: usize| ((hi[k] - lo[k]) / (2.0 * 1.645)).max(crate::prior_width::MIN_SD_Z);
                 [sd(0), sd(1)]
             });
+        }
+        if discharged && !piece {
+            self.last_load_on_a = self.load_on_a;
         }
         // The discharge's loaded readings, to the cut-off, for the voltage change of the next, and its fit;
         // after a piece, the last whole discharge's (a piece's start is unseen: its times since the load came
@@ -1553,7 +1576,31 @@ impl<'a> Stream<'a> {
         });
         self.rest_before_s = rest_s;
         self.prior_mean = Some(mean);
+        self.discharge_setup = Some(next);
         self.reset_discharge();
+    }
+
+    /// At the load-on of a discharge that starts from a carried value: its prior's qMobile moved by the
+    /// current's move from the last discharge, as the discharges followed have shown it ([`CurrentSlope`]),
+    /// and its calibrators built again on it, reading the rest before the load again.
+    fn choose_prior_at_load_on(&mut self) {
+        let (Some(slope), Some(now), Some(before), Some(mean)) =
+            (self.current_slope.learned(), self.load_on_a, self.last_load_on_a, self.prior_mean)
+        else {
+            return;
+        };
+        let (Some(setup), Some((_, net))) = (self.discharge_setup.as_ref(), self.rebuild.as_ref()) else { return };
+        let mut next = setup.clone();
+        next.spec.tracker.prior.q_mobile_c = mean.q_mobile_c * (slope * (now / before).ln()).exp();
+        self.cal = build(&next, *net).expect("the stream's calibrator was built from this setting");
+        self.prior_cal = prior_alone(&next);
+        self.cal_read = !self.samples.is_empty();
+        for s in &self.samples {
+            self.cal.step(s);
+            if let Some(p) = self.prior_cal.as_mut() {
+                p.step(s);
+            }
+        }
     }
 
     /// The current discharge's readings from its load-on to the first below its cut-off under load (all
@@ -1588,6 +1635,7 @@ impl<'a> Stream<'a> {
 
     fn reset_discharge(&mut self) {
         self.short_start = false;
+        self.load_on_a = None;
         self.voltage_change = None;
         self.voltage_changes.clear();
         self.capacity_ah = None;
@@ -2386,6 +2434,41 @@ mod tests {
         );
         let truth = first.truth.q_mobile_c;
         assert!((fifth / truth - 1.0).abs() < 0.03, "the fifth starts at {fifth} C, truth {truth} C");
+    }
+
+    /// A cell whose diffusion is three times slower than the model's, cycled at 1 and 4 A: the end fit each
+    /// discharge hands on holds the model's error at its current (lower at 4 A), so a discharge at the other
+    /// current starts off by it. Once three discharges have moved their current, the stream moves each prior at
+    /// the load-on by what those showed: the prior it reads from the load-on is nearer the end fit the
+    /// discharge itself measures than the one it rested on, on most discharges after a move.
+    #[test]
+    fn a_discharge_at_another_current_starts_from_a_prior_moved_at_its_load_on() {
+        let currents = [1.0, 4.0, 4.0, 1.0, 4.0, 1.0, 1.0, 4.0, 1.0, 4.0, 4.0, 1.0, 4.0, 1.0];
+        let (readings, starts) = cycler_life(currents.len() as u64, |k, spec| EpisodeSpec {
+            profile: LoadProfile::Piecewise(vec![
+                (0.0, Load::CurrentA(0.0)),
+                (30.0, Load::CurrentA(currents[k as usize])),
+            ]),
+            cell_error: CellError { diffusion_scale: 1.5, ..CellError::default() },
+            ..spec
+        });
+        let setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let ours: Vec<Estimate> = readings.iter().map(|r| stream.step(r).unwrap()).collect();
+        let slope = stream.current_slope.learned().expect("a slope learned from the moves");
+        assert!(slope < 0.0, "the end fit falls at the higher current: slope {slope}");
+        let (mut nearer, mut moved) = (0, 0);
+        for k in 4..currents.len() - 1 {
+            if currents[k] == currents[k - 1] {
+                continue;
+            }
+            let on = (starts[k]..starts[k + 1]).find(|&i| readings[i].current_a > LOAD_THRESHOLD_A).unwrap();
+            // What it rested on, what it reads from the load-on, and what it hands on (the next one's start).
+            let (rested, chosen, measured) = (ours[on - 1].q_mobile, ours[on].q_mobile, ours[starts[k + 1]].q_mobile);
+            moved += 1;
+            nearer += usize::from((chosen - measured).abs() < (rested - measured).abs());
+        }
+        assert!(moved >= 5 && 4 * nearer >= 3 * moved, "nearer the end fit on {nearer} of {moved}");
     }
 
     /// Twelve discharges of one cell joined end to end: each discharge's predictions are scored at 10, 50

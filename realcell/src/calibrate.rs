@@ -727,31 +727,31 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // previous cycle's, the oracle's, with the knee against it; pinned, so the width does not matter).
     // The training discharges start from the tuning lifetime model, the judged ones from the one fitted on
     // every training discharge (that walk observes the training discharges first, for their history).
+    // The end fits' walk moves each prior with the current's move (`crate::prior::CurrentSlope`, learned on
+    // them as they end); the voltage fits' carries the previous discharge's fit as it is.
     let sequence = |train_carried: &[(Degradation, ModelExtension)],
-                    judged_carried: &[(Degradation, ModelExtension)]| {
+                    judged_carried: &[(Degradation, ModelExtension)],
+                    end_fits: bool| {
         let start = (spec.tracker.prior, neutral.clone());
         let none = Knees::default();
-        let tb = before(
-            &mut PriorWalk::new(&spec.tracker, life_tuning, carrying.tuning_width),
-            &train,
-            train_carried,
-            &start,
-            &none,
-            cut,
-        );
-        let mut walk = PriorWalk::new(&spec.tracker, life_used, width);
+        let tuning_walk = PriorWalk::new(&spec.tracker, life_tuning, carrying.tuning_width);
+        let mut tuning_walk = if end_fits { tuning_walk.moving_with_current() } else { tuning_walk };
+        let tb = before(&mut tuning_walk, &train, train_carried, &start, &none, cut);
+        let walk = PriorWalk::new(&spec.tracker, life_used, width);
+        let mut walk = if end_fits { walk.moving_with_current() } else { walk };
         for (r, f) in train.iter().zip(train_carried) {
             walk.observe(r, r.rest_before_s, &f.0);
         }
         let knees = Knees::of(&train, train_carried, cut);
         let first = train_carried.last().cloned().unwrap_or((spec.tracker.prior, neutral.clone()));
-        (tb, before(&mut walk, &judged, judged_carried, &first, &knees, cut))
+        let jb = before(&mut walk, &judged, judged_carried, &first, &knees, cut);
+        (tb, jb, walk.current_slope())
     };
-    let (train_before, judged_before) = sequence(&carrying.fits, &judged_carried);
+    let (train_before, judged_before, slope) = sequence(&carrying.fits, &judged_carried, true);
     // The references carry voltage fits; one cut short hands on the fit before it there too.
     let train_ref_fits = crate::carry::over_cut_short(&train, &train_fits, Some(&start));
     let judged_ref_fits = crate::carry::over_cut_short(&judged, &judged_fits, train_ref_fits.last().or(Some(&start)));
-    let (train_ref_before, judged_ref_before) = sequence(&train_ref_fits, &judged_ref_fits);
+    let (train_ref_before, judged_ref_before, _) = sequence(&train_ref_fits, &judged_ref_fits, false);
 
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
@@ -771,7 +771,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     settings.insert(
         "prior".into(),
         serde_json::json!({"carried": "end_fit", "kept_voltage_fit": carrying.kept_voltage_fit + judged_kept,
-            "width": width, "tuning_width": carrying.tuning_width, "lifetime": life.as_ref().map(|l| serde_json::json!({"model": l.used,
+            "width": width, "tuning_width": carrying.tuning_width, "current_slope": slope.learned(),
+            "current_moves": slope.moved, "lifetime": life.as_ref().map(|l| serde_json::json!({"model": l.used,
             "tuning_model": l.tuning, "verdict": l.verdict})), "judged": judged_before.iter().zip(&judged).map(|(b, r)| serde_json::json!({
             "cycle": r.cycle, "rest_before_s": b.rest_before_s, "q_mobile_c": b.prior.q_mobile_c,
             "r_o_ohm": b.prior.r_o_ohm, "sd_z": b.prior_sd_z})).collect::<Vec<_>>()}),

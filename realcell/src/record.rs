@@ -131,6 +131,12 @@ impl CellRecord {
         self.eod_s.is_some() && !self.short_start_seen
     }
 
+    /// The current of its first loaded reading, A (None without one): what a discharge shows of its current at
+    /// the load-on, as a live stream reads it there (`bcal_calib::stream`).
+    pub fn load_on_current_a(&self) -> Option<f64> {
+        self.samples.iter().find(|s| s.t_s >= self.load_on_s && s.current_a > LOAD_THRESHOLD_A).map(|s| s.current_a)
+    }
+
     /// Duration of the discharge from the load-on to the cut-off, s.
     pub fn discharge_s(&self) -> Option<f64> {
         self.eod_s.map(|e| e - self.load_on_s)
