@@ -1620,7 +1620,6 @@ impl<'a> Stream<'a> {
         Previous::new(readings, start)
     }
 
-    /// What the current discharge has measured, cleared for the next one.
     /// At a discharge's load-on: its rest voltage against the last [`SHORT_START_NEIGHBOURS`] discharges'
     /// ([`Stream::short_start`]; not judged before there are as many).
     fn see_rest(&mut self) {
@@ -1633,6 +1632,7 @@ impl<'a> Stream<'a> {
         }
     }
 
+    /// What the current discharge has measured, cleared for the next one.
     fn reset_discharge(&mut self) {
         self.short_start = false;
         self.load_on_a = None;
@@ -2436,7 +2436,7 @@ mod tests {
         assert!((fifth / truth - 1.0).abs() < 0.03, "the fifth starts at {fifth} C, truth {truth} C");
     }
 
-    /// A cell whose diffusion is three times slower than the model's, cycled at 1 and 4 A: the end fit each
+    /// A cell whose diffusion is half again slower than the model's, cycled at 1 and 4 A: the end fit each
     /// discharge hands on holds the model's error at its current (lower at 4 A), so a discharge at the other
     /// current starts off by it. Once three discharges have moved their current, the stream moves each prior at
     /// the load-on by what those showed: the prior it reads from the load-on is nearer the end fit the
