@@ -54,8 +54,8 @@ use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::scenario::{Request, Sample, KELVIN_0C};
 use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::measured::{
-    current_glitch, short_start, LoadMean, CURRENT_GLITCH_A, GLITCH_RUN_READINGS, LOADED_A, MAX_CELL_CURRENT_A,
-    MAX_LOADED_S, MAX_RECORD_CHARGE_AH, SHORT_START_CARRY_DROP_V, SHORT_START_NEIGHBOURS,
+    current_glitch, LoadMean, ShortStartWatch, CURRENT_GLITCH_A, GLITCH_RUN_READINGS, LOADED_A, MAX_CELL_CURRENT_A,
+    MAX_LOADED_S, MAX_RECORD_CHARGE_AH,
 };
 use bcal_common::policy::PolicyNet;
 use bcal_common::task::Task;
@@ -510,8 +510,8 @@ pub struct Stream<'a> {
     carried: Option<Degradation>,
     /// That discharge's posterior standard deviations, z units (None: its calibrator gives no interval).
     carried_sd_z: Option<[f64; 2]>,
-    /// The rest voltages before the load of the last [`SHORT_START_NEIGHBOURS`] discharges, V ...
-    rests_v: VecDeque<f64>,
+    /// The rest voltages before the load of the last discharges ...
+    rests_v: ShortStartWatch,
     /// How the carried qMobile moves with the current ([`CurrentSlope`]), learned on the discharges followed ...
     current_slope: CurrentSlope,
     /// ... the current of this discharge's first loaded reading and of the last discharge's, A ...
@@ -519,9 +519,9 @@ pub struct Stream<'a> {
     last_load_on_a: Option<f64>,
     /// ... and the setting this discharge was built from, its prior chosen again at the load-on by them.
     discharge_setup: Option<Setup>,
-    /// ... and whether the current discharge started so far short of a full charge, as they show
-    /// ([`SHORT_START_CARRY_DROP_V`]), that its end fit does not measure the cell: it hands on what was carried
-    /// into it, as `bcal calibrate`'s records do (`bcal_realcell::carry::over_cut_short`).
+    /// ... and whether the current discharge started so far short of a full charge, as the rests show
+    /// ([`ShortStartWatch`]), that its end fit does not measure the cell: it hands on what was carried into it,
+    /// as `bcal calibrate`'s records do (`bcal_realcell::carry::over_cut_short`).
     short_start: bool,
     /// The prior mean the current discharge started from (None for the first: the setting's own prior).
     prior_mean: Option<Degradation>,
@@ -922,7 +922,7 @@ impl<'a> Stream<'a> {
             range_edges: RangeEdges::default(),
             carried: None,
             carried_sd_z: None,
-            rests_v: VecDeque::new(),
+            rests_v: ShortStartWatch::default(),
             short_start: false,
             current_slope: CurrentSlope::default(),
             load_on_a: None,
@@ -1620,16 +1620,9 @@ impl<'a> Stream<'a> {
         Previous::new(readings, start)
     }
 
-    /// At a discharge's load-on: its rest voltage against the last [`SHORT_START_NEIGHBOURS`] discharges'
-    /// ([`Stream::short_start`]; not judged before there are as many).
+    /// At a discharge's load-on: its rest voltage against the last discharges' ([`Stream::short_start`]).
     fn see_rest(&mut self) {
-        let Some(v) = crate::end_fit::rest_voltage_v(&self.samples) else { return };
-        self.short_start = self.rests_v.len() == SHORT_START_NEIGHBOURS
-            && short_start(v, self.rests_v.make_contiguous(), SHORT_START_CARRY_DROP_V).is_some();
-        self.rests_v.push_back(v);
-        if self.rests_v.len() > SHORT_START_NEIGHBOURS {
-            self.rests_v.pop_front();
-        }
+        self.short_start = self.rests_v.see(crate::end_fit::rest_voltage_v(&self.samples));
     }
 
     /// What the current discharge has measured, cleared for the next one.

@@ -120,6 +120,17 @@ impl<'a> PriorWalk<'a> {
     /// The prior of `record` (rest before it `rest_s`), from what the walk has seen; `first` is the prior
     /// of the very first discharge (no history).
     pub fn prior(&self, record: &CellRecord, rest_s: Option<f64>, first: &Degradation) -> Prior {
+        let mut p = self.unmoved_prior(record, rest_s, first);
+        if let (Some(x), Some(slope)) = (current_move(record, self.last_load_on_a), self.slope.learned()) {
+            if self.moves_with_current && self.last.is_some() {
+                p.mean.q_mobile_c *= (slope * x).exp();
+            }
+        }
+        p
+    }
+
+    /// [`PriorWalk::prior`] before the current's move: the lifetime model's alone.
+    fn unmoved_prior(&self, record: &CellRecord, rest_s: Option<f64>, first: &Degradation) -> Prior {
         let Some((cycle, prev, prev_cap, prev_current_a)) = self.last else {
             return Prior {
                 mean: *first,
@@ -135,12 +146,7 @@ impl<'a> PriorWalk<'a> {
         // live stream does.
         let at = Condition { current_a: prev_current_a, ..condition(record) };
         let carry = self.life.as_ref().map_or(Carry::NONE, |t| t.carry(record.cycle, rest_s, at, prev_cap));
-        let mut mean = carry.mean(&prev);
-        if let (Some(x), Some(slope)) = (current_move(record, self.last_load_on_a), self.slope.learned()) {
-            if self.moves_with_current {
-                mean.q_mobile_c *= (slope * x).exp();
-            }
-        }
+        let mean = carry.mean(&prev);
         let gap = record.cycle.saturating_sub(cycle);
         let span = self.spec.q_mobile_range_c[1] - self.spec.q_mobile_range_c[0];
         let sd_z = self.width.fitted().then(|| carry.widen_z(self.width.sd_z(rest_s, gap), prev.q_mobile_c, span));
@@ -165,10 +171,7 @@ impl<'a> PriorWalk<'a> {
             let x = current_move(record, self.last_load_on_a)
                 .filter(|_| cycle + 1 == record.cycle && record.measured_its_charge());
             if let Some(x) = x {
-                // Against the prior the lifetime model alone gives (the slope's own move left out).
-                let moves = std::mem::replace(&mut self.moves_with_current, false);
-                let p = self.prior(record, rest_s, fit);
-                self.moves_with_current = moves;
+                let p = self.unmoved_prior(record, rest_s, fit);
                 self.slope.push(x, (fit.q_mobile_c / p.mean.q_mobile_c).ln());
             }
         }

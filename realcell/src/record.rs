@@ -7,7 +7,7 @@
 use bcal_calib::eod::charge_to_ah;
 use bcal_common::battery::Load;
 use bcal_common::measured::scenario::{Request, Sample};
-use bcal_common::measured::{short_start, SHORT_START_CARRY_DROP_V, SHORT_START_NEIGHBOURS};
+use bcal_common::measured::ShortStartWatch;
 use bcal_doctor::Discharge;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -68,22 +68,12 @@ pub fn set_currents_before<'r>(records: impl IntoIterator<Item = &'r mut CellRec
     }
 }
 
-/// Sets each record's [`CellRecord::short_start_seen`] against the rest voltages of the
-/// [`SHORT_START_NEIGHBOURS`] records before it ([`SHORT_START_CARRY_DROP_V`] below their median) in `records` (in order: every record kept, training and judged,
-/// as [`set_currents_before`]; none judged before there are as many). A short start stays among the
-/// neighbours, so a cell whose charger changed for good is held against its new rests after two discharges.
+/// Sets each record's [`CellRecord::short_start_seen`] against the rests of the records before it in `records` (in
+/// order: every record kept, training and judged, as [`set_currents_before`]; `ShortStartWatch`).
 pub fn set_short_starts_seen<'r>(records: impl IntoIterator<Item = &'r mut CellRecord>) {
-    let mut before_v: std::collections::VecDeque<f64> = std::collections::VecDeque::new();
+    let mut watch = ShortStartWatch::default();
     for r in records {
-        let rest_v = r.rest_before_load_v();
-        r.short_start_seen = before_v.len() == SHORT_START_NEIGHBOURS
-            && rest_v.is_some_and(|v| short_start(v, before_v.make_contiguous(), SHORT_START_CARRY_DROP_V).is_some());
-        if let Some(v) = rest_v {
-            before_v.push_back(v);
-            if before_v.len() > SHORT_START_NEIGHBOURS {
-                before_v.pop_front();
-            }
-        }
+        r.short_start_seen = watch.see(r.rest_before_load_v());
     }
 }
 

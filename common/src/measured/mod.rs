@@ -90,3 +90,27 @@ pub fn short_start(rest_v: f64, around_v: &[f64], drop_v: f64) -> Option<f64> {
     let mut around = around_v.to_vec();
     crate::stats::quantile(&mut around, 0.5).filter(|m| rest_v < m - drop_v)
 }
+
+/// The rest voltages of the last [`SHORT_START_NEIGHBOURS`] discharges, in order, against which each next one's
+/// is held ([`SHORT_START_CARRY_DROP_V`]; none judged before there are as many): `bcal calibrate`'s records and a
+/// live stream's discharges alike. A short start stays among the neighbours, so a cell whose charger changed for
+/// good is held against its new rests after two discharges.
+#[derive(Clone, Debug, Default)]
+pub struct ShortStartWatch {
+    before_v: std::collections::VecDeque<f64>,
+}
+
+impl ShortStartWatch {
+    /// Whether a discharge resting at `rest_v` (None: no rest before its load, not judged and not kept) started
+    /// so far short of full that its end fit does not measure the cell; it then joins the neighbours.
+    pub fn see(&mut self, rest_v: Option<f64>) -> bool {
+        let Some(v) = rest_v else { return false };
+        let short = self.before_v.len() == SHORT_START_NEIGHBOURS
+            && short_start(v, self.before_v.make_contiguous(), SHORT_START_CARRY_DROP_V).is_some();
+        self.before_v.push_back(v);
+        if self.before_v.len() > SHORT_START_NEIGHBOURS {
+            self.before_v.pop_front();
+        }
+        short
+    }
+}
