@@ -25,7 +25,8 @@ use std::time::Instant;
 #[derive(clap::Args, Debug)]
 pub struct EvalArgs {
     /// Run folder: read policy.bcalpol, config.toml, mdp.json and metrics.jsonl from it when present, and
-    /// write report.json, report.md and the plots into it (created if missing).
+    /// write report.json, report.md and the plots into it. It must exist (an empty folder evaluates the
+    /// baselines alone).
     #[arg(long)]
     pub run: PathBuf,
     /// Folder for report.json, report.md and the plots (default: the run folder), e.g. to keep the
@@ -110,8 +111,16 @@ impl PolicyChoice {
 pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let run_dir = &a.run;
-    std::fs::create_dir_all(run_dir)
-        .with_context(|| format!("cannot create the run folder {}: check the path", run_dir.display()))?;
+    // A mistyped run folder was created and evaluated in the paper's setting, exit 0 (a fuzz of the CLI,
+    // 2026-11-30): a folder to evaluate must exist.
+    if !run_dir.is_dir() {
+        bail!(
+            "the run folder {} does not exist: pass the folder a `bcal train` run wrote (runs/NAME), or create \
+             it first to evaluate the baselines alone (with a config.toml from `bcal train --print-config` for \
+             a setting other than the paper's)",
+            run_dir.display()
+        );
+    }
 
     let config_path = run_dir.join("config.toml");
     let config = if config_path.exists() { Some(TrainConfig::from_file(&config_path)?) } else { None };
@@ -394,7 +403,11 @@ measured-only, {:.1} mV: NRMSE qMobile / Ro % (second half), time to 2 % s, cove
         r.voltage_noise_mv
     );
     for (key, name) in bcal_eval::measured_eval::METHODS {
-        let Some(m) = r.methods.get(key) else { continue };
+        let Some(m) = r.methods.get(key) else {
+            let why = r.not_evaluated.get(key).map_or(String::new(), |w| format!(": {w}"));
+            println!("  {name:<25} not evaluated{why}");
+            continue;
+        };
         let g = |v: &bcal_eval::metrics::ParamValues, d: usize| {
             format!(
                 "{} / {}",

@@ -641,11 +641,27 @@ impl Progress {
         s
     }
 
-    fn finish(&self) {
+    /// The message once training stopped: the learner logs a train line every so many updates and stops between
+    /// two, so the update count is its last checkpoint's where that is later (a fuzz of the CLI, 2026-11-30: the
+    /// last line said 7507 updates where 7671 were made).
+    fn final_message(&mut self) -> String {
+        let run_dir = self.path.parent().unwrap_or(Path::new("."));
+        if let (Some((_, saved)), Some(serde_json::Value::Object(train))) =
+            (trained_so_far(run_dir), self.last_train.as_mut())
+        {
+            if train.get("update").and_then(|u| u.as_u64()).is_some_and(|logged| logged < saved) {
+                train.insert("update".into(), saved.into());
+            }
+        }
+        self.message()
+    }
+
+    fn finish(&mut self) {
+        let msg = self.final_message();
         if let Some(b) = &self.bar {
-            b.finish_with_message(self.message());
+            b.finish_with_message(msg);
         } else {
-            println!("{}", self.message());
+            println!("{msg}");
         }
     }
 }
@@ -659,6 +675,26 @@ mod tests {
         assert_eq!(utc_stamp(0), "19700101-000000");
         // 2026-11-22 01:50:44 UTC.
         assert_eq!(utc_stamp(1_795_312_244), "20261122-015044");
+    }
+
+    #[test]
+    fn the_last_progress_line_counts_the_updates_of_the_final_checkpoint() {
+        let dir = tempfile::tempdir().unwrap();
+        let line = |u: u64| format!("{{\"kind\":\"train\",\"update\":{u},\"updates_per_s\":250.0}}\n");
+        std::fs::write(dir.path().join("metrics.jsonl"), line(7000) + &line(7507)).unwrap();
+        let mut p = Progress::new(dir.path(), 60.0);
+        p.update();
+        assert!(p.final_message().starts_with("upd 7507 "), "{}", p.message());
+        let step = dir.path().join("checkpoints/step-7671");
+        std::fs::create_dir_all(&step).unwrap();
+        std::fs::write(dir.path().join("checkpoints/LATEST"), "step-7671\n").unwrap();
+        std::fs::write(step.join("meta.json"), r#"{"trained_s": 60.1, "update_step": 7671}"#).unwrap();
+        assert!(p.final_message().starts_with("upd 7671 "), "{}", p.message());
+        // An older leg's checkpoint never lowers what this leg logged.
+        std::fs::write(step.join("meta.json"), r#"{"trained_s": 30.0, "update_step": 4000}"#).unwrap();
+        let mut q = Progress::new(dir.path(), 60.0);
+        q.update();
+        assert!(q.final_message().starts_with("upd 7507 "), "{}", q.message());
     }
 
     #[test]

@@ -190,3 +190,16 @@ fn eval_refuses_a_policy_of_another_observation_naming_both() {
     assert!(err.contains("Measured") && err.contains("FullState"), "{err}");
     assert!(err.contains("policy.best.bcalpol"), "{err}");
 }
+
+/// A mistyped run folder was created and evaluated in the paper's setting with exit 0 (a fuzz of the CLI,
+/// 2026-11-30): it is refused, named, and not created.
+#[test]
+fn eval_refuses_a_run_folder_that_does_not_exist_and_creates_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let typo = dir.path().join("runs").join("c18-sed1");
+    let o = bcal(&["eval", "--run", typo.to_str().unwrap(), "--quick"], dir.path());
+    let (_, err) = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("c18-sed1") && err.contains("does not exist"), "{err}");
+    assert!(!typo.exists() && !dir.path().join("runs").exists(), "the mistyped folder was created");
+}
