@@ -24,6 +24,30 @@ pub enum Quantity {
     QMobileC,
 }
 
+/// The capacity a rest gives back on a cell whose training records cannot say (no rest among them long enough
+/// to fit a recovery; NASA: "capacity jumps up by 0.02-0.15 Ah after rest gaps" on every cell of the set).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PopulationRecovery {
+    /// A over the cell's capacity.
+    pub amplitude_frac: f64,
+    pub tau_rest_h: f64,
+    pub decay_discharges: f64,
+    /// The jump's uncertainty over its size: a population's value, not the cell's, so as wide as the jump.
+    pub jump_sd_fraction: f64,
+}
+
+/// A model fitted on records with no rest this long (a day) takes [`POPULATION_RECOVERY`]: its records cannot say
+/// what a long rest gives back.
+pub const POPULATION_RECOVERY_UNSEEN_REST_S: f64 = 24.0 * 3600.0;
+
+/// The recovery of NASA's four cells in `../shared` whose training records fit and name one (`bcal calibrate
+/// --data ../shared/data/nasa-pcoe --cell C`, `settings.prior.lifetime.model`; B0005 / B0006 / B0018 / B0029: A
+/// over capacity 0.036 / 0.076 / 0.064 / 0.049, tau 15.2 / 37.6 / 42.3 / 2.5 h, wear-off 5.0 / 6.3 / 200 / 200
+/// discharges, 200 the fit's bound): the medians, the wear-off's taken on its logarithm. A 3-day rest then gives
+/// back 4.6 % of the capacity over a 3-hour one (their own models: 2.7 / 5.7 / 4.8 / 1.7 %).
+pub const POPULATION_RECOVERY: PopulationRecovery =
+    PopulationRecovery { amplitude_frac: 0.056, tau_rest_h: 26.4, decay_discharges: 35.5, jump_sd_fraction: 1.0 };
+
 /// One series' lifetime model (see the module doc): what the calibrators can use as a prior.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LifetimeModel {
@@ -116,6 +140,46 @@ impl LifetimeModel {
             );
         }
         None
+    }
+
+    /// A cell's capacity model with nothing known of it but one discharge's capacity and its usual rest: no fade
+    /// and the recovery NASA's cells show ([`POPULATION_RECOVERY`]). What a live stream without the cell's own
+    /// model follows the life with (a flat trend: each discharge's measured capacity carries the fade).
+    pub fn population(capacity_ah: f64, usual_rest_s: f64) -> LifetimeModel {
+        LifetimeModel {
+            quantity: Quantity::CapacityAh,
+            intercept: capacity_ah,
+            per_cycle: 0.0,
+            reference_cycle: 1.0,
+            per_kelvin: 0.0,
+            per_ampere: 0.0,
+            reference: Condition::default(),
+            amplitude: 0.0,
+            tau_rest_s: 0.0,
+            decay_discharges: 0.0,
+            usual_rest_s,
+            residual_sd: 0.0,
+            jump_sd_fraction: 0.0,
+        }
+        .with_population_recovery()
+    }
+
+    /// This model with the recovery NASA's cells show ([`POPULATION_RECOVERY`]) where it has none and its cell's
+    /// usual rest is known, its level under the usual rest kept: for a cell whose training records held no rest
+    /// long enough to fit its own. Unchanged otherwise.
+    pub fn with_population_recovery(&self) -> LifetimeModel {
+        let p = POPULATION_RECOVERY;
+        let usable = self.usual_rest_s > 0.0 && self.intercept > 0.0;
+        if self.amplitude != 0.0 || self.quantity != Quantity::CapacityAh || !usable {
+            return *self;
+        }
+        let mut m = *self;
+        m.amplitude = p.amplitude_frac * self.intercept;
+        m.tau_rest_s = p.tau_rest_h * 3600.0;
+        m.decay_discharges = p.decay_discharges;
+        m.jump_sd_fraction = p.jump_sd_fraction;
+        m.intercept -= m.amplitude * m.steady_recovery();
+        m
     }
 
     /// The jump a rest of `rest_s` gives over the usual rest, before it wears off.
