@@ -208,6 +208,10 @@ class Calibrator:
     def spec(self) -> dict[str, Any]:
         """The calibrator's setting (ranges, prior, cut-off, model) as bcal's config writes it."""
     @property
+    def widened_ranges(self) -> list[list[float]] | None:
+        """The ranges the stream widened the setting's to after two discharges in a row handed on a fit at the
+        same edge of one, `[[q_mobile_lo_c, q_mobile_hi_c], [r_o_lo_ohm, r_o_hi_ohm]]`; None while it has not."""
+    @property
     def range_edges(self) -> dict[str, int]:
         """Discharges finished so far (`discharges`: each counts once it has handed its fit on, when the next
         begins) and those whose fit sat at an edge of the setting's ranges (`at_edge`; per edge

@@ -559,11 +559,9 @@ fn at_edge_text(stream: &Stream) -> Option<String> {
     if e.at_edge == 0 {
         return None;
     }
-    let spec = stream.spec();
+    let [q_range, r_range] = stream.setting_ranges();
     let mut parts = Vec::new();
-    for (k, (name, unit, range)) in
-        [("q_mobile", "C", spec.q_mobile_range_c), ("r_o", "ohm", spec.r_o_range_ohm)].into_iter().enumerate()
-    {
+    for (k, (name, unit, range)) in [("q_mobile", "C", q_range), ("r_o", "ohm", r_range)].into_iter().enumerate() {
         for (j, edge) in ["floor", "top"].into_iter().enumerate() {
             let n = e.by_edge[k][j];
             if n > 0 {
@@ -571,10 +569,20 @@ fn at_edge_text(stream: &Stream) -> Option<String> {
             }
         }
     }
+    let widened = stream.widened_ranges().map_or(String::new(), |[q, r]| {
+        format!(
+            "; after {} in a row at an edge the stream widened them, to qMobile {:.0}-{:.0} C and Ro {:.3}-{:.3} ohm",
+            bcal_calib::stream::EDGE_RUN,
+            q[0],
+            q[1],
+            r[0],
+            r[1]
+        )
+    });
     Some(format!(
-        "{} of {} discharge{} handed on a fit at the edge of the setting's ranges ({}): a cell outside them is \
-         followed at their edge, its predictions off; where most discharges do, follow it on its own setting \
-         (bcal cell-config --data DIR --cell ID --out CELL.toml on its records, then --config CELL.toml)",
+        "{} of {} discharge{} handed on a fit at the edge of the setting's ranges ({}){widened}: a cell outside \
+         them is followed at their edge, its predictions off; where most discharges do, follow it on its own \
+         setting (bcal cell-config --data DIR --cell ID --out CELL.toml on its records, then --config CELL.toml)",
         e.at_edge,
         e.discharges,
         if e.discharges == 1 { "" } else { "s" },

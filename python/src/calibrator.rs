@@ -293,6 +293,13 @@ impl Calibrator {
         Ok(d)
     }
 
+    /// The ranges the stream widened the setting's to after two discharges in a row handed on a fit at the same
+    /// edge of one, as `[[q_mobile_lo_c, q_mobile_hi_c], [r_o_lo_ohm, r_o_hi_ohm]]`, or None while it has not.
+    #[getter]
+    fn widened_ranges(&self) -> Option<[[f64; 2]; 2]> {
+        self.with_stream(|s| s.widened_ranges())
+    }
+
     /// The calibrated model state now under progpy's state names (qpS, qpB, qnB, qnS in C; Vo, Vsn, Vsp in
     /// V; tb in K), or None before the first reading.
     fn state<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {

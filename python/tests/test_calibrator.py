@@ -151,6 +151,12 @@ def test_a_cell_outside_the_ranges_is_said_in_both_faces(bcal_cli):
     n = edges["at_edge"]
     said = f"{n} of 2 discharges handed on a fit at the edge of the setting's ranges (r_o at its top, 0.25 ohm: {n})"
     assert said in out.stderr and "bcal cell-config" in out.stderr, out.stderr
+    # Two in a row at the top: the third discharge runs on a range widened by its span (0.05-0.45 ohm).
+    widened = cal.widened_ranges
+    assert (widened is not None) == (edges["r_o_top"] >= 2), (widened, edges)
+    if widened is not None:
+        assert widened[1] == pytest.approx([0.05, 0.45]), widened
+        assert "the stream widened them, to qMobile" in out.stderr and "Ro 0.050-0.450 ohm" in out.stderr, out.stderr
 
 
 def test_run_names_a_missing_column_and_a_bad_row(discharge):
