@@ -2294,9 +2294,10 @@ mod tests {
     }
 
     /// A cell whose resistance lies above the setting's range (0.33 ohm against its top of 0.25; the blind cold
-    /// cell at 4 A has 0.40) was followed at the range's top for its whole life, its qMobile bent to make up for
-    /// it. After two discharges in a row whose fit sat at the top the stream widens the range (to 0.45 ohm, the
-    /// floor and qMobile's range untouched), and the discharges after it end within 5 % of the cell's resistance.
+    /// cell at 4 A has 0.44-0.52) was followed at the range's top for its whole life, its qMobile bent to make up
+    /// for it. After two discharges in a row whose fit sat at the top the stream widens the range (to 0.45 ohm;
+    /// qMobile's floor, where its fits bent, too), and the discharges after it end within 5 % of the cell's
+    /// resistance.
     #[test]
     fn a_stream_widens_a_range_its_fits_sit_at_the_edge_of() {
         let cfg = ScenarioConfig::default();
