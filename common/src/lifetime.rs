@@ -142,7 +142,7 @@ impl LifetimeModel {
         None
     }
 
-    /// A cell's capacity model with nothing known of it but one discharge's capacity and its usual rest: no fade
+    /// A cell's capacity model with nothing known of it but a discharge's capacity and its usual rest: no fade
     /// and the recovery NASA's cells show ([`POPULATION_RECOVERY`]). What a live stream without the cell's own
     /// model follows the life with (a flat trend: each discharge's measured capacity carries the fade).
     pub fn population(capacity_ah: f64, usual_rest_s: f64) -> LifetimeModel {
