@@ -89,6 +89,12 @@ pub const MIN_MOVED_PAIRS: usize = 3;
 /// A current this many times the last discharge's, or its inverse, moved.
 pub const MOVED_RATIO: f64 = 1.2;
 
+/// The log of the ratio of a discharge's load-on current to the last one's ([`CurrentSlope`]'s x), None unless
+/// both are above 0.
+pub fn current_move(now_a: f64, before_a: f64) -> Option<f64> {
+    (now_a > 0.0 && before_a > 0.0).then(|| (now_a / before_a).ln())
+}
+
 /// How the end fit a discharge hands on moves with the current (issue 18, "across discharges"): on a cell
 /// cycled at several currents the qMobile that puts the model's end at the measured one holds the model's error
 /// at that current (the blind "B0038" of `examples/blind/progpy_cells.py` fits 1.3 % above its qMobile at 1 A,
@@ -118,6 +124,13 @@ impl CurrentSlope {
             self.pairs += 1;
             self.moved += usize::from(x.abs() > MOVED_RATIO.ln());
         }
+    }
+
+    /// `q_mobile_c` moved by the learned slope for a move of the load-on current from `before_a` to `now_a`
+    /// (None: no slope yet, or a current not above 0): the one rule `bcal calibrate`'s walk and a live stream
+    /// move a carried prior by.
+    pub fn moved(&self, q_mobile_c: f64, now_a: f64, before_a: f64) -> Option<f64> {
+        Some(q_mobile_c * (self.learned()? * current_move(now_a, before_a)?).exp())
     }
 
     /// The slope, per unit of the log of the current's ratio (None: too few moves yet).

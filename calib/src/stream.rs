@@ -1509,7 +1509,9 @@ impl<'a> Stream<'a> {
             self.ends.push(Carried { end_z, rest_s: self.rest_before_s, mean_z });
             // Against the prior mean before the load-on moved it, as `bcal calibrate`'s walk learns it.
             if let (Some(now), Some(before), Some(m)) = (self.load_on_a, self.last_load_on_a, self.prior_mean) {
-                self.current_slope.push((now / before).ln(), (end.q_mobile_c / m.q_mobile_c).ln());
+                if let Some(x) = crate::prior_width::current_move(now, before) {
+                    self.current_slope.push(x, (end.q_mobile_c / m.q_mobile_c).ln());
+                }
             }
             self.range_edges.push(end_z);
             self.carried = Some(end);
@@ -1663,14 +1665,13 @@ impl<'a> Stream<'a> {
     /// current's move from the last discharge, as the discharges followed have shown it ([`CurrentSlope`]),
     /// and its calibrators built again on it, reading the rest before the load again.
     fn choose_prior_at_load_on(&mut self) {
-        let (Some(slope), Some(now), Some(before), Some(mean)) =
-            (self.current_slope.learned(), self.load_on_a, self.last_load_on_a, self.prior_mean)
-        else {
+        let (Some(now), Some(before), Some(mean)) = (self.load_on_a, self.last_load_on_a, self.prior_mean) else {
             return;
         };
+        let Some(q_mobile_c) = self.current_slope.moved(mean.q_mobile_c, now, before) else { return };
         let (Some(setup), Some((_, net))) = (self.discharge_setup.as_ref(), self.rebuild.as_ref()) else { return };
         let mut next = setup.clone();
-        next.spec.tracker.prior.q_mobile_c = mean.q_mobile_c * (slope * (now / before).ln()).exp();
+        next.spec.tracker.prior.q_mobile_c = q_mobile_c;
         self.cal = build(&next, *net).expect("the stream's calibrator was built from this setting");
         self.prior_cal = prior_alone(&next);
         self.cal_read = !self.samples.is_empty();

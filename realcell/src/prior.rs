@@ -121,9 +121,9 @@ impl<'a> PriorWalk<'a> {
     /// of the very first discharge (no history).
     pub fn prior(&self, record: &CellRecord, rest_s: Option<f64>, first: &Degradation) -> Prior {
         let mut p = self.unmoved_prior(record, rest_s, first);
-        if let (Some(x), Some(slope)) = (current_move(record, self.last_load_on_a), self.slope.learned()) {
+        if let (Some(now_a), Some(before_a)) = (record.load_on_current_a(), self.last_load_on_a) {
             if self.moves_with_current && self.last.is_some() {
-                p.mean.q_mobile_c *= (slope * x).exp();
+                p.mean.q_mobile_c = self.slope.moved(p.mean.q_mobile_c, now_a, before_a).unwrap_or(p.mean.q_mobile_c);
             }
         }
         p
@@ -191,8 +191,7 @@ impl<'a> PriorWalk<'a> {
 /// discharge's at its own (the same reading of each: a square wave's loaded readings at their level, not a mean
 /// over its time); None without both.
 fn current_move(record: &CellRecord, last_load_on_a: Option<f64>) -> Option<f64> {
-    let (now_a, last_a) = (record.load_on_current_a()?, last_load_on_a?);
-    (now_a > 0.0 && last_a > 0.0).then(|| (now_a / last_a).ln())
+    bcal_calib::prior_width::current_move(record.load_on_current_a()?, last_load_on_a?)
 }
 
 fn condition(r: &CellRecord) -> Condition {
