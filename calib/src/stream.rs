@@ -50,7 +50,7 @@ use crate::tracker_based::{RlCalibrator, Uncalibrated, WindowFitCalibrator};
 use crate::widening::{share_bin, Adapt, Outcome, Widening, EOD_FRACTIONS_PCT, MIN_OUTCOMES, WINDOW};
 use crate::{predict_eod, Calibrator, EodPrediction, EodQuery};
 use bcal_common::battery::{Degradation, Load, LoadProfile};
-use bcal_common::lifetime::{Carry, Condition, LifeTracker, LifetimeModel};
+use bcal_common::lifetime::{Carry, Condition, LifeTracker, LifetimeModel, POPULATION_RESTS};
 use bcal_common::math::idx;
 use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
@@ -92,9 +92,6 @@ pub const AT_EDGE_Z: f64 = 0.01;
 /// Discharges in a row whose fit sat at the same edge of a range before the stream widens it
 /// ([`Stream::widen_ranges`]).
 pub const EDGE_RUN: usize = 2;
-/// Known rests a stream without the cell's lifetime model waits for before it follows the life by NASA's cells'
-/// recovery ([`LifetimeModel::population`]), their median its usual rest.
-pub const POPULATION_RESTS: usize = 3;
 /// How far a stream may widen a range: this many times the setting's own span.
 pub const MAX_RANGE_GROWTH: f64 = 8.0;
 

@@ -5,6 +5,7 @@
 //! ([`LifeTracker::carry`], the one rule for both).
 
 use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
 
 /// The conditions of one discharge that the trend may depend on.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -39,6 +40,11 @@ pub struct PopulationRecovery {
 /// A model fitted on records with no rest this long (a day) takes [`POPULATION_RECOVERY`]: its records cannot say
 /// what a long rest gives back.
 pub const POPULATION_RECOVERY_UNSEEN_REST_S: f64 = 24.0 * 3600.0;
+
+/// Known rests a cell without its own lifetime model (a live stream without one, `bcal calibrate` on training
+/// records too few to fit one) needs before its life is followed by NASA's cells' recovery
+/// ([`LifetimeModel::population`]), their median its usual rest: one rest alone (a weekend) is no usual one.
+pub const POPULATION_RESTS: usize = 3;
 
 /// The recovery of NASA's four cells in `../shared` whose training records fit and name one (`bcal calibrate
 /// --data ../shared/data/nasa-pcoe --cell C`, `settings.prior.lifetime.model`; B0005 / B0006 / B0018 / B0029: A
@@ -182,6 +188,19 @@ impl LifetimeModel {
         m
     }
 
+    /// This model with its recovery's amplitude times `scale` (its level under the usual rest kept): the size a
+    /// cell's own records said ([`LifeTracker::recovery_scale`]).
+    pub fn with_recovery_scaled(&self, scale: f64) -> LifetimeModel {
+        if self.amplitude == 0.0 || scale == 1.0 {
+            return *self;
+        }
+        let mut m = *self;
+        m.intercept += m.amplitude * m.steady_recovery();
+        m.amplitude *= scale.max(0.0);
+        m.intercept -= m.amplitude * m.steady_recovery();
+        m
+    }
+
     /// The jump a rest of `rest_s` gives over the usual rest, before it wears off.
     pub fn jump_over_usual(&self, rest_s: f64) -> f64 {
         self.amplitude * (self.refill(rest_s) - self.refill(self.usual_rest_s))
@@ -196,6 +215,8 @@ pub struct Prediction {
     pub sd: f64,
     /// The part of the change since the last measured value that recovery accounts for.
     pub recovery_change: f64,
+    /// One standard deviation of that part.
+    pub recovery_sd: f64,
 }
 
 /// A prior for qMobile at the next discharge.
@@ -217,12 +238,63 @@ pub struct LifeTracker {
     condition: Condition,
     /// The last measured value, with the cycle, recovery state and conditions it was measured at.
     last: Option<(u32, f64, f64, Condition)>,
+    /// Whether the recovery's size is learned from the measured values ([`LifeTracker::learning_its_recovery`]).
+    learns: bool,
+    /// What the measured values said of the recovery's scale: the sums of g^2 / s^2 and g y / s^2 over the
+    /// measured changes y across a rest longer than the usual (less the model's fade and the drift below) whose
+    /// recovery part at scale 1 was g.
+    scale_info: f64,
+    scale_xy: f64,
+    /// The last measured changes across a usual rest (no recovery part), less the model's fade: the fade the
+    /// model does not hold ([`LifetimeModel::population`] holds none), taken off a jump before it is read.
+    drift: VecDeque<f64>,
 }
+
+/// How many of the last changes across a usual rest [`LifeTracker`]'s drift is the mean of.
+const DRIFT_CHANGES: usize = 8;
+
+/// The floor of a measured capacity change's noise when the recovery's scale is learned, as a share of the
+/// capacity: a model with no residual of its own ([`LifetimeModel::population`]) would otherwise take one change
+/// as exact.
+pub const CHANGE_NOISE_FLOOR_FRAC: f64 = 0.003;
 
 impl LifeTracker {
     /// A tracker before the first discharge, its recovery at the usual rest's steady state.
     pub fn new(model: LifetimeModel) -> Self {
-        Self { cycle: None, recovery: model.steady_recovery(), condition: model.reference, last: None, model }
+        Self {
+            cycle: None,
+            recovery: model.steady_recovery(),
+            condition: model.reference,
+            last: None,
+            learns: false,
+            scale_info: 0.0,
+            scale_xy: 0.0,
+            drift: VecDeque::new(),
+            model,
+        }
+    }
+
+    /// A tracker that learns the size of the cell's own recovery from its measured values, starting from the
+    /// model's: a scale on the amplitude, 1 with a standard deviation of the model's `jump_sd_fraction` before
+    /// anything is measured, updated (least squares with that prior) by each measured change beside what the
+    /// fade and the scaled recovery expected. For a recovery that is not the cell's own
+    /// ([`LifetimeModel::population`]), walked over a cell's training records: NASA's B0025 regains nothing
+    /// after rests of 9 and 13 days where the median cell regains 5 % of its capacity, and its 87 h rest before
+    /// cycle 6 says so (`bcal calibrate`'s `population_life`). Not on judged discharges: there the scale took up
+    /// the difference between the population's time constants and the cell's (`docs/realcell.md`).
+    pub fn learning_its_recovery(model: LifetimeModel) -> Self {
+        Self { learns: true, ..Self::new(model) }
+    }
+
+    /// The recovery's scale (1: the model's own amplitude) and its standard deviation, from what was measured.
+    pub fn recovery_scale(&self) -> (f64, f64) {
+        let tau = self.model.jump_sd_fraction;
+        if !self.learns || tau <= 0.0 {
+            return (1.0, tau);
+        }
+        let prior = tau.powi(-2);
+        let scale = (prior + self.scale_xy) / (prior + self.scale_info);
+        (scale.clamp(0.0, 1.0 + 3.0 * tau), (prior + self.scale_info).sqrt().recip())
     }
 
     /// Moves to discharge `cycle` (later than the current one), with the rest before it and its conditions;
@@ -247,12 +319,20 @@ impl LifeTracker {
         let m = &self.model;
         let cycle = self.cycle.unwrap_or(m.reference_cycle.round().max(1.0) as u32);
         let here = m.level(cycle, self.recovery, self.condition);
-        let (value, recovery_change) = match self.last {
+        // The model's change and its recovery part g at the model's amplitude; the recovery moves by the
+        // learned scale of it.
+        let (value, g) = match self.last {
             Some((c, v, r, at)) => (v + here - m.level(c, r, at), m.amplitude * (self.recovery - r)),
             None => (here, m.amplitude * (self.recovery - m.steady_recovery())),
         };
-        let sd = m.residual_sd.hypot(m.jump_sd_fraction * recovery_change);
-        Prediction { value, sd, recovery_change }
+        let (scale, scale_sd) = self.recovery_scale();
+        let recovery_sd = scale_sd * g.abs();
+        Prediction {
+            value: value + (scale - 1.0) * g,
+            sd: m.residual_sd.hypot(recovery_sd),
+            recovery_change: scale * g,
+            recovery_sd,
+        }
     }
 
     /// The prediction for discharge `cycle` after a rest of `rest_before_s` (the usual when `None`).
@@ -287,8 +367,7 @@ impl LifeTracker {
         match last_capacity_ah {
             Some(c) if c > 0.0 => {
                 let p = self.predict(cycle, rest_before_s, at);
-                let jump_sd = self.model.jump_sd_fraction * p.recovery_change.abs();
-                Carry { ratio: (p.value / c).clamp(0.8, 1.25), jump_sd_rel: jump_sd / c }
+                Carry { ratio: (p.value / c).clamp(0.8, 1.25), jump_sd_rel: p.recovery_sd / c }
             }
             _ => Carry::NONE,
         }
@@ -297,6 +376,28 @@ impl LifeTracker {
     /// Records the value measured on the current discharge.
     pub fn observe(&mut self, value: f64) {
         let cycle = self.cycle.unwrap_or(1);
+        if let Some((c, v, r, at)) = self.last.filter(|_| self.learns && self.model.amplitude > 0.0) {
+            let m = &self.model;
+            let g = m.amplitude * (self.recovery - r);
+            let fade = m.level(cycle, self.recovery, self.condition) - m.level(c, r, at) - g;
+            let noise = m.residual_sd.max(CHANGE_NOISE_FLOOR_FRAC * value.abs());
+            let y = value - v - fade;
+            // A change across a usual rest tells the drift; one across a longer rest, the jump. The small
+            // changes of the recovery wearing off between are left out: a fade the model does not hold would
+            // read as a recovery wearing off (NASA's recovery on a cell fading 13 mAh a discharge rose to four
+            // times its size).
+            if y.is_finite() && g.abs() < 0.2 * noise {
+                if self.drift.len() == DRIFT_CHANGES {
+                    self.drift.pop_front();
+                }
+                self.drift.push_back(y);
+            } else if y.is_finite() && g > noise {
+                let drift =
+                    if self.drift.is_empty() { 0.0 } else { self.drift.iter().sum::<f64>() / self.drift.len() as f64 };
+                self.scale_info += (g / noise).powi(2);
+                self.scale_xy += g * (y - drift) / noise.powi(2);
+            }
+        }
         self.last = Some((cycle, value, self.recovery, self.condition));
     }
 
@@ -340,5 +441,68 @@ impl Carry {
     /// uncertainty added in quadrature to qMobile's.
     pub fn widen_z(&self, sd_z: [f64; 2], carried_q_mobile_c: f64, q_span_c: f64) -> [f64; 2] {
         [sd_z[0].hypot(self.jump_sd_rel * carried_q_mobile_c / q_span_c), sd_z[1]]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const USUAL_S: f64 = 3.0 * 3600.0;
+    const AT: Condition = Condition { ambient_c: 24.0, current_a: 2.0 };
+
+    /// A cell of 1.8 Ah fading `fade_ah` a discharge, every rest the usual but a 72 h one before cycles 8 and 16,
+    /// after which it regains `jump_ah` (worn off over the discharges after it as NASA's cells' does): the
+    /// capacity each cycle measures, with a small deterministic noise.
+    fn measured(cycle: u32, jump_ah: f64, fade_ah: f64) -> f64 {
+        let since = [16, 8].into_iter().find(|c| cycle >= *c).map_or(f64::INFINITY, |c| f64::from(cycle - c));
+        let noise = 0.002 * (f64::from(cycle) * 2.3).sin();
+        1.8 - fade_ah * f64::from(cycle) + jump_ah * (-since / POPULATION_RECOVERY.decay_discharges).exp() + noise
+    }
+
+    fn rest(cycle: u32) -> f64 {
+        if cycle == 8 || cycle == 16 {
+            72.0 * 3600.0
+        } else {
+            USUAL_S
+        }
+    }
+
+    /// The recovery part a tracker following cycles 1-15 predicts for cycle 16.
+    fn predicted_jump(mut t: LifeTracker, jump_ah: f64, fade_ah: f64) -> Prediction {
+        for c in 1..=15 {
+            t.advance_to(c, Some(rest(c)), AT);
+            t.observe(measured(c, jump_ah, fade_ah));
+        }
+        t.predict(16, Some(rest(16)), AT)
+    }
+
+    /// NASA's cells' recovery taken for a cell that regains nothing after a long rest is learned off after the
+    /// first: the tracker predicts under a quarter of the population's jump after the second, and its
+    /// uncertainty shrinks with it; a cell that regains what the population does keeps most of it, fading
+    /// slowly or fast (13 mAh a discharge, a fade the population model does not hold and that must not read as
+    /// recovery); a tracker that does not learn predicts the population's jump whatever the cell did.
+    #[test]
+    fn a_tracker_learns_the_size_of_the_cells_own_recovery() {
+        let m = LifetimeModel::population(1.8, USUAL_S);
+        let fixed = predicted_jump(LifeTracker::new(m), 0.0, 0.002);
+        let population_jump = fixed.recovery_change;
+        assert!(population_jump > 0.07, "the population's jump after 72 h: {population_jump} Ah");
+        let none = predicted_jump(LifeTracker::learning_its_recovery(m), 0.0, 0.002);
+        assert!(none.recovery_change < 0.25 * population_jump, "learned {none:?} against {population_jump}");
+        assert!(none.recovery_sd < 0.5 * fixed.recovery_sd, "{none:?} against {fixed:?}");
+        for fade_ah in [0.002, 0.013] {
+            let like = predicted_jump(LifeTracker::learning_its_recovery(m), 0.09, fade_ah);
+            let ratio = like.recovery_change / population_jump;
+            assert!(ratio > 0.7 && ratio < 1.4, "fade {fade_ah}: learned {like:?} against {population_jump}");
+        }
+        // Without a long rest the scale stays where it started.
+        let mut t = LifeTracker::learning_its_recovery(m);
+        for c in 1..=7 {
+            t.advance_to(c, Some(USUAL_S), AT);
+            t.observe(1.8 - 0.002 * f64::from(c));
+        }
+        let (scale, sd) = t.recovery_scale();
+        assert!((scale - 1.0).abs() < 1e-6 && (sd - 1.0).abs() < 1e-6, "{scale} {sd}");
     }
 }

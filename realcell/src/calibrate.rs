@@ -24,13 +24,15 @@ use crate::score::{score, EOD_FRACTIONS_PCT};
 use crate::tune;
 use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
 use bcal_common::battery::Degradation;
-use bcal_common::lifetime::POPULATION_RECOVERY_UNSEEN_REST_S;
+use bcal_common::lifetime::LifeTracker;
+use bcal_common::lifetime::{POPULATION_RECOVERY_UNSEEN_REST_S, POPULATION_RESTS};
 use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::tracker::TrackerSpec;
 use bcal_common::measured::tracker::{AdaptiveRule, JointUkfSettings};
 use bcal_common::policy::PolicyFile;
 use bcal_common::policy::PolicyNet;
+use bcal_common::stats::median;
 use bcal_doctor::fit::{refit_cycles, FitConfig, FitRecord};
 use bcal_doctor::lifetime::{assess, Lifetime, LifetimeConfig, LifetimeModel};
 use bcal_doctor::model_file::DiagnosedModel;
@@ -262,8 +264,15 @@ pub struct CellLife {
 /// The cell's capacity lifetime models from its training records: whether a recovery after rest is there
 /// is judged as `launch/run.sh` diagnoses (fitted on the first three quarters, judged on the last); the
 /// model fitted on those three quarters is the [`CellLife::tuning`] one, and the same form fitted on
-/// every training record the [`CellLife::used`] one. None without a schedule or enough records.
+/// every training record the [`CellLife::used`] one. Records too few (under eight cycles) or too sparse to fit
+/// one follow the life by NASA's cells' recovery alone ([`population_life`]). None without a schedule.
 pub fn lifetime_model(train: &[Discharge], starts: &[RecordStart], cutoff_v: f64) -> Option<CellLife> {
+    own_lifetime_model(train, starts, cutoff_v).or_else(|| population_life(train, starts, cutoff_v))
+}
+
+/// The cell's own lifetime models ([`lifetime_model`]); None without a schedule, eight training cycles or a
+/// capacity series to fit.
+fn own_lifetime_model(train: &[Discharge], starts: &[RecordStart], cutoff_v: f64) -> Option<CellLife> {
     let (first, last) = (train.iter().map(|d| d.cycle).min()?, train.iter().map(|d| d.cycle).max()?);
     if last < first + 7 {
         return None;
@@ -331,6 +340,48 @@ pub fn lifetime_model(train: &[Discharge], starts: &[RecordStart], cutoff_v: f64
         }
     }
     Some(CellLife { tuning, used, verdict })
+}
+
+/// The lifetime model of a cell whose training records are too few to fit its own (a short life's first third:
+/// NASA's cells of 25 discharges or fewer train on under eight): no fade (each discharge's measured capacity
+/// carries it, as before) and the recovery NASA's cells show after a rest longer than the usual, as a live stream
+/// without the cell's model follows it ([`LifetimeModel::population`]). The usual rest is the median of the
+/// training records' known rests, [`POPULATION_RESTS`] of them at least; None with fewer, or with no measured
+/// capacity (every training record cut short of the cut-off).
+pub fn population_life(train: &[Discharge], starts: &[RecordStart], cutoff_v: f64) -> Option<CellLife> {
+    let (first, last) = (train.iter().map(|d| d.cycle).min()?, train.iter().map(|d| d.cycle).max()?);
+    let cfg = LifetimeConfig { cutoff_v: Some(cutoff_v), ..LifetimeConfig::default() };
+    let life = assess(&cfg, train, starts, &(first..=last), &(last + 1..=last + 1), None).ok()?;
+    let mut rests: Vec<f64> = life.series.iter().filter_map(|p| p.rest_before_s).filter(|r| *r > 0.0).collect();
+    let mut capacities: Vec<f64> = life.series.iter().filter_map(|p| p.capacity_ah).collect();
+    if rests.len() < POPULATION_RESTS {
+        return None;
+    }
+    let (usual_s, capacity_ah) = (median(&mut rests)?, median(&mut capacities)?);
+    let population = LifetimeModel::population(capacity_ah, usual_s);
+    // A training rest longer than the usual says how much of that recovery is the cell's (NASA's B0025
+    // regains nothing after its 87 h rest before cycle 6, nor after the 9 and 13 days later in its life).
+    let mut walk = LifeTracker::learning_its_recovery(population);
+    for p in &life.series {
+        walk.advance_to(p.cycle, p.rest_before_s, p.condition);
+        if let Some(c) = p.capacity_ah {
+            walk.observe(c);
+        }
+    }
+    let (scale, _) = walk.recovery_scale();
+    let m = population.with_recovery_scaled(scale);
+    let verdict = format!(
+        "no lifetime model of the cell's own from its training records ({} cycles, {first}-{last}, {} of them \
+         measuring a capacity; a fit needs eight cycles): the recovery NASA's cells show after a rest longer than \
+         the usual {:.1} h (the median of {} known rests), times {scale:.2} as the training rests longer than the \
+         usual said, a 3-day rest giving back {:.3} Ah; no fade beyond what each measured capacity carries",
+        life.series.len(),
+        capacities.len(),
+        usual_s / 3600.0,
+        rests.len(),
+        m.jump_over_usual(72.0 * 3600.0)
+    );
+    Some(CellLife { tuning: m, used: m, verdict })
 }
 
 /// The joint UKF chosen among `grid` (settings, prior width factor) by [`tune::choose`] on the validation
@@ -1518,5 +1569,54 @@ mod tests {
             t.predict(41, usual, at).value
         };
         assert!((next_after_usual(l.used) - next_after_usual(fade)).abs() < 1e-9);
+    }
+
+    /// Training records too few to fit the cell's own lifetime model (six, a short life's first third) follow the
+    /// life by NASA's cells' recovery, their median rest the usual: a judged discharge after a 72 h rest is
+    /// predicted to regain capacity (without a model, none). Two known rests are no usual one: no model.
+    #[test]
+    fn training_records_too_few_for_a_lifetime_model_take_the_recovery_nasa_cells_show() {
+        let (records, starts, truth_ah) = life_with(72.0 * 3600.0, false);
+        let l = lifetime_model(&records[34..40], &starts, 2.7).expect("a lifetime model");
+        assert!(l.verdict.contains("the recovery NASA's cells show") && l.verdict.contains("35-40"), "{}", l.verdict);
+        assert_eq!(l.used, l.tuning);
+        assert!((l.used.usual_rest_s / USUAL_REST_S - 1.0).abs() < 0.03, "usual rest {} s", l.used.usual_rest_s);
+        let (usual_records, usual_starts, usual_ah) = life_with(USUAL_REST_S, false);
+        let jump_ah = truth_ah - usual_ah;
+        let jump = predicted_ah(&l.used, &records, &starts) - predicted_ah(&l.used, &usual_records, &usual_starts);
+        assert!(jump > 0.3 * jump_ah && jump < jump_ah, "predicted jump {jump:.4} Ah, truth {jump_ah:.4} Ah");
+        // No fade: after the usual rest the next discharge is expected at the last one's capacity.
+        let at = Condition { ambient_c: 24.0, current_a: 2.0 };
+        let mut t = LifeTracker::new(l.used);
+        t.advance_to(40, Some(USUAL_REST_S), at);
+        t.observe(1.7);
+        assert!((t.predict(41, Some(USUAL_REST_S), at).value - 1.7).abs() < 1e-3);
+        assert!(lifetime_model(&records[37..40], &starts, 2.7).is_none(), "three records, two known rests");
+    }
+
+    /// Of NASA's cells' recovery, records too few to fit their own model take what their rests longer than the
+    /// usual said: none where an 87 h rest gave nothing back (NASA's B0025 before its cycle 6), more where a
+    /// 36 h rest gave back more than the median cell would have.
+    #[test]
+    fn too_few_training_records_take_the_recovery_their_long_rests_show() {
+        let population = |l: &CellLife| {
+            let m = LifetimeModel::population(1.8, l.used.usual_rest_s);
+            m.jump_over_usual(72.0 * 3600.0)
+        };
+        let (mut records, mut starts, mut clock_s) = (Vec::new(), Vec::new(), 0.0);
+        for c in 1..=6u32 {
+            clock_s += if c == 4 { 87.0 * 3600.0 } else { USUAL_REST_S };
+            starts.push(RecordStart { cycle: c, start_s: clock_s, session: 0 });
+            let d = discharge(c, 1.85 - 0.004 * f64::from(c) + NOISE_AH * (f64::from(c) * 2.3).sin());
+            clock_s += d.time_s.last().unwrap() - d.time_s[0];
+            records.push(d);
+        }
+        let none = lifetime_model(&records, &starts, 2.7).expect("a lifetime model");
+        let jump = none.used.jump_over_usual(72.0 * 3600.0);
+        assert!(jump < 0.25 * population(&none), "{jump} Ah after 3 days: {}", none.verdict);
+        let (records, starts, _) = life(72.0 * 3600.0);
+        let more = lifetime_model(&records[29..35], &starts, 2.7).expect("a lifetime model");
+        let jump = more.used.jump_over_usual(72.0 * 3600.0);
+        assert!(jump > population(&more), "{jump} Ah after 3 days: {}", more.verdict);
     }
 }
