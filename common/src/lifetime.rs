@@ -286,7 +286,8 @@ impl LifeTracker {
         Self { learns: true, ..Self::new(model) }
     }
 
-    /// The recovery's scale (1: the model's own amplitude) and its standard deviation, from what was measured.
+    /// The recovery's scale (1: the model's own amplitude; held within 0 and 1 + 3 prior standard deviations) and
+    /// its standard deviation, from what was measured.
     pub fn recovery_scale(&self) -> (f64, f64) {
         let tau = self.model.jump_sd_fraction;
         if !self.learns || tau <= 0.0 {
