@@ -1662,7 +1662,9 @@ fn cell_name(path: &Path) -> String {
 }
 
 /// Readings a charger draws at a discharge's sign as it starts (NASA's charges open with one at 3-4 A): at most
-/// this many.
+/// this many. No voltage test tells them from a load's: the charger's reading pulls the voltage down as a load
+/// does (B0005's charge record 05123: 3.325 -> 3.002 V at 3.36 A), so one or two loaded readings five minutes
+/// after a discharge and right before a charge are read as the charger's whatever their voltage.
 const CHARGER_PULSE_READINGS: usize = 2;
 /// ... after at least this long at rest since the load before them, s (a pulsed load rests for seconds between
 /// its pulses; a discharge's relaxation lasts minutes).
