@@ -24,7 +24,7 @@
 //! ([`LifeTracker::carry`]); the stream measures each discharge's capacity (the charge to its interpolated
 //! cut-off, [`crate::eod::charge_to_ah`]) for it. Without one it follows the life by the recovery NASA's cells
 //! show ([`LifetimeModel::population`], no fade: each measured capacity carries it), from the first measured
-//! discharge after [`POPULATION_RESTS`] known rests, their median the usual rest; a model of the fade alone
+//! discharge after [`POPULATION_RESTS`](bcal_common::lifetime::POPULATION_RESTS) known rests, their median the usual rest; a model of the fade alone
 //! (amplitude 0) turns that off. Until
 //! [`crate::prior_width::MIN_PAIRS`] such changes are known, it is the last discharge's own posterior (its
 //! 90 % interval read as 1.645 standard deviations): what one filter would carry across, had it known the
@@ -50,7 +50,7 @@ use crate::tracker_based::{RlCalibrator, Uncalibrated, WindowFitCalibrator};
 use crate::widening::{share_bin, Adapt, Outcome, Widening, EOD_FRACTIONS_PCT, MIN_OUTCOMES, WINDOW};
 use crate::{predict_eod, Calibrator, EodPrediction, EodQuery};
 use bcal_common::battery::{Degradation, Load, LoadProfile};
-use bcal_common::lifetime::{Carry, Condition, LifeTracker, LifetimeModel, POPULATION_RESTS};
+use bcal_common::lifetime::{Carry, Condition, LifeTracker, LifetimeModel};
 use bcal_common::math::idx;
 use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
@@ -1543,12 +1543,9 @@ impl<'a> Stream<'a> {
             // measured discharge after `POPULATION_RESTS` known rests, their median the usual one: the tracker
             // starts where that rest holds the cell, and a first rest far from the usual (a weekend) would have
             // every later one read as a change.
-            if self.life.is_none() && !short {
-                let mut rests: Vec<f64> = self.ends.iter().filter_map(|e| e.rest_s).filter(|r| *r > 0.0).collect();
-                if let (Some(c), true) = (self.capacity_ah, rests.len() >= POPULATION_RESTS) {
-                    let usual_s = bcal_common::stats::median(&mut rests).expect("rests were counted");
-                    self.life = Some(LifeTracker::new(LifetimeModel::population(c, usual_s)));
-                }
+            if let (None, Some(c), false) = (&self.life, self.capacity_ah, short) {
+                let rests = self.ends.iter().filter_map(|e| e.rest_s);
+                self.life = LifetimeModel::population_from_rests(c, rests).map(LifeTracker::new);
             }
             if let Some(t) = self.life.as_mut() {
                 t.advance_to(self.discharged, self.rest_before_s, at);
@@ -1586,6 +1583,7 @@ impl<'a> Stream<'a> {
             self.carried_sd_z.map(|sd| (carry.widen_z(sd, end.q_mobile_c, span_c), WidthSource::Posterior))
         };
         let mut next = setup.clone();
+        // A copy of the network's handle: `widen_ranges` below takes the stream mutably.
         let net = *net;
         if let Some(m) = &self.model_next {
             next.spec.tracker.model = m.clone();
@@ -1597,9 +1595,8 @@ impl<'a> Stream<'a> {
             next.spec.tracker.prior_std_z = sd[0].max(sd[1]);
         }
         self.widen_ranges(&mut next);
-        let net = &net;
         // The same kind, setting and network built once already: it builds again.
-        self.cal = build(&next, *net).expect("the stream's calibrator was built from this setting");
+        self.cal = build(&next, net).expect("the stream's calibrator was built from this setting");
         self.cal_read = false;
         self.prior_cal = prior_alone(&next);
         self.previous_cal = self.previous_fit.and_then(|d| {

@@ -170,6 +170,17 @@ impl LifetimeModel {
         .with_population_recovery()
     }
 
+    /// [`LifetimeModel::population`] with the median of the known rests `rests_s` (those above 0) as the usual
+    /// one; None with fewer than [`POPULATION_RESTS`] of them. The one rule a live stream without the cell's model
+    /// and `bcal calibrate` on training records too few to fit one take it by.
+    pub fn population_from_rests(capacity_ah: f64, rests_s: impl IntoIterator<Item = f64>) -> Option<LifetimeModel> {
+        let mut rests: Vec<f64> = rests_s.into_iter().filter(|r| *r > 0.0).collect();
+        if rests.len() < POPULATION_RESTS {
+            return None;
+        }
+        Some(LifetimeModel::population(capacity_ah, crate::stats::median(&mut rests)?))
+    }
+
     /// This model with the recovery NASA's cells show ([`POPULATION_RECOVERY`]) where it has none and its cell's
     /// usual rest is known, its level under the usual rest kept: for a cell whose training records held no rest
     /// long enough to fit its own. Unchanged otherwise.

@@ -24,7 +24,7 @@ use crate::score::{score, EOD_FRACTIONS_PCT};
 use crate::tune;
 use bcal_calib::tune::{AdaptiveGrid, JointUkfGrid};
 use bcal_common::battery::Degradation;
-use bcal_common::lifetime::{LifeTracker, POPULATION_RECOVERY_UNSEEN_REST_S, POPULATION_RESTS};
+use bcal_common::lifetime::{LifeTracker, POPULATION_RECOVERY_UNSEEN_REST_S};
 use bcal_common::measured::env::{Design, MeasuredSpec};
 use bcal_common::measured::extension::ModelExtension;
 use bcal_common::measured::tracker::TrackerSpec;
@@ -345,19 +345,16 @@ fn own_lifetime_model(train: &[Discharge], starts: &[RecordStart], cutoff_v: f64
 /// NASA's cells of 25 discharges or fewer train on under eight): no fade (each discharge's measured capacity
 /// carries it, as before) and the recovery NASA's cells show after a rest longer than the usual, as a live stream
 /// without the cell's model follows it ([`LifetimeModel::population`]). The usual rest is the median of the
-/// training records' known rests, [`POPULATION_RESTS`] of them at least; None with fewer, or with no measured
+/// training records' known rests, [`POPULATION_RESTS`](bcal_common::lifetime::POPULATION_RESTS) of them at least; None with fewer, or with no measured
 /// capacity (every training record cut short of the cut-off).
 pub fn population_life(train: &[Discharge], starts: &[RecordStart], cutoff_v: f64) -> Option<CellLife> {
     let (first, last) = (train.iter().map(|d| d.cycle).min()?, train.iter().map(|d| d.cycle).max()?);
     let cfg = LifetimeConfig { cutoff_v: Some(cutoff_v), ..LifetimeConfig::default() };
     let life = assess(&cfg, train, starts, &(first..=last), &(last + 1..=last + 1), None).ok()?;
-    let mut rests: Vec<f64> = life.series.iter().filter_map(|p| p.rest_before_s).filter(|r| *r > 0.0).collect();
     let mut capacities: Vec<f64> = life.series.iter().filter_map(|p| p.capacity_ah).collect();
-    if rests.len() < POPULATION_RESTS {
-        return None;
-    }
-    let (usual_s, capacity_ah) = (median(&mut rests)?, median(&mut capacities)?);
-    let population = LifetimeModel::population(capacity_ah, usual_s);
+    let rests = || life.series.iter().filter_map(|p| p.rest_before_s).filter(|r| *r > 0.0);
+    let population = LifetimeModel::population_from_rests(median(&mut capacities)?, rests())?;
+    let usual_s = population.usual_rest_s;
     // A training rest longer than the usual says how much of that recovery is the cell's (NASA's B0025
     // regains nothing after its 87 h rest before cycle 6, nor after the 9 and 13 days later in its life).
     let mut walk = LifeTracker::learning_its_recovery(population);
@@ -377,7 +374,7 @@ pub fn population_life(train: &[Discharge], starts: &[RecordStart], cutoff_v: f6
         life.series.len(),
         capacities.len(),
         usual_s / 3600.0,
-        rests.len(),
+        rests().count(),
         m.jump_over_usual(72.0 * 3600.0)
     );
     Some(CellLife { tuning: m, used: m, verdict })
