@@ -87,6 +87,34 @@ pub struct BatteryParams {
     pub mc_j_per_k: f64,
     /// Heat-exchange time constant of the thermal option, s. Default 100.
     pub tau_thermal_s: f64,
+    /// Legendre coefficients (degrees 1, 2, 3) of an additive correction of the positive electrode's
+    /// equilibrium potential, V ([`ocv_correction_v`]; the doctor's `ocv` cause). Default 0: progpy's curve.
+    #[serde(default, skip_serializing_if = "is_neutral_ocv")]
+    pub ocv_legendre_v: [f64; 3],
+}
+
+fn is_neutral_ocv(c: &[f64; 3]) -> bool {
+    *c == [0.0; 3]
+}
+
+/// The positive electrode's mole-fraction window an OCV correction is normalised on (the base model's xp_min and
+/// xp_max): the correction is a property of the material, so an electrode-balance shift does not move it.
+pub const OCV_CORRECTION_XP_WINDOW: [f64; 2] = [0.4, 1.0];
+
+/// An additive OCV correction at the positive electrode's surface mole fraction `xp_s`, V: the Legendre series
+/// `c[0] P1(s) + c[1] P2(s) + c[2] P3(s)` with s = 2 z - 1 and z = `xp_s` normalised on
+/// [`OCV_CORRECTION_XP_WINDOW`] (clamped to it). One formula for the doctor's fit and the calibrators' model.
+#[inline]
+pub fn ocv_correction_v(c: &[f64; 3], xp_s: f64) -> f64 {
+    let [lo, hi] = OCV_CORRECTION_XP_WINDOW;
+    legendre_correction_v(c, ((xp_s - lo) / (hi - lo)).clamp(0.0, 1.0))
+}
+
+/// The Legendre series of [`ocv_correction_v`] at the normalised coordinate `z` in [0, 1], V.
+#[inline]
+pub fn legendre_correction_v(c: &[f64; 3], z: f64) -> f64 {
+    let s = 2.0 * z - 1.0;
+    c[0] * s + c[1] * 0.5 * (3.0 * s * s - 1.0) + c[2] * 0.5 * (5.0 * s * s * s - 3.0 * s)
 }
 
 impl Default for BatteryParams {
@@ -118,6 +146,7 @@ impl Default for BatteryParams {
             tb0_k: 292.1,
             mc_j_per_k: 37.04,
             tau_thermal_s: 100.0,
+            ocv_legendre_v: [0.0; 3],
         }
     }
 }
@@ -244,6 +273,9 @@ impl BatteryModel {
                 return Err(ModelError::BadParam { name, value, why: "must be finite and > 0" });
             }
         }
+        if let Some(c) = params.ocv_legendre_v.iter().find(|c| !c.is_finite()) {
+            return Err(ModelError::BadParam { name: "ocv_legendre_v", value: *c, why: "must be finite" });
+        }
         if params.vol_s_fraction >= 1.0 {
             return Err(ModelError::BadParam {
                 name: "vol_s_fraction",
@@ -338,7 +370,11 @@ impl BatteryModel {
         let xp_s = clip_mole_fraction(x[idx::QP_S] / q_s_max);
         let rt_f = GAS_CONSTANT * x[idx::T_B] / FARADAY;
         let ven = p.u0n_v + rt_f * ((1.0 - xn_s) / xn_s).ln() + redlich_kister(&p.an, xn_s);
-        let vep = p.u0p_v + rt_f * ((1.0 - xp_s) / xp_s).ln() + redlich_kister(&p.ap, xp_s);
+        let mut vep = p.u0p_v + rt_f * ((1.0 - xp_s) / xp_s).ln() + redlich_kister(&p.ap, xp_s);
+        if p.ocv_legendre_v != [0.0; 3] {
+            // On the unclipped fraction, as the doctor fits it (the window's clamp bounds it).
+            vep += ocv_correction_v(&p.ocv_legendre_v, x[idx::QP_S] / q_s_max);
+        }
         (vep, ven)
     }
 

@@ -113,6 +113,9 @@ pub struct ModelResult {
     pub params: BTreeMap<&'static str, f64>,
     /// Number of shared parameters.
     pub n_params: usize,
+    /// Shared parameters the fit left at a bound of their physical range ([`at_bounds`]): the cause stands in
+    /// for an effect beyond what it can hold, and its curve outside the fit window is an extrapolation.
+    pub at_bounds: Vec<&'static str>,
     /// Per-cycle parameters beyond qMobile and Ro (calibrated on every cycle, held-out ones included).
     pub cycle_params: Vec<&'static str>,
     pub train_rmse_mv: f64,
@@ -593,6 +596,7 @@ fn judge(
         causes: causes.iter().map(|c| c.name()).collect(),
         params: train_fit.shared.iter().copied().collect(),
         n_params,
+        at_bounds: at_bounds(causes, &train_fit.shared),
         score_mv: score(cfg, heldout_rmse_mv, n_params, cycle_params.len(), &held),
         cycle_params,
         train_rmse_mv: 1000.0 * train_fit.rmse_all_v(),
@@ -607,6 +611,24 @@ fn judge(
         ext: train_fit.ext,
         heldout_residuals,
     })
+}
+
+/// The shared parameters of `causes` whose fitted values (`shared`) lie within 0.1 % of their range from a
+/// bound ([`Cause::params`]). B0055 (4 C) fits `ocv` with two coefficients at -0.3 V: the correction bends the
+/// curve by 0.8 V below the fit window's 2.9 V floor, and a calibrator's model carrying it predicted that cell's
+/// capacity four times worse (docs/realcell.md, "the model").
+pub fn at_bounds(causes: &[Cause], shared: &[(&'static str, f64)]) -> Vec<&'static str> {
+    let specs: Vec<_> = causes.iter().flat_map(|c| c.params(false)).collect();
+    shared
+        .iter()
+        .filter(|(name, v)| {
+            specs.iter().find(|s| s.name == *name).is_some_and(|s| {
+                let tol = 1e-3 * (s.hi - s.lo);
+                *v <= s.lo + tol || *v >= s.hi - tol
+            })
+        })
+        .map(|(name, _)| *name)
+        .collect()
 }
 
 /// The RMSE over the samples of several parts, mV.
@@ -648,4 +670,20 @@ fn evidence(base: &Structure, cand: &Structure) -> Evidence {
         .max_by(|a, b| (a.1.abs() - a.2.abs()).total_cmp(&(b.1.abs() - b.2.abs())))
         .expect("four correlations");
     Evidence { part, base_rmse_mv: b_rmse, rmse_mv: c_rmse, correlation }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A shared value within 0.1 % of its range from a bound is at it (B0055's OCV fit); one inside is not, and
+    /// per-cycle parameters (electrode balance) are never shared.
+    #[test]
+    fn shared_parameters_fitted_to_a_bound_are_named() {
+        let shared = [("ocv_p1_v", -0.3), ("ocv_p2_v", -0.2999999978), ("ocv_p3_v", -0.2187), ("t_diffusion_s", 3e6)];
+        assert_eq!(at_bounds(&[Cause::Ocv, Cause::Diffusion], &shared), vec!["ocv_p1_v", "ocv_p2_v"]);
+        assert_eq!(at_bounds(&[Cause::Ocv], &[("ocv_p1_v", -0.0887), ("ocv_p2_v", 0.0492)]), Vec::<&str>::new());
+        assert_eq!(at_bounds(&[Cause::Diffusion], &[("t_diffusion_s", 1e9)]), vec!["t_diffusion_s"]);
+        assert!(at_bounds(&[Cause::ElectrodeBalance], &[]).is_empty());
+    }
 }

@@ -7,8 +7,8 @@
 //! [`load_lifetime`] reads the capacity lifetime model (recovery after rest) a calibrator's prior can use.
 //!
 //! A calibrator's model carries only some of the doctor's causes
-//! ([`bcal_common::measured::extension::SUPPORTED_CAUSES`]): a sensor offset or gain, an OCV correction or an
-//! extra RC branch change the measurement or the curve the filter and the policy would have to run. When a
+//! ([`bcal_common::measured::extension::SUPPORTED_CAUSES`]): a sensor offset or gain or an extra RC branch
+//! change the measurement or add a state the filter and the policy would have to run. When a
 //! diagnosis names such a cause, the model read back here is the diagnosis's carriable causes with their
 //! fitted values, and [`DiagnosedModel::dropped`] names the rest, so every face (`bcal calibrate`, `bcal
 //! cell-config`, `--follow`, the Python package) calibrates on what it can carry and says what it left out,
@@ -40,6 +40,9 @@ pub struct DiagnosedModel {
     pub causes: Vec<Cause>,
     /// The causes the diagnosis named that a calibrator's model cannot carry: left out, their values neutral.
     pub dropped: Vec<Cause>,
+    /// Those of them a calibrator's model could carry but whose fit sits at a bound of its range
+    /// ([`crate::diagnose::at_bounds`]), with their fitted values as said.
+    pub at_bounds: Vec<(Cause, String)>,
     /// The shared parameters (per-cycle ones at their neutral values), with what the causes switch on.
     pub shared: ExtParams,
     /// The shared parameters with the per-cycle ones at the median of the last [`LATEST_CYCLES`] training
@@ -95,12 +98,31 @@ impl DiagnosedModel {
             return None;
         }
         let names = |cs: &[Cause]| cs.iter().map(|c| c.name()).collect::<Vec<_>>().join(" + ");
+        let uncarriable: Vec<Cause> =
+            self.dropped.iter().copied().filter(|c| self.at_bounds.iter().all(|(b, _)| b != c)).collect();
+        let mut why = Vec::new();
+        if !uncarriable.is_empty() {
+            why.push(format!(
+                "{}, which a calibrator's model cannot carry (it carries: {})",
+                names(&uncarriable),
+                SUPPORTED_CAUSES.join(", ")
+            ));
+        }
+        for (c, values) in &self.at_bounds {
+            why.push(format!(
+                "{}, whose fit sits at the bound of its range ({values}): it stands in for an effect beyond what it \
+                 can hold, and its curve outside the fit window would be an extrapolation",
+                c.name()
+            ));
+        }
         Some(format!(
-            "the diagnosis named {} as well, which a calibrator's model cannot carry (it carries: {}): calibrating on {} \
-             (its fitted values, the others left neutral)",
-            names(&self.dropped),
-            SUPPORTED_CAUSES.join(", "),
-            if self.causes.is_empty() { "the base model".to_string() } else { format!("base + {}", names(&self.causes)) }
+            "the diagnosis also named {}: calibrating on {} (its fitted values, the others left neutral)",
+            why.join("; and "),
+            if self.causes.is_empty() {
+                "the base model".to_string()
+            } else {
+                format!("base + {}", names(&self.causes))
+            }
         ))
     }
 }
@@ -121,6 +143,7 @@ pub fn extension_of(causes: &[Cause], ext: &ExtParams, reference_k: Option<f64>)
         ro_activation_k: ext.ro_activation_k,
         kinetics_activation_k: ext.kinetics_activation_k,
         t_diffusion_s: ext.t_diffusion_s,
+        ocv_legendre_v: ext.ocv_legendre_v,
         reference_k,
     }
 }
@@ -251,8 +274,19 @@ pub fn load_model(path: &Path) -> Result<DiagnosedModel, DoctorError> {
         shared.set(name, *value);
     }
     let cycles = f.records.iter().filter(|r| r.role == "train" || r.role == "heldout").map(|r| r.cycle).collect();
+    // A cause whose fit sits at a bound of its range stands in for something it cannot hold: its curve beyond
+    // the fit window is an extrapolation the calibrators would run on every discharge, so it is left out too.
+    let shared_fit: Vec<(&'static str, f64)> = causes
+        .iter()
+        .flat_map(|c| c.params(false))
+        .filter_map(|s| f.extended.params.get(s.name).map(|v| (s.name, *v)))
+        .collect();
+    let bounded = crate::diagnose::at_bounds(&causes, &shared_fit);
+    let at_bounds: Vec<Cause> =
+        causes.iter().copied().filter(|c| c.params(false).iter().any(|s| bounded.contains(&s.name))).collect();
     // The causes a calibrator cannot carry leave the model, their values neutral: the rest keep theirs.
-    let (causes, dropped): (Vec<Cause>, Vec<Cause>) = causes.into_iter().partition(|c| carriable(*c));
+    let (causes, dropped): (Vec<Cause>, Vec<Cause>) =
+        causes.into_iter().partition(|c| carriable(*c) && !at_bounds.contains(c));
     for c in &dropped {
         shared.disable(*c);
     }
@@ -283,7 +317,30 @@ pub fn load_model(path: &Path) -> Result<DiagnosedModel, DoctorError> {
         .filter(|s| s.cutoff_given)
         .and_then(|s| s.cutoff_v)
         .filter(|v| bcal_common::measured::CUTOFF_RANGE_V.contains(v));
-    Ok(DiagnosedModel { cell: f.cell, path: file, causes, dropped, shared, latest, latest_cycles, cycles, cutoff_v })
+    let at_bounds = at_bounds.into_iter().map(|c| (c, bounded_text(c, &shared_fit))).collect();
+    Ok(DiagnosedModel {
+        cell: f.cell,
+        path: file,
+        causes,
+        dropped,
+        at_bounds,
+        shared,
+        latest,
+        latest_cycles,
+        cycles,
+        cutoff_v,
+    })
+}
+
+/// `cause`'s fitted shared values, as the note on a cause left out at its bounds gives them.
+fn bounded_text(cause: Cause, shared_fit: &[(&'static str, f64)]) -> String {
+    let names: Vec<&str> = cause.params(false).iter().map(|s| s.name).collect();
+    shared_fit
+        .iter()
+        .filter(|(n, _)| names.contains(n))
+        .map(|(n, v)| format!("{n} = {v:.3}"))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// The capacity lifetime model of a diagnosis (`diagnosis.json`'s `lifetime`, see [`crate::lifetime`]), for a
@@ -379,12 +436,34 @@ mod tests {
         let m = load_model(&p).unwrap();
         assert_eq!(
             (m.causes.clone(), m.dropped.clone()),
-            (vec![Cause::Diffusion], vec![Cause::Ocv, Cause::VoltageOffset])
+            (vec![Cause::Ocv, Cause::Diffusion], vec![Cause::VoltageOffset])
         );
-        assert_eq!((m.shared.t_diffusion_s, m.shared.ocv_legendre_v, m.shared.voltage_offset_v), (3e6, [0.0; 3], 0.0));
+        assert_eq!(
+            (m.shared.t_diffusion_s, m.shared.ocv_legendre_v, m.shared.voltage_offset_v),
+            (3e6, [0.02, 0.0, 0.0], 0.0)
+        );
         let note = m.carrying_note().unwrap();
-        assert!(note.contains("ocv + voltage_offset") && note.contains("base + diffusion"), "{note}");
-        assert!(m.extension(None).check("m").is_ok());
+        assert!(note.contains("also named voltage_offset, which") && note.contains("base + ocv + diffusion"), "{note}");
+        // The OCV correction reaches the calibrators' model with its fitted value.
+        let ext = m.extension(None);
+        assert!(ext.check("m").is_ok() && ext.has("ocv") && ext.params().ocv_legendre_v == [0.02, 0.0, 0.0]);
+        // An OCV correction fitted to the bounds of its range (B0055's, at 4 C: -0.3, -0.3, -0.219 V) stands in for
+        // something else: left out, and said with its values.
+        std::fs::write(
+            &p,
+            r#"{"cell":"B0055","extended":{"causes":["ocv","charge_transfer"],
+                "params":{"ocv_p1_v":-0.3,"ocv_p2_v":-0.29999999777833997,"ocv_p3_v":-0.21868}}}"#,
+        )
+        .unwrap();
+        let m = load_model(&p).unwrap();
+        assert_eq!((m.causes.clone(), m.dropped.clone()), (vec![Cause::ChargeTransfer], vec![Cause::Ocv]));
+        assert_eq!(m.shared.ocv_legendre_v, [0.0; 3]);
+        let note = m.carrying_note().unwrap();
+        assert!(
+            note.contains("also named ocv, whose fit sits at the bound") && note.contains("ocv_p1_v = -0.300"),
+            "{note}"
+        );
+        assert!(!note.contains("cannot carry") && note.contains("base + charge_transfer"), "{note}");
         // Per-cycle parameters: a stream runs the median of the last five training cycles' fits (cycle 1's
         // outlier is not among them; a dropped cause's values stay neutral).
         let cycle = |c: u32, xp: f64| {
@@ -445,6 +524,7 @@ mod tests {
             path: "diagnosis.json".into(),
             causes: vec![Cause::ChargeTransfer],
             dropped: vec![],
+            at_bounds: vec![],
             shared: ExtParams::default(),
             latest: ExtParams::default(),
             latest_cycles: vec![],

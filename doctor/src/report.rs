@@ -46,6 +46,22 @@ fn params_text(m: &ModelResult) -> String {
     m.params.iter().map(|(k, v)| format!("{k} = {v:.4}")).collect::<Vec<_>>().join(", ")
 }
 
+/// What a model with shared parameters at their bounds ([`crate::diagnose::at_bounds`]) says to the user
+/// (None when none is).
+pub fn at_bounds_warning(m: &ModelResult) -> Option<String> {
+    if m.at_bounds.is_empty() {
+        return None;
+    }
+    let named: Vec<String> = m.at_bounds.iter().map(|p| format!("{p} = {:.4}", m.params[p])).collect();
+    Some(format!(
+        "warning: {} at the bound of {} range: the cause stands in for an effect beyond what it can hold, so the \
+         extended model's curve outside the fit window is an extrapolation (a calibrator's model carrying it can \
+         predict the end of discharge and the capacity worse than the base model)",
+        named.join(", "),
+        if named.len() == 1 { "its" } else { "their" }
+    ))
+}
+
 /// The Markdown summary.
 pub fn markdown(d: &Diagnosis) -> String {
     let mut o = String::new();
@@ -68,6 +84,9 @@ pub fn markdown(d: &Diagnosis) -> String {
          ones): {}\n",
         params_text(&d.extended)
     );
+    if let Some(w) = at_bounds_warning(&d.extended) {
+        let _ = writeln!(o, "**{w}**\n");
+    }
     let mut per_cycle = vec!["q_mobile_c", "r_o_ohm"];
     per_cycle.extend(d.extended.cycle_params.iter().copied());
     let _ = writeln!(

@@ -16,7 +16,8 @@
 //! (`BatteryModel::derivative`), written out here with a faster asinh and held equal to it by a test.
 
 use bcal_common::battery::{
-    BatteryModel, BatteryParams, Degradation, ModelError, FARADAY, GAS_CONSTANT, MOLE_FRACTION_CLIP,
+    legendre_correction_v, BatteryModel, BatteryParams, Degradation, ModelError, FARADAY, GAS_CONSTANT,
+    MOLE_FRACTION_CLIP,
 };
 use bcal_common::math::{idx, ModelState};
 use bcal_common::measured::cellmodel::xn_from_rest_voltage;
@@ -456,8 +457,7 @@ impl ExtendedCell {
         let c = &self.ext.ocv_legendre_v;
         if c.iter().any(|a| *a != 0.0) {
             let z = ((self.x[idx::QP_S] / self.q_s_max_c - self.xp_min) / self.xp_span).clamp(0.0, 1.0);
-            let s = 2.0 * z - 1.0;
-            v += c[0] * s + c[1] * 0.5 * (3.0 * s * s - 1.0) + c[2] * 0.5 * (5.0 * s * s * s - 3.0 * s);
+            v += legendre_correction_v(c, z);
         }
         v
     }
@@ -589,6 +589,38 @@ mod tests {
         // own Euler steps of 1 s miss the load step's ohmic lag by several millivolts.
         assert!(gap(&got) < 1e-3, "doctor at 1 s vs fine Euler: {:.3} mV", 1e3 * gap(&got));
         assert!(gap(&coarse[..n]) > 5e-3, "plain Euler at 1 s: {:.3} mV", 1e3 * gap(&coarse[..n]));
+    }
+
+    /// The OCV correction the doctor fits (`ExtParams::ocv_legendre_v`, on its extended cell) is the one the
+    /// calibrators' model runs (`BatteryParams::ocv_legendre_v`, a diagnosis carried by `bcal calibrate --model`):
+    /// the same voltages along a discharge, with electrode balance shifted too (the correction stays on the base
+    /// window), to rounding; and the correction moves the voltage by tens of millivolts.
+    #[test]
+    fn the_fitted_ocv_correction_is_the_one_the_calibrators_run() {
+        let d = Degradation { q_mobile_c: 6500.0, r_o_ohm: 0.14 };
+        let n = 3000;
+        let time_s: Vec<f64> = (0..n).map(|k| k as f64).collect();
+        let current_a = vec![2.0; n];
+        let drive = Drive {
+            time_s: &time_s,
+            current_a: &current_a,
+            temperature_k: None,
+            ambient_k: 297.15,
+            alternating: false,
+        };
+        let c = [0.05, -0.03, 0.02];
+        let balance = ExtParams { xp_shift: 0.03, xn_shift: -0.02, ..ExtParams::default() };
+        let run = |base: &BatteryParams, ext: &ExtParams| {
+            let mut v = vec![0.0; n];
+            simulate_voltage(base, d, ext, drive, 1.0, &mut v).unwrap();
+            v
+        };
+        let fitted = run(&BatteryParams::default(), &ExtParams { ocv_legendre_v: c, ..balance });
+        let carried = run(&BatteryParams { ocv_legendre_v: c, ..BatteryParams::default() }, &balance);
+        let without = run(&BatteryParams::default(), &balance);
+        let gap = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+        assert!(gap(&fitted, &carried) < 1e-12, "{:e} V", gap(&fitted, &carried));
+        assert!(gap(&fitted, &without) > 0.02, "{} V", gap(&fitted, &without));
     }
 
     /// The doctor's own right-hand side (written for speed, with its own asinh) is the common model's: the

@@ -192,6 +192,9 @@ pub fn run(a: DiagnoseArgs) -> anyhow::Result<()> {
         voltage_s,
         voltage_s / ((train.len() + held.len()) * cfg.causes.len().max(1)) as f64
     );
+    if let Some(w) = bcal_doctor::report::at_bounds_warning(&diag.extended) {
+        eprintln!("diagnose: {w}");
+    }
     for p in written {
         println!("wrote {}", p.display());
     }

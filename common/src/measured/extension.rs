@@ -3,7 +3,8 @@
 //! negative electrodes' mole fractions at full charge shifted) and `charge_transfer` (one factor on both
 //! Butler-Volmer rate constants) are parameters of the base model ([`BatteryParams::aged`]); `thermal`
 //! (Arrhenius temperature dependence of Ro and of the rate constants, driven by the measured temperature)
-//! is a factor on each at the cell's temperature; `diffusion` is the base model's diffusion time. Neutral
+//! is a factor on each at the cell's temperature; `diffusion` is the base model's diffusion time; `ocv` is an
+//! additive correction of the open-circuit curve ([`crate::battery::ocv_correction_v`]). Neutral
 //! values are the base model. The simulated cells, the RL calibrator's tracker and the joint UKF all build
 //! their model here, so a policy and a filter run the model the doctor chose.
 
@@ -13,9 +14,9 @@ use serde::{Deserialize, Serialize};
 /// Temperatures the model is taken at, K (exclusive): a cell's ambient and its extensions' reference.
 pub const TEMPERATURE_RANGE_K: [f64; 2] = [200.0, 400.0];
 
-/// The doctor's causes a calibrator's model can carry; the others (a sensor offset or gain, an OCV
-/// correction, an extra RC branch) are the doctor's alone.
-pub const SUPPORTED_CAUSES: [&str; 4] = ["electrode_balance", "charge_transfer", "thermal", "diffusion"];
+/// The doctor's causes a calibrator's model can carry; the others (a sensor offset or gain, an extra RC
+/// branch) change the measurement or add a state, and are the doctor's alone.
+pub const SUPPORTED_CAUSES: [&str; 5] = ["electrode_balance", "charge_transfer", "thermal", "diffusion", "ocv"];
 
 /// A calibrator's model beyond the base one.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -36,6 +37,9 @@ pub struct ModelExtension {
     pub kinetics_activation_k: f64,
     /// Bulk-surface diffusion time constant, s (the base model's 7e6).
     pub t_diffusion_s: f64,
+    /// Legendre coefficients of the additive OCV correction, V (the doctor's `ocv_p1_v` .. `ocv_p3_v`; 0: the
+    /// base curve).
+    pub ocv_legendre_v: [f64; 3],
     /// The cell's ambient, K: where the Arrhenius factors are 1 and the temperature an isothermal model runs
     /// at (the doctor's: the record's ambient). None: the Arrhenius reference is the first reading's
     /// temperature (a cell at rest in its ambient) and an isothermal model runs at the base 292.1 K.
@@ -52,6 +56,7 @@ impl Default for ModelExtension {
             ro_activation_k: 0.0,
             kinetics_activation_k: 0.0,
             t_diffusion_s: BatteryParams::default().t_diffusion_s,
+            ocv_legendre_v: [0.0; 3],
             reference_k: None,
         }
     }
@@ -64,6 +69,7 @@ impl ModelExtension {
         BatteryParams {
             t_diffusion_s: self.t_diffusion_s,
             tb0_k: self.reference_k.unwrap_or(base.tb0_k),
+            ocv_legendre_v: self.ocv_legendre_v,
             ..base.aged(self.xp_shift, self.xn_shift, self.kinetics_scale)
         }
     }
@@ -128,6 +134,9 @@ impl ModelExtension {
             self.ro_activation_k,
             self.kinetics_activation_k,
             self.t_diffusion_s,
+            self.ocv_legendre_v[0],
+            self.ocv_legendre_v[1],
+            self.ocv_legendre_v[2],
         ];
         if finite.iter().any(|v| !v.is_finite()) {
             return Err(format!("{key}: every value must be finite"));
