@@ -616,7 +616,7 @@ fn judge(
 /// The shared parameters of `causes` whose fitted values (`shared`) lie within 0.1 % of their range from a
 /// bound ([`Cause::params`]). B0055 (4 C) fits `ocv` with two coefficients at -0.3 V: the correction bends the
 /// curve by 0.8 V below the fit window's 2.9 V floor, and a calibrator's model carrying it predicted that cell's
-/// capacity four times worse (docs/realcell.md, "the model").
+/// capacity nearly four times worse (docs/realcell.md, "the model").
 pub fn at_bounds(causes: &[Cause], shared: &[(&'static str, f64)]) -> Vec<&'static str> {
     let specs: Vec<_> = causes.iter().flat_map(|c| c.params(false)).collect();
     shared

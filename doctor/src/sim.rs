@@ -566,6 +566,11 @@ mod tests {
         want
     }
 
+    /// The measured inputs of a record at 25 C without a measured temperature, the current interpolated.
+    fn drive_at_25_c<'a>(time_s: &'a [f64], current_a: &'a [f64]) -> Drive<'a> {
+        Drive { time_s, current_a, temperature_k: None, ambient_k: 297.15, alternating: false }
+    }
+
     #[test]
     fn neutral_extensions_reproduce_the_common_model() {
         let d = Degradation { q_mobile_c: 6500.0, r_o_ohm: 0.14 };
@@ -576,13 +581,7 @@ mod tests {
         let time_s: Vec<f64> = (0..n).map(|k| k as f64).collect();
         let current_a = vec![2.0; n];
         let mut got = vec![0.0; n];
-        let drive = Drive {
-            time_s: &time_s,
-            current_a: &current_a,
-            temperature_k: None,
-            ambient_k: 297.15,
-            alternating: false,
-        };
+        let drive = drive_at_25_c(&time_s, &current_a);
         simulate_voltage(&BatteryParams::default(), d, &ExtParams::default(), drive, 1.0, &mut got).unwrap();
         let gap = |a: &[f64]| a.iter().zip(&fine).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
         // ... are met by the doctor's 1 s steps within a fraction of a millivolt, where the common model's
@@ -601,13 +600,7 @@ mod tests {
         let n = 3000;
         let time_s: Vec<f64> = (0..n).map(|k| k as f64).collect();
         let current_a = vec![2.0; n];
-        let drive = Drive {
-            time_s: &time_s,
-            current_a: &current_a,
-            temperature_k: None,
-            ambient_k: 297.15,
-            alternating: false,
-        };
+        let drive = drive_at_25_c(&time_s, &current_a);
         let c = [0.05, -0.03, 0.02];
         let balance = ExtParams { xp_shift: 0.03, xn_shift: -0.02, ..ExtParams::default() };
         let run = |base: &BatteryParams, ext: &ExtParams| {
