@@ -223,16 +223,9 @@ fn calibrate_refuses_what_it_cannot_honestly_run() {
 /// `diag` if given, into `out`: its stderr, the report's model and the UKF's capacity RMSE from 50 % against the
 /// data's charge, Ah.
 fn calibrate_on_model(data: &Path, diag: Option<&Path>, out: &Path) -> (String, String, f64) {
-    let cut = CUTOFF_V.to_string();
-    let mut args = vec!["--data", data.to_str().unwrap(), "--train-cycles", "1..6", "--cutoff-v", &cut];
-    args.extend(["--calibrator", "ukf", "--quick", "--out", out.to_str().unwrap()]);
-    if let Some(d) = diag {
-        args.extend(["--model", d.to_str().unwrap()]);
-    }
-    let (ok, err) = calibrate(&args);
-    assert!(ok, "{err}");
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap();
+    let model_flag = diag.map(|d| ["--model", d.to_str().unwrap()]);
+    let extra = model_flag.as_ref().map_or(&[][..], |f| &f[..]);
+    let (err, report) = calibrate_ukf_said(&["--data", data.to_str().unwrap(), "--train-cycles", "1..6"], out, extra);
     let model = report["model"].as_str().unwrap().to_string();
     let rmse = report["methods"]["ukf"]["scores"]["capacity_vs_data"]["50"]["rmse"].as_f64().unwrap();
     (err, model, rmse)
@@ -326,11 +319,16 @@ fn calibrate_nasa(nasa: &Path, out: &Path, extra: &[&str]) -> serde_json::Value 
 
 /// `bcal calibrate` of the joint UKF, quick, at [`CUTOFF_V`], on `data` (its flags), into `out`: the report.
 fn calibrate_ukf(data: &[&str], out: &Path, extra: &[&str]) -> serde_json::Value {
+    calibrate_ukf_said(data, out, extra).1
+}
+
+/// [`calibrate_ukf`], with what the command said on stderr.
+fn calibrate_ukf_said(data: &[&str], out: &Path, extra: &[&str]) -> (String, serde_json::Value) {
     let cut = CUTOFF_V.to_string();
     let common = ["--cutoff-v", &cut, "--calibrator", "ukf", "--quick", "--out", out.to_str().unwrap()];
     let (ok, err) = calibrate(&[data, &common[..], extra].concat());
     assert!(ok, "{err}");
-    serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap()
+    (err, serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap()).unwrap())
 }
 
 #[test]
