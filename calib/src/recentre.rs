@@ -293,7 +293,7 @@ mod tests {
     use super::*;
 
     fn outcome(fraction: u32, value: f64, measured: f64) -> Outcome {
-        Outcome { value, below: 0.0, above: 0.0, size: value, measured, fraction }
+        Outcome { value, below: 0.0, above: 0.0, size: value, measured, fraction, start: 0.0 }
     }
 
     /// The voltage change reads the discharge before at the same time since its load came on, averages

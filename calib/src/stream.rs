@@ -536,6 +536,12 @@ pub struct Stream<'a> {
     /// ([`ShortStartWatch`]), that its end fit does not measure the cell: it hands on what was carried into it,
     /// as `bcal calibrate`'s records do (`bcal_realcell::carry::over_cut_short`).
     short_start: bool,
+    /// ... what its start adds to its end's interval, s (`widening::start_half`: its rest voltage known to the
+    /// sensor's noise, through the open-circuit curve's slope; 0 near full or with no noise known yet) ...
+    start_half_s: f64,
+    /// ... and the sensor's voltage noise each of the last discharges read (`voltage_noise_v`; the median of
+    /// them reads the next one's rest).
+    noises_v: VecDeque<f64>,
     /// The prior mean the current discharge started from (None for the first: the setting's own prior).
     prior_mean: Option<Degradation>,
     /// The cell's life ([`MeasuredSpec::lifetime`]), following the finished discharges.
@@ -834,7 +840,8 @@ struct EodSource {
 impl EodSource {
     /// Scores the discharge's predictions (load-on `on_s`, measured end `end_s`) at each share of it, and
     /// learns the interval again from the last [`WINDOW`] discharges.
-    fn score(&mut self, on_s: f64, end_s: f64) {
+    /// `start_s`: what the discharge's start adds to its intervals ([`crate::widening::start_half`]).
+    fn score(&mut self, on_s: f64, end_s: f64, start_s: f64) {
         let p = std::mem::take(&mut self.predictions);
         let outcomes: Vec<Outcome> = EOD_FRACTIONS_PCT
             .iter()
@@ -844,7 +851,7 @@ impl EodSource {
                 let k = p.partition_point(|x| x.0 <= at_s).checked_sub(1)?;
                 let value = p[k].1;
                 let size = (value - on_s).max(1.0);
-                Some(Outcome { value, below: 0.0, above: 0.0, size, measured: end_s, fraction: f })
+                Some(Outcome { value, below: 0.0, above: 0.0, size, measured: end_s, fraction: f, start: start_s })
             })
             .collect();
         for (b, w) in self.widening.iter().enumerate() {
@@ -939,6 +946,8 @@ impl<'a> Stream<'a> {
             carried_sd_z: None,
             rests_v: ShortStartWatch::default(),
             short_start: false,
+            start_half_s: 0.0,
+            noises_v: VecDeque::new(),
             current_slope: CurrentSlope::default(),
             load_on_a: None,
             last_load_on_a: None,
@@ -1372,7 +1381,7 @@ impl<'a> Stream<'a> {
         let on = self.eod_track.load_on_s;
         let (eod_lo_s, eod_hi_s) = match (eod_s, on, bin.and_then(|b| self.sources[SERVED].interval(b))) {
             (Some(eod), Some(on), Some(w)) => {
-                let half = w.half(0.0, (eod - on).max(1.0));
+                let half = w.half(0.0, (eod - on).max(1.0), self.start_half_s);
                 (Some((eod - half).max(r.time_s)), Some(eod + half))
             }
             _ => (None, None),
@@ -1695,13 +1704,30 @@ impl<'a> Stream<'a> {
     }
 
     /// At a discharge's load-on: its rest voltage against the last discharges' ([`Stream::short_start`]).
+    /// And how well the rest tells the discharge's starting charge: what its end's interval adds.
     fn see_rest(&mut self) {
         self.short_start = self.rests_v.see(crate::end_fit::rest_voltage_v(&self.samples));
+        let mut noises: Vec<f64> = self.noises_v.iter().copied().collect();
+        let share_sd = bcal_common::stats::median(&mut noises).and_then(|noise_v| {
+            let model = self.spec.model.model().ok()?;
+            bcal_common::measured::cellmodel::start_share_sd(&model, &self.samples, noise_v)
+        });
+        self.start_half_s = match (share_sd, self.load_on_a) {
+            (Some(sd), Some(i)) => crate::widening::start_half(sd, self.cal.estimate().q_mobile_c, i),
+            _ => 0.0,
+        };
     }
 
     /// What the current discharge has measured, cleared for the next one.
     fn reset_discharge(&mut self) {
         self.short_start = false;
+        self.start_half_s = 0.0;
+        if let Some(noise_v) = bcal_common::measured::noise::voltage_noise_v(&self.samples) {
+            if self.noises_v.len() == bcal_common::measured::noise::NOISE_WINDOW {
+                self.noises_v.pop_front();
+            }
+            self.noises_v.push_back(noise_v);
+        }
         self.load_on_a = None;
         self.voltage_change = None;
         self.voltage_changes.clear();
@@ -1765,7 +1791,7 @@ impl<'a> Stream<'a> {
             return;
         }
         for src in &mut self.sources {
-            src.score(on, end_s);
+            src.score(on, end_s, self.start_half_s);
         }
         if let Some(rec) = self.end_record.as_mut() {
             // The rules' signed error per share, % of the discharge, and where it was taken after the load-on.
@@ -2628,7 +2654,10 @@ mod tests {
     /// scored) each prediction carries a 90 % interval whose half-width, as a share of the predicted
     /// duration, is the conformal rank of the last ten scored errors at the share the prediction is at
     /// (nine or ten of them: the largest) times the online scale those intervals earned (up 0.1 x 0.9 in
-    /// log on a miss, down 0.1 x 0.1 on a hit), recomputed here from the estimates and the readings alone.
+    /// log on a miss, down 0.1 x 0.1 on a hit), in quadrature with what each discharge's start adds (starts
+    /// at 80-98 % of a full charge, read off rests with 3 mV of noise: the stream's own term, read here at
+    /// each reading, each scored error's share beyond its start's term learned), recomputed here from the
+    /// estimates and the readings.
     #[test]
     fn eod_intervals_are_learned_from_the_discharges_the_stream_followed_to_their_cut_off() {
         let cfg = ScenarioConfig::default();
@@ -2649,16 +2678,24 @@ mod tests {
         setup.spec.tracker.cutoff_v = 3.1;
         let cutoff_v = setup.spec.tracker.cutoff_v;
         let mut stream = Stream::of(&setup, None, None).unwrap();
-        let est: Vec<Estimate> = readings.iter().map(|r| stream.step(r).unwrap()).collect();
+        let (est, start_s): (Vec<Estimate>, Vec<f64>) =
+            readings.iter().map(|r| (stream.step(r).unwrap(), stream.start_half_s)).unzip();
         assert_eq!(stream.discharges(), 12);
-        // Each discharge's scores, from its readings: the load-on, the interpolated crossing, and the
-        // relative error of the last prediction made by each share.
-        let mut errors: Vec<[f64; 3]> = Vec::new();
-        let scale = |errors: &[[f64; 3]], scored: usize, b: usize| {
+        // Each discharge's scores, from its readings: the load-on, the interpolated crossing, and per share the
+        // absolute error of the last prediction made by it and that prediction's duration from the load-on,
+        // with what the discharge's start adds.
+        let mut errors: Vec<([(f64, f64); 3], f64)> = Vec::new();
+        // The share of the duration an error needs beyond its start's term.
+        let beyond = |(e, size): (f64, f64), start: f64| (e * e - start * start).max(0.0).sqrt() / size;
+        let learned = |errors: &[([(f64, f64); 3], f64)], d: usize, b: usize| {
+            errors[d.saturating_sub(WINDOW)..d].iter().map(|(e, s)| beyond(e[b], *s)).fold(0.0, f64::max)
+        };
+        let scale = |errors: &[([(f64, f64); 3], f64)], scored: usize, b: usize| {
             let mut log = 0.0f64;
             for d in MIN_OUTCOMES..scored {
-                let w = errors[d.saturating_sub(WINDOW)..d].iter().map(|e| e[b]).fold(0.0, f64::max) * log.exp();
-                let miss = if errors[d][b] > w { 1.0 } else { 0.0 };
+                let w = learned(errors, d, b) * log.exp();
+                let ((e, size), start) = (errors[d].0[b], errors[d].1);
+                let miss = if e > (w * size).hypot(start) { 1.0 } else { 0.0 };
                 log = (log + 0.1 * (miss - 0.1)).clamp(-ADAPT_MAX_LOG, ADAPT_MAX_LOG);
             }
             log.exp()
@@ -2671,12 +2708,15 @@ mod tests {
             let cross = loaded.iter().position(|&k| r[k].voltage_v < cutoff_v).expect("every discharge ends");
             let (a, b) = (&r[loaded[cross - 1]], &r[loaded[cross]]);
             let end_s = a.time_s + (a.voltage_v - cutoff_v) / (a.voltage_v - b.voltage_v) * (b.time_s - a.time_s);
-            errors.push(EOD_FRACTIONS_PCT.map(|f| {
+            let errs = EOD_FRACTIONS_PCT.map(|f| {
                 let at_s = on + f64::from(f) / 100.0 * (end_s - on);
                 let k = loaded[..cross].iter().rev().find(|&&k| r[k].time_s <= at_s && e[k].eod_s.is_some()).unwrap();
                 let p = e[*k].eod_s.unwrap();
-                ((end_s - p) / (p - on).max(1.0)).abs()
-            }));
+                ((end_s - p).abs(), (p - on).max(1.0))
+            });
+            // The start's term, as the discharge's last reading before its crossing gave it.
+            let start = start_s[starts[d] + loaded[cross - 1]];
+            errors.push((errs, start));
             // Readings from this discharge's own crossing on already learn from it.
             let crossed = loaded[cross];
             for (k, x) in e.iter().enumerate() {
@@ -2687,10 +2727,10 @@ mod tests {
                 };
                 assert!(scored >= 9, "discharge {d}, reading {k}: an interval after {scored} scored discharges");
                 let bin = share_bin(on, x.time_s, p);
-                let expect = errors[scored.saturating_sub(WINDOW)..scored].iter().map(|e| e[bin]).fold(0.0, f64::max);
+                let expect = learned(&errors, scored, bin);
                 let f = scale(&errors, scored, bin);
                 scaled += usize::from((f - 1.0).abs() > 1e-9);
-                let half = expect * f * (p - on).max(1.0);
+                let half = (expect * f * (p - on).max(1.0)).hypot(start_s[starts[d] + k]);
                 assert!((hi - p - half).abs() < 1e-6 * p, "discharge {d}, reading {k}: {hi} - {p} against {half}");
                 assert!((lo - (p - half).max(x.time_s)).abs() < 1e-6 * p, "discharge {d}, reading {k}");
             }
@@ -2700,6 +2740,12 @@ mod tests {
             }
         }
         assert!(scaled > 0, "no interval here was scaled: the online scale is not tested");
+        // The first discharge has no noise read before it.
+        assert!(
+            errors[1..].iter().all(|(_, s)| *s > 0.0),
+            "every start off full adds: {:?}",
+            errors.iter().map(|e| e.1).collect::<Vec<_>>()
+        );
         let w = stream.eod_widening();
         assert!(w.iter().all(|w| w.is_some_and(|(a, n)| a > 0.0 && n == WINDOW)), "{w:?}");
     }

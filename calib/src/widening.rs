@@ -1,7 +1,9 @@
 //! Prediction intervals learned from how a method's predictions fared on the discharges that have ended
-//! (issue 18 item 6): a 90 % half-width, per side, of `sqrt((s w)^2 + (a x)^2)`, `w` the calibrator's own
+//! (issue 18 item 6): a 90 % half-width, per side, of `sqrt((s w)^2 + (a x)^2 + c^2)`, `w` the calibrator's own
 //! half-width on that side (0 without one), `x` the size of the prediction (the predicted duration from the
-//! load-on for an end of discharge, the predicted capacity for a capacity), and `(s, a)` the pair that covers
+//! load-on for an end of discharge, the predicted capacity for a capacity), `c` what the discharge's own start
+//! adds (an end of discharge from a start read off a rest on the flat part of the open-circuit curve:
+//! [`start_half`]; 0 for a capacity, and for a start near full), and `(s, a)` the pair that covers
 //! [`COVER`] of the last [`WINDOW`] discharges' scored predictions, with the finite-sample rank of split
 //! conformal prediction, with the narrowest intervals. `bcal calibrate` learns it on a cell's validation
 //! cycles and then each judged discharge (`bcal_realcell::interval`); a live stream on the discharges it
@@ -44,6 +46,23 @@ pub fn share_bin(load_on_s: f64, t_s: f64, eod_s: f64) -> usize {
     (0..EOD_FRACTIONS_PCT.len()).min_by(|&i, &j| off(i).total_cmp(&off(j))).unwrap_or(0)
 }
 
+/// The standard normal quantile of [`COVER`] two-sided: a Gaussian error within +-this many sds 90 % of the time.
+pub const Z_COVER: f64 = 1.645;
+
+/// What a discharge's start adds to the 90 % half-width of its end, s: its starting charge known to
+/// `share_sd` of the cell's qMobile (one sd; `bcal_common::measured::cellmodel::start_share_sd`, the rest
+/// voltage's noise through the open-circuit curve's slope) shifts the end by that charge over the current,
+/// for every method alike (each reads its start off the same rest). A term apart from the learned ones: the
+/// discharges they are learned on mostly start full, where it is nil, so no scale learned there speaks for a
+/// start on the curve's plateau. 0 without a current.
+pub fn start_half(share_sd: f64, q_mobile_c: f64, current_a: f64) -> f64 {
+    if current_a > 0.0 && share_sd.is_finite() {
+        Z_COVER * share_sd * q_mobile_c / current_a
+    } else {
+        0.0
+    }
+}
+
 /// One scored prediction of a finished discharge: its value, its own bounds, its size and the measurement.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Outcome {
@@ -55,6 +74,8 @@ pub struct Outcome {
     pub measured: f64,
     /// The share of the discharge it was scored at, % (one of the scores' fractions).
     pub fraction: u32,
+    /// What its discharge's start adds to its half-width ([`start_half`]; 0: nothing).
+    pub start: f64,
 }
 
 /// The widening of one prediction kind: own half-width times `own`, model error `model` times the size.
@@ -67,17 +88,18 @@ pub struct Widening {
 }
 
 impl Widening {
-    /// The half-width on a side whose own half-width is `own_half`, for a prediction of size `size`.
-    pub fn half(&self, own_half: f64, size: f64) -> f64 {
-        (self.own * own_half).hypot(self.model * size)
+    /// The half-width on a side whose own half-width is `own_half`, for a prediction of size `size` whose
+    /// start adds `start` ([`start_half`]).
+    pub fn half(&self, own_half: f64, size: f64, start: f64) -> f64 {
+        (self.own * own_half).hypot(self.model * size).hypot(start)
     }
 
     pub fn covers(&self, o: &Outcome) -> bool {
         let e = o.measured - o.value;
         if e >= 0.0 {
-            e <= self.half(o.above, o.size)
+            e <= self.half(o.above, o.size, o.start)
         } else {
-            -e <= self.half(o.below, o.size)
+            -e <= self.half(o.below, o.size, o.start)
         }
     }
 
@@ -97,7 +119,7 @@ impl Widening {
                 .iter()
                 .map(|o| {
                     let e = o.measured - o.value;
-                    let w = own * if e >= 0.0 { o.above } else { o.below };
+                    let w = (own * if e >= 0.0 { o.above } else { o.below }).hypot(o.start);
                     if e.abs() <= w {
                         0.0
                     } else if o.size > 0.0 {
@@ -113,7 +135,10 @@ impl Widening {
                 continue;
             }
             let cand = Self { own, model, learned_on: discharges };
-            let width: f64 = outcomes.iter().map(|o| cand.half(o.below, o.size) + cand.half(o.above, o.size)).sum();
+            let width: f64 = outcomes
+                .iter()
+                .map(|o| cand.half(o.below, o.size, o.start) + cand.half(o.above, o.size, o.start))
+                .sum();
             if best.as_ref().is_none_or(|(w, _)| width < *w - 1e-12) {
                 best = Some((width, cand));
             }
@@ -150,7 +175,7 @@ mod tests {
     use super::*;
 
     fn outcome(e: f64, own: f64) -> Outcome {
-        Outcome { value: 100.0, below: own, above: own, size: 100.0, measured: 100.0 + e, fraction: 50 }
+        Outcome { value: 100.0, below: own, above: own, size: 100.0, measured: 100.0 + e, fraction: 50, start: 0.0 }
     }
 
     #[test]
@@ -170,6 +195,30 @@ mod tests {
         // Nine outcomes are the fewest whose conformal rank is not the largest error's.
         let nine: Vec<Outcome> = (1..=9).map(|k| outcome(f64::from(k), 0.0)).collect();
         assert_eq!(Widening::learn(&nine[..MIN_OUTCOMES], 9).model, 0.09);
+    }
+
+    /// Discharges whose start adds a known spread (ends erring by up to +-30 on a start term of 30, as ends
+    /// from a start on the flat of the voltage curve do) among ones that err by up to 5 % of their size: the
+    /// start term covers its own errors, so the model term stays the one the other errors need, and the
+    /// narrow intervals of the others are not widened for them.
+    #[test]
+    fn a_start_term_covers_the_errors_it_explains_and_leaves_the_others_narrow() {
+        let mut o: Vec<Outcome> =
+            (1..=20u32).map(|k| outcome(0.25 * f64::from(k) * [1.0, -1.0][k as usize % 2], 0.0)).collect();
+        let alone = Widening::learn(&o, 10);
+        o.extend(
+            (1..=6u32)
+                .map(|k| Outcome { start: 30.0, ..outcome(5.0 * f64::from(k) * [1.0, -1.0][k as usize % 2], 0.0) }),
+        );
+        let with = Widening::learn(&o, 10);
+        assert!(o.iter().filter(|x| x.start > 0.0).all(|x| with.covers(x)), "{with:?}");
+        assert!((with.model - alone.model).abs() < 0.01, "{with:?} against {alone:?}");
+        // Without their start term the same errors widen every interval.
+        let blind: Vec<Outcome> = o.iter().map(|x| Outcome { start: 0.0, ..*x }).collect();
+        assert!(Widening::learn(&blind, 10).model > 2.0 * alone.model);
+        // The online scale leaves the start term as it is.
+        let adapt = Adapt { log_scale: -1.0 };
+        assert_eq!(adapt.scaled(with).half(0.0, 0.0, 30.0), 30.0);
     }
 
     /// Errors that grow 3 % per discharge (the model's error drifting as a cell ages): a widening learned on

@@ -670,6 +670,10 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let model_path = input.model.as_ref().map_or_else(String::new, |m| m.path.display().to_string());
     let neutral = extension_of(&causes, &shared, train.first().unwrap_or(&judged[0]).ambient_k);
     neutral.check("the model").map_err(|why| CalibrateError::Model { path: model_path.clone(), why })?;
+    // How well each discharge's starting charge is known, under that model (what its end's interval adds).
+    let start_model =
+        neutral.model().map_err(|e| CalibrateError::Model { path: model_path.clone(), why: e.to_string() })?;
+    crate::record::set_start_spreads(train.iter_mut().chain(judged.iter_mut()), &start_model);
     if causes.contains(&Cause::Thermal) && input.train.iter().chain(&input.judged).any(|d| d.temperature_k.is_none()) {
         return Err(CalibrateError::Model {
             path: model_path,

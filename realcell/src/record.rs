@@ -5,7 +5,10 @@
 //! discharge before it happens.
 
 use bcal_calib::eod::charge_to_ah;
+use bcal_common::battery::BatteryModel;
 use bcal_common::battery::Load;
+use bcal_common::measured::cellmodel::start_share_sd;
+use bcal_common::measured::noise::{voltage_noise_v, NOISE_WINDOW};
 use bcal_common::measured::scenario::{Request, Sample};
 use bcal_common::measured::ShortStartWatch;
 use bcal_doctor::Discharge;
@@ -51,6 +54,11 @@ pub struct CellRecord {
     /// ([`set_short_starts_seen`]; no look-ahead), that its end fit does not measure the cell: it hands on what
     /// was carried into it, as one cut short does ([`CellRecord::measured_its_charge`]).
     pub short_start_seen: bool,
+    /// How well the charge it starts with is known, as a share of qMobile (one sd; None without a rest reading
+    /// before the load or a sensor noise to read it with): its rest voltage's noise through the open-circuit
+    /// curve ([`set_start_spreads`]), what its end of discharge's interval adds for it
+    /// ([`bcal_calib::widening::start_half`]).
+    pub start_share_sd: Option<f64>,
     /// The charge the discharges before it drew between the voltage the source's stated capacity is drawn to
     /// and the cut-off, Ah ([`set_stated_tails`]; None where the stated capacity is the charge to the cut-off):
     /// what a capacity predicted to the cut-off holds beyond the stated one.
@@ -74,6 +82,26 @@ pub fn set_short_starts_seen<'r>(records: impl IntoIterator<Item = &'r mut CellR
     let mut watch = ShortStartWatch::default();
     for r in records {
         r.short_start_seen = watch.see(r.rest_before_load_v());
+    }
+}
+
+/// Sets each record's [`CellRecord::start_share_sd`] under the calibrators' `model` (in order: every record
+/// kept, training and judged, as [`set_currents_before`]): its rest readings read with the voltage noise of
+/// the [`NOISE_WINDOW`] records before it (the median of each one's own, `voltage_noise_v`; no look-ahead),
+/// the first record with its own.
+pub fn set_start_spreads<'r>(records: impl IntoIterator<Item = &'r mut CellRecord>, model: &BatteryModel) {
+    let mut noises: std::collections::VecDeque<f64> = std::collections::VecDeque::new();
+    for r in records {
+        let own = voltage_noise_v(&r.samples);
+        let mut before: Vec<f64> = noises.iter().copied().collect();
+        let noise_v = bcal_common::stats::median(&mut before).or(own);
+        r.start_share_sd = noise_v.and_then(|n| start_share_sd(model, &r.samples, n));
+        if let Some(n) = own {
+            if noises.len() == NOISE_WINDOW {
+                noises.pop_front();
+            }
+            noises.push_back(n);
+        }
     }
 }
 
@@ -225,6 +253,7 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
         current_before_a: None,
         partial_start: false,
         short_start_seen: false,
+        start_share_sd: None,
         stated_tail_ah: None,
         samples,
     })
@@ -432,6 +461,7 @@ pub(crate) fn test_discharge(
         current_before_a: None,
         partial_start: false,
         short_start_seen: false,
+        start_share_sd: None,
         stated_tail_ah: None,
         samples,
     };

@@ -282,6 +282,7 @@ mod tests {
             current_before_a: None,
             partial_start: false,
             short_start_seen: false,
+            start_share_sd: None,
             stated_tail_ah: None,
         };
         // Predicts an end 50 s late with an interval of +-100 s and a capacity of 1.2 Ah within [1.1, 1.3].

@@ -11,6 +11,7 @@ pub mod cellmodel;
 pub mod env;
 pub mod extension;
 pub mod load_mean;
+pub mod noise;
 pub mod scenario;
 pub mod tracker;
 
