@@ -674,6 +674,20 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let start_model =
         neutral.model().map_err(|e| CalibrateError::Model { path: model_path.clone(), why: e.to_string() })?;
     crate::record::set_start_spreads(train.iter_mut().chain(judged.iter_mut()), &start_model);
+    let mut train_noise_v: Vec<f64> =
+        train.iter().filter_map(|r| bcal_common::measured::noise::voltage_noise_v(&r.samples)).collect();
+    let noise_median_v = bcal_common::stats::median(&mut train_noise_v);
+    if let Some(n) = noise_median_v {
+        progress(&format!(
+            "sensor: voltage noise {:.2} mV (median over {} training records, {:.2}-{:.2} mV; each start read off \
+             its rest readings is known to that over their number's root, through the open-circuit curve, which \
+             its end's interval carries)",
+            n * 1e3,
+            train_noise_v.len(),
+            train_noise_v[0] * 1e3,
+            train_noise_v[train_noise_v.len() - 1] * 1e3
+        ));
+    }
     if causes.contains(&Cause::Thermal) && input.train.iter().chain(&input.judged).any(|d| d.temperature_k.is_none()) {
         return Err(CalibrateError::Model {
             path: model_path,
@@ -832,6 +846,18 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
     settings.insert("cell_setting".into(), serde_json::to_value(&facts).unwrap_or_default());
+    let start_share: serde_json::Map<String, serde_json::Value> =
+        judged.iter().map(|r| (r.cycle.to_string(), serde_json::json!(r.start_share_sd))).collect();
+    settings.insert(
+        "start_spread".into(),
+        serde_json::json!({"noise_v_training_median": noise_median_v, "window": bcal_common::measured::noise::NOISE_WINDOW,
+            "judged_share_sd": start_share,
+            "what": "how well each judged discharge's starting charge is known, as a share of qMobile (one sd): the \
+            mean of its rest readings before the load with the sensor's voltage noise (the median of what the \
+            `window` records before it read off their own readings) over their number's root, through the \
+            open-circuit curve; 1.645 times it, times qMobile over the current, joins every method's interval of \
+            the end in quadrature (`bcal_calib::widening::start_half`)"}),
+    );
     settings.insert(
         "model_knee_c".into(),
         serde_json::json!({"training_median": knee_median, "training_median_end_fit": end_knee_median,
