@@ -430,6 +430,9 @@ impl CellHistory {
         }
         crate::record::set_currents_before(train.iter_mut());
         crate::record::set_short_starts_seen(train.iter_mut());
+        if let Ok(model) = neutral.model() {
+            crate::record::set_start_spreads(train.iter_mut(), &model);
+        }
         let life = lifetime_model(train_ds, starts, cutoff_v);
         let tuning = life.as_ref().map(|l| &l.tuning);
         let carrying = Carrying::end_fits(spec, tuning, train, train_fits, neutral, &rests, cutoff_v);
