@@ -2,9 +2,11 @@
 //! cut-off has measured the charge the cell holds, and one number of the model answers it. The model runs
 //! from the rest before the load (its starting charge read off the mean rest voltage, as the calibrators
 //! read it) through the recorded readings, at the Ro given, and qMobile is found by bisection within the
-//! calibrator's range such that the voltage reaches the cut-off at the measured end. A live stream carries
-//! it into the next discharge ([`crate::stream`]), as `bcal calibrate` carries the previous discharge's
-//! offline fit. Pure arithmetic: nothing here reads or prints.
+//! calibrator's range such that the voltage reaches the cut-off at the measured end; where the model ends
+//! above the cut-off (an electrode's surface empties, its voltage stops falling), [`end_fit`] keeps the knee
+//! the cell goes on down apart. A live stream carries it into the next discharge ([`crate::stream`]), as
+//! `bcal calibrate` carries each record's (`bcal_realcell::carry`). Pure arithmetic: nothing here reads or
+//! prints.
 
 use bcal_common::battery::Degradation;
 use bcal_common::measured::cellmodel::{xn_from_rest_voltage, CellModel, REST_CURRENT_A};
@@ -17,6 +19,19 @@ use bcal_common::measured::tracker::TrackerSpec;
 const BISECTIONS: usize = 25;
 /// The part of the rest before the load the model is run through, s (NASA's records rest under a minute).
 const REST_RUN_S: f64 = 600.0;
+/// How many of the latest discharges the model's knee is taken over (median), by `bcal calibrate` and a live
+/// stream alike.
+pub const KNEE_WINDOW: usize = 3;
+
+/// The current through a knee, A, to turn its time into charge and back: the load's own current, or under a
+/// power the current it draws at the cut-off (the knee lies there, where the current is highest; measured and
+/// applied the same way, so a knee's time carries over unchanged between discharges at the same power).
+pub fn knee_current_a(load: bcal_common::battery::Load, cutoff_v: f64) -> f64 {
+    match load {
+        bcal_common::battery::Load::CurrentA(a) => a,
+        bcal_common::battery::Load::PowerW(w) => w / cutoff_v,
+    }
+}
 
 /// The mean voltage of a discharge's readings at rest before its load (`samples` from its start), V: what its
 /// starting charge is read off, and what tells a start from a partial charge
@@ -32,54 +47,141 @@ pub fn rest_voltage_v(samples: &[Sample]) -> Option<f64> {
 /// Ro `r_o_ohm`. None without a rest reading before the load, without a reading before `end_s`, or when no
 /// qMobile within the calibrator's range puts the end there.
 pub fn q_mobile_to_end(spec: &TrackerSpec, samples: &[Sample], end_s: f64, r_o_ohm: f64) -> Option<f64> {
-    let model = spec.model.model().ok()?;
-    let rest_n = samples.iter().take_while(|s| s.current_a.abs() < REST_CURRENT_A).count();
-    let (first, upto) = (samples.first()?, samples.partition_point(|s| s.t_s <= end_s));
-    let rest_v = rest_voltage_v(samples)?;
-    if upto < 2 || upto <= rest_n {
-        return None;
+    let run = Run::new(spec, samples)?;
+    run.bracket(end_s, r_o_ohm).map(|(lo, hi)| 0.5 * (lo + hi))
+}
+
+/// A discharge's end fit with the model's knee kept apart ([`end_fit`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EndFit {
+    /// The qMobile that empties the model where the cell passed the model's own end voltage, C.
+    pub q_mobile_c: f64,
+    /// The charge the cell delivered from there to its cut-off, C (0 where the model reaches the cut-off
+    /// itself).
+    pub knee_c: f64,
+    /// When the cell passed the model's end voltage, s (the end itself where the knee is 0).
+    pub passed_s: f64,
+}
+
+/// The end fit with the model's knee kept apart: where the model ends by an electrode's surface emptying
+/// (about 3.0 V at 2 A on NASA's cells, 2.7 V on a cold cell), above a lower cut-off, the cell goes on down
+/// its knee to the cut-off, and a qMobile that put the model's end at the cut-off would hold that knee's
+/// charge as more charge throughout, of which a discharge started at a share f of full gets f (a part-charged
+/// start ends early by the rest). So qMobile is fitted to empty the model where the cell's voltage last
+/// passed the voltage the model ends at (under [`q_mobile_to_end`]'s qMobile), and the charge drawn from
+/// there to the cut-off is the knee, which predictions add back from any start. Where the model reaches the
+/// cut-off itself, or the cell's readings never pass its end voltage, the knee is 0 and qMobile is
+/// [`q_mobile_to_end`]'s. None where that is.
+pub fn end_fit(spec: &TrackerSpec, samples: &[Sample], end_s: f64, r_o_ohm: f64) -> Option<EndFit> {
+    let run = Run::new(spec, samples)?;
+    let (lo, hi) = run.bracket(end_s, r_o_ohm)?;
+    let at_cutoff = EndFit { q_mobile_c: 0.5 * (lo + hi), knee_c: 0.0, passed_s: end_s };
+    // Just above the bracket the model has not emptied by the end: its voltage there is the one it ends at.
+    let (v_end, _) = run.at(hi, r_o_ohm, end_s)?;
+    let (_, emptied) = run.at(lo, r_o_ohm, end_s)?;
+    if !emptied || !v_end.is_finite() || v_end <= spec.cutoff_v {
+        return Some(at_cutoff);
     }
-    let temperature_k = |s: &Sample| if spec.use_measured_temperature { s.temperature_k } else { model.params.tb0_k };
-    let t0_k = temperature_k(first);
-    let xn0 = xn_from_rest_voltage(&model, rest_v, t0_k);
-    let ref_k = spec.model.reference_k.unwrap_or(first.temperature_k);
-    // The model starts at rest where the last [`REST_RUN_S`] of the rest begin: a rest logged for hours
-    // (a live stream's) would otherwise be run through on every bisection step (seconds at the cut-off after
-    // a rest of a few hundred thousand readings), for a state the rest current barely moves.
-    let load_on_s = samples[rest_n].t_s;
-    let from = samples[..rest_n].partition_point(|s| s.t_s < load_on_s - REST_RUN_S).min(rest_n - 1);
-    // The model's voltage at the end minus the cut-off under qMobile `q` (an emptied model reads below).
-    let margin_v = |q: f64| {
-        let d = Degradation { q_mobile_c: q, r_o_ohm };
-        let mut cell =
-            CellModel::at_rest(model.clone(), xn0, t0_k, spec.max_substep_s).with_arrhenius(&spec.model, ref_k);
-        for w in samples[from..upto].windows(2) {
-            cell.advance_between(&w[0], &w[1], &d, temperature_k(&w[1]));
-        }
-        let last = &samples[upto - 1];
-        cell.advance(last.current_a, end_s - last.t_s, &d, temperature_k(last));
-        // An emptied electrode surface is the model's end (its voltage stops falling there, about 3.0 V at
-        // 2 A, as `crate::predict_eod_s` reads it): below any cut-off.
-        let v = cell.voltage(&d) - spec.cutoff_v;
-        if v.is_finite() && !cell.model.surface_empty(&cell.state(&cell.track, &d), &d) {
-            v
-        } else {
-            -1.0
-        }
+    // The last time before the end the cell's voltage came down through it (an early dip under a cold
+    // cell's load is not its knee), between two loaded readings.
+    let before: Vec<&Sample> = samples.iter().take_while(|s| s.t_s <= end_s).collect();
+    let Some(k) = (1..before.len()).rev().find(|&k| {
+        let (a, b) = (before[k - 1], before[k]);
+        a.current_a >= REST_CURRENT_A && b.current_a >= REST_CURRENT_A && a.voltage_v >= v_end && b.voltage_v < v_end
+    }) else {
+        return Some(at_cutoff);
     };
-    let (mut lo, mut hi) = (spec.q_mobile_range_c[0], spec.q_mobile_range_c[1]);
-    if margin_v(lo) >= 0.0 || margin_v(hi) <= 0.0 {
-        return None;
+    let (a, b) = (before[k - 1], before[k]);
+    let passed_s = a.t_s + (a.voltage_v - v_end) / (a.voltage_v - b.voltage_v) * (b.t_s - a.t_s);
+    let Some((lo, hi)) = run.bracket(passed_s, r_o_ohm) else { return Some(at_cutoff) };
+    let knee_c = 3600.0 * (crate::eod::charge_to_ah(samples, end_s) - crate::eod::charge_to_ah(samples, passed_s));
+    Some(EndFit { q_mobile_c: 0.5 * (lo + hi), knee_c: knee_c.max(0.0), passed_s })
+}
+
+/// The model run from a discharge's rest through its readings.
+struct Run<'s> {
+    spec: &'s TrackerSpec,
+    samples: &'s [Sample],
+    model: bcal_common::battery::BatteryModel,
+    /// Readings at rest before the load, and the first of them the model starts at.
+    rest_n: usize,
+    from: usize,
+    xn0: f64,
+    t0_k: f64,
+    ref_k: f64,
+}
+
+impl<'s> Run<'s> {
+    fn new(spec: &'s TrackerSpec, samples: &'s [Sample]) -> Option<Self> {
+        let model = spec.model.model().ok()?;
+        let rest_n = samples.iter().take_while(|s| s.current_a.abs() < REST_CURRENT_A).count();
+        let first = samples.first()?;
+        let rest_v = rest_voltage_v(samples)?;
+        if rest_n >= samples.len() {
+            return None;
+        }
+        let t0_k = if spec.use_measured_temperature { first.temperature_k } else { model.params.tb0_k };
+        let xn0 = xn_from_rest_voltage(&model, rest_v, t0_k);
+        let ref_k = spec.model.reference_k.unwrap_or(first.temperature_k);
+        // The model starts at rest where the last [`REST_RUN_S`] of the rest begin: a rest logged for hours
+        // (a live stream's) would otherwise be run through on every bisection step (seconds at the cut-off
+        // after a rest of a few hundred thousand readings), for a state the rest current barely moves.
+        let load_on_s = samples[rest_n].t_s;
+        let from = samples[..rest_n].partition_point(|s| s.t_s < load_on_s - REST_RUN_S).min(rest_n - 1);
+        Some(Self { spec, samples, model, rest_n, from, xn0, t0_k, ref_k })
     }
-    for _ in 0..BISECTIONS {
-        let mid = 0.5 * (lo + hi);
-        if margin_v(mid) > 0.0 {
-            hi = mid;
+
+    fn temperature_k(&self, s: &Sample) -> f64 {
+        if self.spec.use_measured_temperature {
+            s.temperature_k
         } else {
-            lo = mid;
+            self.model.params.tb0_k
         }
     }
-    Some(0.5 * (lo + hi))
+
+    /// The model's voltage at `at_s` under qMobile `q`, and whether an electrode's surface has emptied by
+    /// then. None without a loaded reading before `at_s`.
+    fn at(&self, q: f64, r_o_ohm: f64, at_s: f64) -> Option<(f64, bool)> {
+        let upto = self.samples.partition_point(|s| s.t_s <= at_s);
+        if upto < 2 || upto <= self.rest_n {
+            return None;
+        }
+        let d = Degradation { q_mobile_c: q, r_o_ohm };
+        let mut cell = CellModel::at_rest(self.model.clone(), self.xn0, self.t0_k, self.spec.max_substep_s)
+            .with_arrhenius(&self.spec.model, self.ref_k);
+        for w in self.samples[self.from..upto].windows(2) {
+            cell.advance_between(&w[0], &w[1], &d, self.temperature_k(&w[1]));
+        }
+        let last = &self.samples[upto - 1];
+        cell.advance(last.current_a, at_s - last.t_s, &d, self.temperature_k(last));
+        let emptied = cell.model.surface_empty(&cell.state(&cell.track, &d), &d);
+        Some((cell.voltage(&d), emptied))
+    }
+
+    /// The bracket (lo, hi) of qMobile, within [`BISECTIONS`] halvings of the calibrator's range, across
+    /// which the model's end moves through `end_s`: under `lo` it has ended by then (below the cut-off, or
+    /// an electrode's surface emptied: its voltage stops falling there, about 3.0 V at 2 A, as
+    /// `crate::predict_eod_s` reads it), under `hi` not yet. None when no qMobile in range puts it there.
+    fn bracket(&self, end_s: f64, r_o_ohm: f64) -> Option<(f64, f64)> {
+        let margin_v = |q: f64| -> Option<f64> {
+            let (v, emptied) = self.at(q, r_o_ohm, end_s)?;
+            let v = v - self.spec.cutoff_v;
+            Some(if v.is_finite() && !emptied { v } else { -1.0 })
+        };
+        let (mut lo, mut hi) = (self.spec.q_mobile_range_c[0], self.spec.q_mobile_range_c[1]);
+        if margin_v(lo)? >= 0.0 || margin_v(hi)? <= 0.0 {
+            return None;
+        }
+        for _ in 0..BISECTIONS {
+            let mid = 0.5 * (lo + hi);
+            if margin_v(mid)? > 0.0 {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        Some((lo, hi))
+    }
 }
 
 #[cfg(test)]

@@ -13,8 +13,10 @@
 //! sight): the calibrator is built anew on the same setting, and the EOD current starts over (a load of less
 //! than [`MIN_DISCHARGE_S`], a spurious sample, was no discharge and hands nothing on). Its prior
 //! mean is what the last discharge told of the cell: where its voltage reached the cut-off under load, the
-//! qMobile that puts the model's end there ([`crate::end_fit`], at the calibrator's final Ro), as `bcal
-//! calibrate` starts from the previous discharge's offline fit; else the estimate it ended with. The
+//! qMobile that puts the model's end there ([`crate::end_fit`], at the calibrator's final Ro; the knee the
+//! cell goes on down past a model that ends above the cut-off kept apart, the last three's median added to
+//! every end predicted), as `bcal calibrate` starts from the previous discharge's end fit; else the estimate
+//! it ended with. The
 //! prior's width is learned from the stream's own history as `bcal calibrate` learns it from a cell's
 //! training cycles ([`RestWidth`]): the change from the mean each discharge started from to the value it
 //! hands on, growing with the rest before the discharge. With the cell's lifetime model
@@ -605,6 +607,13 @@ pub struct Stream<'a> {
     /// The current discharge's end fit: qMobile putting the model's end at the measured one, at the
     /// calibrator's Ro then ([`crate::end_fit`]).
     end_fit: Option<Degradation>,
+    /// The model's knees the last discharges' end fits measured, C ([`crate::end_fit::EndFit::knee_c`]; the
+    /// last [`crate::end_fit::KNEE_WINDOW`]): their median is added to every end predicted, from any start.
+    knees_c: VecDeque<f64>,
+    /// The calibrator's Ro after each reading of the current discharge kept in `samples` (time s, ohm): the
+    /// end fit's Ro is the one it had as the cell passed the model's end voltage, before the knee below it
+    /// pulled the filter's Ro up (B0049's joint UKF: 0.131 -> 0.149 ohm over its last minute).
+    r_o_along: Vec<(f64, f64)>,
     /// Fits a discharge that reached its cut-off ([`Refit`]; None: no fit, the model stays as set up) ...
     refit: Option<Refit<'a>>,
     /// ... and the model the next discharge runs from it (None: the one set up).
@@ -981,6 +990,8 @@ impl<'a> Stream<'a> {
             samples: Vec::new(),
             drawn: (0.0, 0),
             end_fit: None,
+            knees_c: VecDeque::new(),
+            r_o_along: Vec::new(),
             refit: None,
             model_next: None,
             end_record: None,
@@ -1337,6 +1348,7 @@ impl<'a> Stream<'a> {
         };
         if self.rebuild.is_some() {
             self.samples.push(s);
+            self.r_o_along.push((s.t_s, self.cal.estimate().r_o_ohm));
             let (drawn_c, upto) = &mut self.drawn;
             for w in self.samples[upto.saturating_sub(1)..].windows(2) {
                 *drawn_c += crate::eod::drawn_between_c(&w[0], &w[1]);
@@ -1734,6 +1746,7 @@ impl<'a> Stream<'a> {
         self.capacity_ah = None;
         self.eod_track = EodTrack::default();
         self.samples.clear();
+        self.r_o_along.clear();
         self.drawn = (0.0, 0);
         self.end_fit = None;
         self.voltage_fit = None;
@@ -1829,13 +1842,29 @@ impl<'a> Stream<'a> {
                 Some((d, m)) => (TrackerSpec { model: m.clone(), ..self.spec.clone() }, d.r_o_ohm),
                 None => (self.spec.clone(), self.cal.estimate().r_o_ohm),
             };
+            let own_ro = refitted.is_none();
             if let Some((d, m)) = refitted {
                 self.model_next = Some(m);
                 self.voltage_fit = Some(d);
             }
             let before = &self.samples[..self.samples.len().saturating_sub(1)];
-            self.end_fit = crate::end_fit::q_mobile_to_end(&spec, before, end_s, r_o_ohm)
-                .map(|q_mobile_c| Degradation { q_mobile_c, r_o_ohm });
+            let mut fit = crate::end_fit::end_fit(&spec, before, end_s, r_o_ohm);
+            // Without a refit, the filter's own Ro as the cell passed the model's end voltage.
+            let mut r_o_ohm = r_o_ohm;
+            if let Some(f) = fit.filter(|f| own_ro && f.knee_c > 0.0) {
+                let at = self.r_o_along.partition_point(|x| x.0 <= f.passed_s).checked_sub(1);
+                if let Some(r) = at.map(|k| self.r_o_along[k].1) {
+                    r_o_ohm = r;
+                    fit = crate::end_fit::end_fit(&spec, before, end_s, r_o_ohm).or(fit);
+                }
+            }
+            self.end_fit = fit.map(|f| Degradation { q_mobile_c: f.q_mobile_c, r_o_ohm });
+            if let Some(f) = fit {
+                if self.knees_c.len() == crate::end_fit::KNEE_WINDOW {
+                    self.knees_c.pop_front();
+                }
+                self.knees_c.push_back(f.knee_c);
+            }
         }
     }
 
@@ -1947,7 +1976,14 @@ impl<'a> Stream<'a> {
         let dynamics = Degradation { r_o_ohm: d.r_o_ohm * ro_factor, ..d };
         let profile = LoadProfile::Constant(load);
         let q = EodQuery { profile: &profile, cutoff_v: self.spec.cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
-        predict_eod(&model, &x, &dynamics, t_now_s, &q)
+        // The model's knee, as the last discharges' end fits measured it: the charge past the model's end.
+        let mut knees: Vec<f64> = self.knees_c.iter().copied().collect();
+        let knee_c = bcal_common::stats::median(&mut knees).unwrap_or(0.0);
+        let knee_a = crate::end_fit::knee_current_a(load, self.spec.cutoff_v);
+        predict_eod(&model, &x, &dynamics, t_now_s, &q).map(|p| match knee_a > 0.0 {
+            true => EodPrediction { eod_s: p.eod_s + knee_c / knee_a, drawn_c: p.drawn_c + knee_c },
+            false => p,
+        })
     }
 }
 

@@ -337,8 +337,7 @@ pub fn run_sequence(
     out
 }
 
-/// How many of the latest discharges the model's knee is taken over (median).
-pub const KNEE_WINDOW: usize = 3;
+pub use bcal_calib::end_fit::{knee_current_a, KNEE_WINDOW};
 
 /// The model's knee on one complete discharge, C: the charge the cell delivered between the end the record's
 /// fit `fit` predicts from a full cell and the measured time at the cut-off (that time span times the
@@ -399,16 +398,6 @@ fn knee_from(
     };
     let model_eod = bcal_calib::predict_eod_s(m, &x0, &dyn_d, r.load_on_s, &q)?;
     Some((eod - model_eod) * knee_current_a(load, cutoff_v))
-}
-
-/// The current through a knee, A, to turn its time into charge and back: the load's own current, or under a
-/// power the current it draws at the cut-off (the knee lies there, where the current is highest; measured and
-/// applied the same way, so a knee's time carries over unchanged between discharges at the same power).
-fn knee_current_a(load: Load, cutoff_v: f64) -> f64 {
-    match load {
-        Load::CurrentA(a) => a,
-        Load::PowerW(w) => w / cutoff_v,
-    }
 }
 
 /// The knees a discharge runs with, C: each the median over the last [`KNEE_WINDOW`] discharges before it
