@@ -604,8 +604,8 @@ pub struct Stream<'a> {
     samples: Vec<Sample>,
     /// ... the charge they drew, C, and how many of them that sums (the estimate's `delivered_ah`).
     drawn: (f64, usize),
-    /// The current discharge's end fit: qMobile putting the model's end at the measured one, at the
-    /// calibrator's Ro then ([`crate::end_fit`]).
+    /// The current discharge's end fit: qMobile putting the model's end at the measured one (its knee kept
+    /// apart), at the calibrator's Ro as the cell passed the model's end voltage ([`crate::end_fit`]).
     end_fit: Option<Degradation>,
     /// The model's knees the last discharges' end fits measured, C ([`crate::end_fit::EndFit::knee_c`]; the
     /// last [`crate::end_fit::KNEE_WINDOW`]): their median is added to every end predicted, from any start.

@@ -775,7 +775,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let width = carrying.width;
     let end_knee_median = carrying.knees.median();
     progress(&format!(
-        "prior: each discharge hands on its end fit (the qMobile that puts the model's end at the measured one; {} \
+        "prior: each discharge hands on its end fit (the qMobile that puts the model's end at the measured one, the \
+         knee below the voltage the model ends at kept apart; {} \
          of {} discharges kept their voltage fit, out of range, or handed on the fit carried into them, cut short \
          or started far short of full; knee against it {:.4} Ah from a full cell, {:.4} Ah from the discharge's \
          own start); {}; width \
