@@ -676,9 +676,8 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     // How well each discharge's starting charge is known, under that model (what its end's interval adds).
     let start_model =
         neutral.model().map_err(|e| CalibrateError::Model { path: model_path.clone(), why: e.to_string() })?;
-    crate::record::set_start_spreads(train.iter_mut().chain(judged.iter_mut()), &start_model);
-    let mut train_noise_v: Vec<f64> =
-        train.iter().filter_map(|r| bcal_common::measured::noise::voltage_noise_v(&r.samples)).collect();
+    let own_noise_v = crate::record::set_start_spreads(train.iter_mut().chain(judged.iter_mut()), &start_model);
+    let mut train_noise_v: Vec<f64> = own_noise_v[..train.len()].iter().flatten().copied().collect();
     let noise_median_v = bcal_common::stats::median(&mut train_noise_v);
     if let Some(n) = noise_median_v {
         progress(&format!(

@@ -54,9 +54,13 @@ fn start_halves(r: &CellRecord, run: &CycleRun) -> Vec<f64> {
 
 /// The scored predictions of one finished discharge: (end of discharge, capacity against the data).
 pub(crate) fn outcomes(r: &CellRecord, run: &CycleRun) -> (Vec<Outcome>, Vec<Outcome>) {
+    outcomes_with(r, run, &start_halves(r, run))
+}
+
+/// [`outcomes`] with each step's start term given ([`start_halves`]).
+fn outcomes_with(r: &CellRecord, run: &CycleRun, starts: &[f64]) -> (Vec<Outcome>, Vec<Outcome>) {
     let (mut eod, mut cap) = (Vec::new(), Vec::new());
     let at = |f: u32| r.reading_at_fraction(f64::from(f) / 100.0).filter(|&k| k < run.steps.len());
-    let starts = start_halves(r, run);
     if let Some(m) = r.eod_s {
         for f in EOD_FRACTIONS_PCT {
             let Some(k) = at(f) else { continue };
@@ -117,8 +121,8 @@ pub fn calibrate_intervals(
         });
         let cap = adapt_cap.scaled(Widening::learn(&cap_past, recent.len()));
         // The outcome is taken with the calibrator's own bounds, before this widening.
-        let own = outcomes(r, run);
         let starts = start_halves(r, run);
+        let own = outcomes_with(r, run, &starts);
         for (s, start) in run.steps.iter_mut().zip(starts) {
             let load_on = r.load_on_s;
             if let Some(v) = s.eod.value {

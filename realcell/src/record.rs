@@ -88,11 +88,17 @@ pub fn set_short_starts_seen<'r>(records: impl IntoIterator<Item = &'r mut CellR
 /// Sets each record's [`CellRecord::start_share_sd`] under the calibrators' `model` (in order: every record
 /// kept, training and judged, as [`set_currents_before`]): its rest readings read with the voltage noise of
 /// the [`NOISE_WINDOW`] records before it (the median of each one's own, `voltage_noise_v`; no look-ahead),
-/// the first record with its own.
-pub fn set_start_spreads<'r>(records: impl IntoIterator<Item = &'r mut CellRecord>, model: &BatteryModel) {
+/// the first record with its own. Returns each record's own noise, V, in order (None where too few readings
+/// say it).
+pub fn set_start_spreads<'r>(
+    records: impl IntoIterator<Item = &'r mut CellRecord>,
+    model: &BatteryModel,
+) -> Vec<Option<f64>> {
     let mut noises: std::collections::VecDeque<f64> = std::collections::VecDeque::new();
+    let mut owns = Vec::new();
     for r in records {
         let own = voltage_noise_v(&r.samples);
+        owns.push(own);
         let mut before: Vec<f64> = noises.iter().copied().collect();
         let noise_v = bcal_common::stats::median(&mut before).or(own);
         r.start_share_sd = noise_v.and_then(|n| start_share_sd(model, &r.samples, n));
@@ -103,6 +109,7 @@ pub fn set_start_spreads<'r>(records: impl IntoIterator<Item = &'r mut CellRecor
             noises.push_back(n);
         }
     }
+    owns
 }
 
 /// The discharge's load as its predictions assume it at its end (`bcal_calib::LoadMean`): the mean current
