@@ -610,6 +610,8 @@ pub struct Stream<'a> {
     /// The model's knees the last discharges' end fits measured, C ([`crate::end_fit::EndFit::knee_c`]; the
     /// last [`crate::end_fit::KNEE_WINDOW`]): their median is added to every end predicted, from any start.
     knees_c: VecDeque<f64>,
+    /// ... and their median, C (0 before any), taken when one is added, not at every prediction.
+    knee_c: f64,
     /// The calibrator's Ro after each reading of the current discharge kept in `samples` (time s, ohm): the
     /// end fit's Ro is the one it had as the cell passed the model's end voltage, before the knee below it
     /// pulled the filter's Ro up (B0049's joint UKF: 0.131 -> 0.149 ohm over its last minute).
@@ -991,6 +993,7 @@ impl<'a> Stream<'a> {
             drawn: (0.0, 0),
             end_fit: None,
             knees_c: VecDeque::new(),
+            knee_c: 0.0,
             r_o_along: Vec::new(),
             refit: None,
             model_next: None,
@@ -1864,6 +1867,8 @@ impl<'a> Stream<'a> {
                     self.knees_c.pop_front();
                 }
                 self.knees_c.push_back(f.knee_c);
+                let mut knees: Vec<f64> = self.knees_c.iter().copied().collect();
+                self.knee_c = bcal_common::stats::median(&mut knees).unwrap_or(0.0);
             }
         }
     }
@@ -1977,8 +1982,7 @@ impl<'a> Stream<'a> {
         let profile = LoadProfile::Constant(load);
         let q = EodQuery { profile: &profile, cutoff_v: self.spec.cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
         // The model's knee, as the last discharges' end fits measured it: the charge past the model's end.
-        let mut knees: Vec<f64> = self.knees_c.iter().copied().collect();
-        let knee_c = bcal_common::stats::median(&mut knees).unwrap_or(0.0);
+        let knee_c = self.knee_c;
         let knee_a = crate::end_fit::knee_current_a(load, self.spec.cutoff_v);
         predict_eod(&model, &x, &dynamics, t_now_s, &q).map(|p| match knee_a > 0.0 {
             true => EodPrediction { eod_s: p.eod_s + knee_c / knee_a, drawn_c: p.drawn_c + knee_c },
