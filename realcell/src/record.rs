@@ -10,7 +10,7 @@ use bcal_common::battery::Load;
 use bcal_common::measured::cellmodel::start_share_sd;
 use bcal_common::measured::noise::{voltage_noise_v, NOISE_WINDOW};
 use bcal_common::measured::scenario::{Request, Sample};
-use bcal_common::measured::ShortStartWatch;
+use bcal_common::measured::{ShortStartWatch, SHORT_START_CARRY_DROP_V, SHORT_START_DROP_V};
 use bcal_doctor::Discharge;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -54,6 +54,11 @@ pub struct CellRecord {
     /// ([`set_short_starts_seen`]; no look-ahead), that its end fit does not measure the cell: it hands on what
     /// was carried into it, as one cut short does ([`CellRecord::measured_its_charge`]).
     pub short_start_seen: bool,
+    /// Whether it started from a partial charge as the rests of the discharges before it show
+    /// ([`set_short_starts_seen`], the rule of [`CellRecord::partial_start`] without look-ahead): the charge it
+    /// delivered is not the cell's capacity, so the capacity intervals do not learn from it
+    /// ([`crate::interval`]).
+    pub partial_start_seen: bool,
     /// How well the charge it starts with is known, as a share of qMobile (one sd; None without a rest reading
     /// before the load or a sensor noise to read it with): its rest voltage's noise through the open-circuit
     /// curve ([`set_start_spreads`]), what its end of discharge's interval adds for it
@@ -76,12 +81,15 @@ pub fn set_currents_before<'r>(records: impl IntoIterator<Item = &'r mut CellRec
     }
 }
 
-/// Sets each record's [`CellRecord::short_start_seen`] against the rests of the records before it in `records` (in
-/// order: every record kept, training and judged, as [`set_currents_before`]; `ShortStartWatch`).
+/// Sets each record's [`CellRecord::short_start_seen`] and [`CellRecord::partial_start_seen`] against the rests
+/// of the records before it in `records` (in order: every record kept, training and judged, as
+/// [`set_currents_before`]; `ShortStartWatch`).
 pub fn set_short_starts_seen<'r>(records: impl IntoIterator<Item = &'r mut CellRecord>) {
     let mut watch = ShortStartWatch::default();
     for r in records {
-        r.short_start_seen = watch.see(r.rest_before_load_v());
+        let drop_v = watch.see_drop_v(r.rest_before_load_v());
+        r.short_start_seen = drop_v.is_some_and(|d| d > SHORT_START_CARRY_DROP_V);
+        r.partial_start_seen = drop_v.is_some_and(|d| d > SHORT_START_DROP_V);
     }
 }
 
@@ -260,6 +268,7 @@ pub fn prepare(d: &Discharge, cutoff_v: f64) -> Result<CellRecord, RecordError> 
         current_before_a: None,
         partial_start: false,
         short_start_seen: false,
+        partial_start_seen: false,
         start_share_sd: None,
         stated_tail_ah: None,
         samples,
@@ -468,6 +477,7 @@ pub(crate) fn test_discharge(
         current_before_a: None,
         partial_start: false,
         short_start_seen: false,
+        partial_start_seen: false,
         start_share_sd: None,
         stated_tail_ah: None,
         samples,

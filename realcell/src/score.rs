@@ -282,6 +282,7 @@ mod tests {
             current_before_a: None,
             partial_start: false,
             short_start_seen: false,
+            partial_start_seen: false,
             start_share_sd: None,
             stated_tail_ah: None,
         };

@@ -68,6 +68,7 @@ pub fn simulated_record_under(
         current_before_a: None,
         partial_start: false,
         short_start_seen: false,
+        partial_start_seen: false,
         start_share_sd: None,
         stated_tail_ah: None,
         samples,

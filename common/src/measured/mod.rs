@@ -105,13 +105,23 @@ impl ShortStartWatch {
     /// Whether a discharge resting at `rest_v` (None: no rest before its load, not judged and not kept) started
     /// so far short of full that its end fit does not measure the cell; it then joins the neighbours.
     pub fn see(&mut self, rest_v: Option<f64>) -> bool {
-        let Some(v) = rest_v else { return false };
-        let short = self.before_v.len() == SHORT_START_NEIGHBOURS
-            && short_start(v, self.before_v.make_contiguous(), SHORT_START_CARRY_DROP_V).is_some();
+        self.see_drop_v(rest_v).is_some_and(|d| d > SHORT_START_CARRY_DROP_V)
+    }
+
+    /// How far below the median of its neighbours a discharge resting at `rest_v` rests, V (negative above it;
+    /// None with no rest reading or before there are [`SHORT_START_NEIGHBOURS`]): more than
+    /// [`SHORT_START_DROP_V`], it started from a partial charge, more than [`SHORT_START_CARRY_DROP_V`], so far
+    /// short of full that its end fit does not measure the cell. It then joins the neighbours.
+    pub fn see_drop_v(&mut self, rest_v: Option<f64>) -> Option<f64> {
+        let v = rest_v?;
+        let drop_v = (self.before_v.len() == SHORT_START_NEIGHBOURS).then(|| {
+            let mut around: Vec<f64> = self.before_v.iter().copied().collect();
+            crate::stats::quantile(&mut around, 0.5).map(|m| m - v)
+        });
         self.before_v.push_back(v);
         if self.before_v.len() > SHORT_START_NEIGHBOURS {
             self.before_v.pop_front();
         }
-        short
+        drop_v.flatten()
     }
 }
