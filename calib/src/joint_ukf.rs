@@ -375,6 +375,16 @@ impl JointUkf {
             return;
         }
         let y_mean: f64 = (0..N_SIGMA).map(|k| ys[k] * self.wm[k]).sum();
+        // Past the model's own end (an electrode's surface empty: its voltage stops falling) a cell below it
+        // goes on down a knee the model cannot follow, and those readings would move the parameters to hold
+        // it (the end fit keeps the knee apart: `crate::end_fit`); the filter predicts on without them. A
+        // cell above it says the model emptied early (too little qMobile): that reading updates.
+        if s.voltage_v < y_mean && self.model.surface_empty(&self.state_of(&mean), &degradation(&self.spec, &mean)) {
+            self.last_update = None;
+            self.z = mean;
+            self.p = p;
+            return;
+        }
         let r_o = degradation(&self.spec, &mean).r_o_ohm * self.ro_factor;
         let meas_var = self.s.meas_std_v.powi(2) * ns.meas_var
             + self.settle.voltage_variance_v2(s.t_s, r_o, self.model.params.t_o_s);
@@ -593,6 +603,62 @@ mod tests {
             within += usize::from(iv.r_o_ohm[0] <= t.r_o_ohm && t.r_o_ohm <= iv.r_o_ohm[1]);
         }
         assert!(within >= 2, "truth inside the final Ro interval in {within} of 4 discharges");
+    }
+
+    /// Simulated 2 A discharges (the simulator's integrator and sensor, 9-19 s sampling) of cells whose knee
+    /// the model lacks: each ends where the model's surface empties (about 3.0 V), and the test writes the
+    /// cell's knee below it, 0.4 V a minute to a 2.5 V cut-off. Past its model's end the filter predicts on
+    /// without the knee's readings, so the qMobile it ends with is the one it held there (the end fit keeps
+    /// the knee apart, `crate::end_fit`, and predictions add it back); a filter that read them moved qMobile
+    /// by 27-87 C and Ro by 0.007-0.011 ohm (6-10 %).
+    #[test]
+    fn past_the_model_s_end_the_knee_moves_no_parameter() {
+        use bcal_common::battery::{Load, LoadProfile};
+        use bcal_common::measured::scenario::EpisodeSpec;
+        let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
+        let spec = TrackerSpec { cutoff_v: 2.5, ..TrackerSpec::default() };
+        for seed in 0..4u64 {
+            let truth = Degradation { q_mobile_c: 7000.0 + 150.0 * seed as f64, r_o_ohm: 0.11 + 0.01 * seed as f64 };
+            let ep = simulate(
+                &cfg,
+                &EpisodeSpec {
+                    truth,
+                    soc0: 1.0,
+                    kind: LoadKind::ConstantCurrent,
+                    profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (60.0, Load::CurrentA(2.0))]),
+                    rest_s: 60.0,
+                    ambient_k: cfg.model.params().tb0_k,
+                    interval_s: [9.0, 19.0],
+                    noise_seed: 90 + seed,
+                    cell_error: Default::default(),
+                    request_known: false,
+                    prior: None,
+                },
+            )
+            .unwrap();
+            let mut samples = ep.samples.clone();
+            let last = *samples.last().unwrap();
+            let knee_s = (last.voltage_v - 2.5) / (0.4 / 60.0);
+            samples.extend((1..=(knee_s / 10.0) as usize).map(|j| Sample {
+                t_s: last.t_s + 10.0 * j as f64,
+                voltage_v: last.voltage_v - 0.4 / 60.0 * 10.0 * j as f64,
+                ..last
+            }));
+            let mut f = JointUkf::new(JointUkfSettings::default(), &spec);
+            let mut at_model_end = None;
+            for (k, s) in samples.iter().enumerate() {
+                f.step(s);
+                if k + 1 == ep.samples.len() {
+                    at_model_end = Some(f.estimate());
+                }
+            }
+            let (there, end) = (at_model_end.unwrap(), f.estimate());
+            assert!(
+                (end.q_mobile_c - there.q_mobile_c).abs() < 10.0 && (end.r_o_ohm - there.r_o_ohm).abs() < 1e-3,
+                "seed {seed}: {there:?} at the model's end, {end:?} after the knee ({knee_s:.0} s)"
+            );
+            assert!((end.q_mobile_c / truth.q_mobile_c - 1.0).abs() < 0.03, "seed {seed}: {end:?} against {truth:?}");
+        }
     }
 
     /// Discharges fed from their first loaded reading (a stream joined mid-discharge): that reading is no
