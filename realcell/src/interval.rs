@@ -174,6 +174,36 @@ mod tests {
         p.lo.unwrap() <= m && m <= p.hi.unwrap()
     }
 
+    /// `n` simulated 2 A discharges to 2.5 V (the simulator's own integrator and sensor: 3 mV of noise, 9-19 s
+    /// sampling, a minute's rest before the load), the k-th from `soc0(k)` of a full charge and noise seed
+    /// `seed + k`, each followed by the model pinned at the cell's truth.
+    fn pinned_discharges(n: usize, soc0: impl Fn(usize) -> f64, seed: u64) -> (Vec<CellRecord>, Vec<CycleRun>) {
+        use crate::run::{checkpoints, run_cycle_with, Knee, Streaming};
+        use bcal_common::battery::Degradation;
+        use bcal_common::measured::{ScenarioConfig, TrackerSpec};
+        let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
+        let spec = TrackerSpec { cutoff_v: 2.5, ..TrackerSpec::default() };
+        let truth = Degradation { q_mobile_c: 7400.0, r_o_ohm: 0.12 };
+        let records: Vec<CellRecord> = (0..n)
+            .map(|k| crate::testing::simulated_record(&cfg, truth, soc0(k), seed + k as u64, k as u32 + 1))
+            .collect();
+        let pinned = Streaming::Pinned { spec, d: truth };
+        let runs = records
+            .iter()
+            .map(|r| run_cycle_with(&pinned, r, 2.5, Knee::default(), &[1.0], Some(&checkpoints(r))).remove(0))
+            .collect();
+        (records, runs)
+    }
+
+    /// `runs` with their intervals learned: the first `history` discharges the history, the rest judged.
+    fn with_intervals(records: &[CellRecord], runs: &[CycleRun], history: usize) -> Vec<CycleRun> {
+        let mut runs = runs.to_vec();
+        let (before, judged) = runs.split_at_mut(history);
+        let hist: Vec<(&CellRecord, &CycleRun)> = records.iter().zip(before.iter()).collect();
+        calibrate_intervals(&hist, &records[history..], judged);
+        runs
+    }
+
     #[test]
     fn intervals_learned_on_the_discharges_before_cover_about_ninety_percent_of_a_sequence() {
         let (hist_r, hist_runs) = sequence(10, 1);
@@ -195,30 +225,11 @@ mod tests {
     /// model term must stand for them, which widens every full start's interval and still misses more.
     #[test]
     fn a_start_read_off_the_plateau_of_the_curve_widens_its_own_interval() {
-        use crate::run::{checkpoints, run_cycle_with, Knee, Streaming};
-        use bcal_common::battery::{BatteryModel, Degradation};
-        use bcal_common::measured::{ScenarioConfig, TrackerSpec};
-        let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
-        let spec = TrackerSpec { cutoff_v: 2.5, ..TrackerSpec::default() };
-        let truth = Degradation { q_mobile_c: 7400.0, r_o_ohm: 0.12 };
         let part = |k: usize| k % 3 == 2;
-        let mut records: Vec<CellRecord> = (0..45)
-            .map(|k| {
-                let soc0 = if part(k) { 0.4 } else { 1.0 };
-                crate::testing::simulated_record(&cfg, truth, soc0, 40 + k as u64, k as u32 + 1)
-            })
-            .collect();
-        let pinned = Streaming::Pinned { spec, d: truth };
-        let runs: Vec<CycleRun> = records
-            .iter()
-            .map(|r| run_cycle_with(&pinned, r, 2.5, Knee::default(), &[1.0], Some(&checkpoints(r))).remove(0))
-            .collect();
+        let (mut records, runs) = pinned_discharges(45, |k| if part(k) { 0.4 } else { 1.0 }, 40);
         // (part-charged ends covered, of; the full ones' median half-width at half, s)
         let judge = |records: &[CellRecord]| {
-            let mut runs = runs.clone();
-            let (before, judged) = runs.split_at_mut(12);
-            let hist: Vec<(&CellRecord, &CycleRun)> = records.iter().zip(before.iter()).collect();
-            calibrate_intervals(&hist, &records[12..], judged);
+            let runs = with_intervals(records, &runs, 12);
             let (mut hit, mut of, mut full_half) = (0, 0, Vec::new());
             for (k, (r, u)) in records.iter().zip(&runs).enumerate().skip(12) {
                 for f in EOD_FRACTIONS_PCT {
@@ -235,7 +246,7 @@ mod tests {
             (hit, of, bcal_common::stats::median(&mut full_half).unwrap())
         };
         let without = judge(&records);
-        crate::record::set_start_spreads(records.iter_mut(), &BatteryModel::default());
+        crate::record::set_start_spreads(records.iter_mut(), &bcal_common::battery::BatteryModel::default());
         assert!(records.iter().enumerate().all(|(k, r)| part(k) == (r.start_share_sd.unwrap() > 0.003)));
         let with = judge(&records);
         // 33 of 33 and 8 s, against 24 of 33 and 192 s without.
@@ -250,36 +261,17 @@ mod tests {
     /// capacity interval +-1.6 Ah wide on a 1.8 Ah cell).
     #[test]
     fn a_part_charged_start_teaches_the_capacity_intervals_nothing() {
-        use crate::run::{checkpoints, run_cycle_with, Knee, Streaming};
-        use bcal_common::battery::Degradation;
-        use bcal_common::measured::{ScenarioConfig, TrackerSpec};
-        let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
-        let spec = TrackerSpec { cutoff_v: 2.5, ..TrackerSpec::default() };
-        let truth = Degradation { q_mobile_c: 7400.0, r_o_ohm: 0.12 };
         let part = 14;
-        let mut records: Vec<CellRecord> = (0..24)
-            .map(|k| {
-                let soc0 = if k == part { 0.25 } else { 1.0 };
-                crate::testing::simulated_record(&cfg, truth, soc0, 70 + k as u64, k as u32 + 1)
-            })
-            .collect();
+        let (mut records, runs) = pinned_discharges(24, |k| if k == part { 0.25 } else { 1.0 }, 70);
         for r in &mut records {
             r.data_capacity_ah = r.eod_s.map(|end_s| bcal_calib::eod::charge_to_ah(&r.samples, end_s));
         }
         crate::record::set_short_starts_seen(records.iter_mut());
         let seen: Vec<usize> = (0..records.len()).filter(|&k| records[k].partial_start_seen).collect();
         assert_eq!(seen, vec![part], "the rests before each name the part-charged start alone");
-        let pinned = Streaming::Pinned { spec, d: truth };
-        let runs: Vec<CycleRun> = records
-            .iter()
-            .map(|r| run_cycle_with(&pinned, r, 2.5, Knee::default(), &[1.0], Some(&checkpoints(r))).remove(0))
-            .collect();
         // The widest capacity interval at half after the part-charged start, % of its prediction.
         let widest_after = |records: &[CellRecord]| {
-            let mut runs = runs.clone();
-            let (before, judged) = runs.split_at_mut(8);
-            let hist: Vec<(&CellRecord, &CycleRun)> = records.iter().zip(before.iter()).collect();
-            calibrate_intervals(&hist, &records[8..], judged);
+            let runs = with_intervals(records, &runs, 8);
             (part + 1..records.len())
                 .map(|k| {
                     let p = runs[k].steps[records[k].reading_at_fraction(0.5).unwrap()].capacity;
