@@ -64,8 +64,9 @@ class Estimate(TypedDict):
     eod_lo_s: Optional[float]
     eod_hi_s: Optional[float]
     """The prediction's 90 % interval, absolute times, s: learned from how the stream's predictions fared
-    on its last 10 discharges followed to the cut-off, with what the discharge's start adds (its rest voltage
-    known to the sensor's noise, through the open-circuit curve: several % of the charge on the curve's
+    on its last 10 discharges followed to the cut-off (not those started far short of full, more than 150 mV
+    below the last three's rests: scored, they teach no rule), with what the discharge's start adds (its rest
+    voltage known to the sensor's noise, through the open-circuit curve: several % of the charge on the curve's
     plateau, nil near full); None until 9 of them are scored."""
     delivered_ah: Optional[float]
     """The charge this discharge will have delivered at its end, Ah: what its readings drew so far plus
