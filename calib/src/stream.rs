@@ -615,7 +615,9 @@ pub struct Stream<'a> {
     knee_c: f64,
     /// The calibrator's Ro after each reading of the current discharge kept in `samples` (time s, ohm): the
     /// end fit's Ro is the one it had as the cell passed the model's end voltage, before the knee below it
-    /// pulled the filter's Ro up (B0049's joint UKF: 0.131 -> 0.149 ohm over its last minute).
+    /// pulled the filter's Ro up (B0049's joint UKF: 0.131 -> 0.149 ohm over its last minute, before the joint
+    /// UKF held past its own model's end, 2026-12-01; the window fit still takes the knee, and a filter reads
+    /// it until its own model, at its own estimate, has emptied).
     r_o_along: Vec<(f64, f64)>,
     /// Fits a discharge that reached its cut-off ([`Refit`]; None: no fit, the model stays as set up) ...
     refit: Option<Refit<'a>>,
