@@ -23,6 +23,97 @@ const REST_RUN_S: f64 = 600.0;
 /// stream alike.
 pub const KNEE_WINDOW: usize = 3;
 
+/// When a discharge's warmth is read, s after its load came on: its temperature then against the last
+/// [`KNEE_WINDOW`] discharges' at the same time moves its knee ([`KneeWarmth`]). Chosen on B0055's training
+/// cycles (fitted on 1-25, judged on 26-34, of 200 / 300 / 450 / 600 / 900 s; `examples/knee_by_temperature.py`).
+pub const KNEE_WARMTH_AT_S: f64 = 600.0;
+/// Pairs of moves a knee's warmth slope needs before it moves a knee, and the most recent it learns from.
+const KNEE_WARMTH_MIN_PAIRS: usize = 8;
+const KNEE_WARMTH_PAIRS: usize = 30;
+/// The most discharges [`KneeWarmth::learn`] reads: its pairs and the window before the first.
+pub const KNEE_WARMTH_SEEN: usize = KNEE_WARMTH_PAIRS + KNEE_WINDOW;
+/// A discharge whose temperature at [`KNEE_WARMTH_AT_S`] lies further than this from the last discharges' ran in
+/// other conditions (an ambient that changed: NASA's B0038-B0044 move 20 K between blocks), K: it neither
+/// teaches nor moves a knee. B0055's discharges lie within 2.1 K of the last three's.
+const KNEE_WARMTH_MAX_K: f64 = 3.0;
+
+/// How a knee moves with the cell's warmth, learned on the cell's own discharges. On a cold cell the tail a
+/// discharge runs below the model's end is long and moves from one discharge to the next with how warm the
+/// cell runs (B0055 at 4 C: 341 s, its move against the median of the last three 2.46 % of the discharge at
+/// the median, as large as the joint UKF's end error at half; 0.64 correlated with the temperature 600 s
+/// after the load-on against the last three's, 0.93 with that at the end); on a warm cell it barely moves
+/// (0.06-0.11 %) and the slope learned there is near zero.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct KneeWarmth {
+    /// The median temperature at [`KNEE_WARMTH_AT_S`] of the last [`KNEE_WINDOW`] discharges, K.
+    pub reference_k: f64,
+    /// The knee's move per kelvin of this discharge's temperature then above `reference_k`, C/K.
+    pub c_per_k: f64,
+    /// The pairs it was learned on.
+    pub pairs: usize,
+}
+
+impl KneeWarmth {
+    /// Learned on `seen` (each ended discharge's temperature at [`KNEE_WARMTH_AT_S`], K, and its knee, C, in
+    /// order; the discharges with both): each discharge's knee move against the median of the
+    /// [`KNEE_WINDOW`] before it, against its temperature's, least squares over the last
+    /// [`KNEE_WARMTH_PAIRS`] (the slope about their means; the move predicted without an intercept, as the
+    /// knee's median carries the level). None before [`KNEE_WARMTH_MIN_PAIRS`] pairs.
+    pub fn learn(seen: &[(f64, f64)]) -> Option<Self> {
+        let median = |v: &mut Vec<f64>| bcal_common::stats::median(v).unwrap_or(0.0);
+        let moves: Vec<(f64, f64)> = (KNEE_WINDOW..seen.len())
+            .map(|j| {
+                let last = &seen[j - KNEE_WINDOW..j];
+                let (mut w, mut k): (Vec<f64>, Vec<f64>) = last.iter().copied().unzip();
+                (seen[j].0 - median(&mut w), seen[j].1 - median(&mut k))
+            })
+            .filter(|m| m.0.abs() <= KNEE_WARMTH_MAX_K)
+            .collect();
+        let moves = &moves[moves.len().saturating_sub(KNEE_WARMTH_PAIRS)..];
+        if moves.len() < KNEE_WARMTH_MIN_PAIRS {
+            return None;
+        }
+        let n = moves.len() as f64;
+        let (mx, my) = (moves.iter().map(|m| m.0).sum::<f64>() / n, moves.iter().map(|m| m.1).sum::<f64>() / n);
+        let sxx: f64 = moves.iter().map(|m| (m.0 - mx).powi(2)).sum();
+        let sxy: f64 = moves.iter().map(|m| (m.0 - mx) * (m.1 - my)).sum();
+        let mut last: Vec<f64> = seen[seen.len() - KNEE_WINDOW..].iter().map(|s| s.0).collect();
+        Some(Self {
+            reference_k: median(&mut last),
+            c_per_k: if sxx > 1e-12 { sxy / sxx } else { 0.0 },
+            pairs: moves.len(),
+        })
+    }
+
+    /// The knee's move, C, for a discharge whose temperature at [`KNEE_WARMTH_AT_S`] was `warmth_k` (none
+    /// in other conditions than the last discharges').
+    pub fn move_c(&self, warmth_k: f64) -> f64 {
+        let off_k = warmth_k - self.reference_k;
+        if off_k.abs() <= KNEE_WARMTH_MAX_K {
+            self.c_per_k * off_k
+        } else {
+            0.0
+        }
+    }
+}
+
+/// The temperature of a discharge's readings `samples` (in time order) at `t_s`, K, linear between the
+/// readings around it; None before the first or after the last.
+pub fn temperature_at_k(samples: &[Sample], t_s: f64) -> Option<f64> {
+    let k = samples.iter().position(|s| s.t_s >= t_s)?;
+    let b = &samples[k];
+    if k == 0 {
+        return (b.t_s - t_s).abs().lt(&1e-9).then_some(b.temperature_k);
+    }
+    let a = &samples[k - 1];
+    let span = b.t_s - a.t_s;
+    Some(if span > 0.0 {
+        a.temperature_k + (b.temperature_k - a.temperature_k) * (t_s - a.t_s) / span
+    } else {
+        b.temperature_k
+    })
+}
+
 /// The current through a knee, A, to turn its time into charge and back: the load's own current, or under a
 /// power the current it draws at the cut-off (the knee lies there, where the current is highest; measured and
 /// applied the same way, so a knee's time carries over unchanged between discharges at the same power).

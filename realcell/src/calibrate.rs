@@ -846,6 +846,25 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     let judged_ref_fits = crate::carry::over_cut_short(&judged, &judged_fits, train_ref_fits.last().or(Some(&start)));
     let (train_ref_before, judged_ref_before, _) = sequence(&train_ref_fits, &judged_ref_fits, false);
 
+    let warmth_by_cycle: serde_json::Map<String, serde_json::Value> = judged
+        .iter()
+        .zip(&judged_before)
+        .map(|(r, b)| (r.cycle.to_string(), serde_json::json!(b.knee.eod_warmth)))
+        .collect();
+    let warmth_s_per_k: Vec<f64> = judged
+        .iter()
+        .zip(&judged_before)
+        .filter_map(|(r, b)| b.knee.eod_warmth.map(|w| w.c_per_k / r.current_a.abs().max(1e-3)))
+        .collect();
+    progress(&format!(
+        "knee by warmth: moved on {} of {} judged discharges from {:.0} s after the load-on{}",
+        warmth_s_per_k.len(),
+        judged.len(),
+        crate::run::KNEE_WARMTH_AT_S,
+        bcal_common::stats::median(&mut warmth_s_per_k.clone())
+            .map_or(String::new(), |m| format!(", by a median {m:+.1} s per K above the last three discharges'"))
+    ));
+
     let mut runs: Vec<(&'static str, Vec<CycleRun>)> = Vec::new();
     let mut settings = serde_json::Map::new();
     settings.insert("cell_setting".into(), serde_json::to_value(&facts).unwrap_or_default());
@@ -864,14 +883,18 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
     settings.insert(
         "model_knee_c".into(),
         serde_json::json!({"training_median": knee_median, "training_median_end_fit": end_knee_median,
-            "window": crate::run::KNEE_WINDOW,
+            "window": crate::run::KNEE_WINDOW, "warmth_at_s": crate::run::KNEE_WARMTH_AT_S,
+            "judged_eod_warmth": warmth_by_cycle,
             "what": "the charge a complete discharge delivered between the model's end of discharge under a fit \
             and the measured cut-off, C: `training_median` under the record's offline voltage fit (the references \
             that carry it), `training_median_end_fit` under its end fit (the prior and the streaming calibrators); \
             `capacity_c` with the model started from a full cell, `eod_c` from the discharge's own start (its rest \
             voltage, as the calibrators start); each discharge adds the median of `capacity_c` over the last \
             `window` discharges before it to every predicted capacity (of a full cell), and the median of `eod_c` \
-            over the current assumed to every predicted end of discharge"}),
+            over the current assumed to every predicted end of discharge; from `warmth_at_s` after the load-on \
+            each knee moves by its slope (`c_per_k`, learned on the cell's own discharges, none before 8 pairs) \
+            times the discharge's temperature then above the median of the last `window` discharges' \
+            (`reference_k`): `judged_eod_warmth` per judged cycle (`bcal_calib::end_fit::KneeWarmth`)"}),
     );
     settings.insert(
         "prior".into(),

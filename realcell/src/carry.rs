@@ -291,10 +291,10 @@ mod tests {
             assert_eq!(c.before[k].prior, c.fits[k - 1].0, "without a lifetime model the prior is the end fit before");
         }
         let voltage = Carrying::along(&spec, None, &records, fits.clone(), &neutral, &BTreeMap::new(), cfg.cutoff_v);
-        for (e, v) in c.knees.eod_c.iter().zip(&voltage.knees.eod_c) {
+        for (e, v) in c.knees.eod_c().iter().zip(&voltage.knees.eod_c()) {
             assert!(*v > 0.0 && e.abs() < 0.25 * v, "knee against the end fit {e} C, the voltage fit {v} C");
         }
-        assert_eq!(c.knees.eod_c.len(), records.len(), "every record started at rest and reached its end");
+        assert_eq!(c.knees.eod_c().len(), records.len(), "every record started at rest and reached its end");
     }
 
     /// A discharge started at 40 % of a full charge (the simulator's own cell, read as a cycler logs it) reaches
