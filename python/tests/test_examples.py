@@ -86,6 +86,34 @@ def test_previous_discharge_signal_recovers_the_slope_it_was_made_with(tmp_path)
     assert carried > 0.2, out
 
 
+def test_knee_by_temperature_recovers_the_slope_it_was_made_with(tmp_path):
+    """A hand-made NASA folder whose discharges fall to 3.0 V at 2010 s and then run a tail to the 2.5 V cut-off
+    of 300 s plus 50 s per kelvin their temperature lies above 5 C: the slope comes back, the tail's move is
+    exact with it and missed without it."""
+    import random
+
+    rng = random.Random(11)
+    (tmp_path / "data").mkdir()
+    meta = ["type,start_time,ambient_temperature,battery_id,test_id,uid,filename,Capacity,Re,Rct"]
+    for k in range(1, 21):
+        warm_k = 0.2 * rng.randint(-5, 5)
+        tail_s = 300.0 + 50.0 * warm_k  # a multiple of 10 s: readings land on both crossings
+        rows = ["Voltage_measured,Current_measured,Temperature_measured,Current_load,Voltage_load,Time",
+                f"4.2,0.0,{5.0 + warm_k},0.0,0.0,0.0"]
+        for step in range(1, int(2010.0 + tail_s) // 10 + 2):
+            t = 10.0 * step
+            v = 4.0 - (t - 10.0) / 2000.0 if t <= 2010.0 else 3.0 - 0.5 * (t - 2010.0) / tail_s
+            rows.append(f"{v:.6f},-2.0,{5.0 + warm_k},2.0,{v:.6f},{t}")
+        (tmp_path / "data" / f"{k:05d}.csv").write_text("\n".join(rows) + "\n")
+        meta.append(f"discharge,[2010. 1. 1. 0. 0. 0.],4,B0000,{k},{k},{k:05d}.csv,1.2,,")
+    (tmp_path / "metadata.csv").write_text("\n".join(meta) + "\n")
+    out = run_example("knee_by_temperature.py", "--data", str(tmp_path), "--cell", "B0000", "--cutoff-v", "2.5",
+                      "--train-cycles", "1..10")
+    assert "with 50.0 s per K" in out and "0.00 / 0.00 %" in out.split("with 50.0 s per K")[1], out
+    carried = float(out.split("last 3: ")[1].split(" /")[0])
+    assert carried > 0.2, out
+
+
 def record_room_run(tmp_path, stated_offset_ah=None, stated_tail_ah=None):
     """A hand-made `bcal calibrate --out` folder of 200 judged discharges for record_room.py: each discharge's
     capacity error at 50 % is -0.8 times the last one plus a fresh part (what a prior that carries one
