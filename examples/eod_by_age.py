@@ -56,6 +56,14 @@ def eod_error_pct(path, cutoff_v, fraction=0.5, signed=False):
     return error if signed else abs(error)
 
 
+def errors_against(run, method, cutoff_v):
+    """`errors` of a `bcal calibrate --out` folder given with `--against`, refused clearly where it is none."""
+    report = run / "calibration.json"
+    if not report.exists():
+        raise SystemExit(f"{report}: not found (--against is a `bcal calibrate --out` folder)")
+    return errors(run, method, cutoff_v)
+
+
 def errors(run, method, cutoff_v):
     out = {}
     for f in sorted((run / "readings" / method).glob("*.csv")):

@@ -121,7 +121,9 @@ def main():
     jlo, jhi = (int(x) for x in a.judge_cycles.split("..")) if a.judge_cycles else (hi + 1, 10**9)
     judged = [x for x in m if jlo <= x[0] <= jhi]
     if len(train) < 4 or not judged:
-        raise SystemExit(f"{a.cell}: too few discharges reach {a.cutoff_v} V (training {len(train)}, judged {len(judged)})")
+        raise SystemExit(
+            f"{a.cell}: too few discharges reach {a.cutoff_v} V (training {len(train)}, judged {len(judged)})"
+        )
     mx, my = statistics.mean(x[3] for x in train), statistics.mean(x[2] for x in train)
     sxx = sum((x[3] - mx) ** 2 for x in train)
     b = sum((x[3] - mx) * (x[2] - my) for x in train) / sxx if sxx > 0 else 0.0
@@ -129,8 +131,8 @@ def main():
     with_t = {x[0]: abs(x[2] - b * x[3]) / x[1] * 100.0 for x in judged}
     tails = [d[x[0]][1] for x in judged]
     print(
-        f"{a.cell}: judged {len(judged)} (trained on {lo}..{hi}); tail below {a.tail_from_v} V {statistics.mean(tails):.0f} s, "
-        f"sd {statistics.stdev(tails):.0f} s; its move against the last {WINDOW}: "
+        f"{a.cell}: judged {len(judged)} (trained on {lo}..{hi}); tail below {a.tail_from_v} V "
+        f"{statistics.mean(tails):.0f} s, sd {statistics.stdev(tails):.0f} s; its move against the last {WINDOW}: "
         f"{statistics.median(carried.values()):.2f} / {p90(carried.values()):.2f} % of the discharge (median / p90); "
         f"with {b:.1f} s per K of the temperature at {a.at_s:.0f} s against the last {WINDOW}'s: "
         f"{statistics.median(with_t.values()):.2f} / {p90(with_t.values()):.2f} %"
@@ -141,10 +143,7 @@ def main():
         f"{corr([x[2] for x in judged], [x[4] for x in judged]):+.2f}"
     )
     if a.against:
-        report = a.against / "calibration.json"
-        if not report.exists():
-            raise SystemExit(f"{report}: not found (--against is a `bcal calibrate --out` folder)")
-        theirs = eod_by_age.errors(a.against, a.method, a.cutoff_v)
+        theirs = eod_by_age.errors_against(a.against, a.method, a.cutoff_v)
         both = sorted(set(theirs) & set(carried))
         if both:
             print(

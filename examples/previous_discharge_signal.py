@@ -139,10 +139,7 @@ def main():
         f"{p90(corrected.values()):.2f} % (median / p90)"
     )
     if a.against:
-        report = a.against / "calibration.json"
-        if not report.exists():
-            raise SystemExit(f"{report}: not found (--against is a `bcal calibrate --out` folder)")
-        theirs = eod_by_age.errors(a.against, a.method, a.cutoff_v)
+        theirs = eod_by_age.errors_against(a.against, a.method, a.cutoff_v)
         both = sorted(set(theirs) & set(corrected))
         if both:
             wins = sum(corrected[c] < theirs[c] for c in both)

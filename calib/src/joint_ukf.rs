@@ -613,29 +613,14 @@ mod tests {
     /// by 27-87 C and Ro by 0.007-0.011 ohm (6-10 %).
     #[test]
     fn past_the_model_s_end_the_knee_moves_no_parameter() {
-        use bcal_common::battery::{Load, LoadProfile};
+        use bcal_common::battery::Load;
         use bcal_common::measured::scenario::EpisodeSpec;
         let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
         let spec = TrackerSpec { cutoff_v: 2.5, ..TrackerSpec::default() };
         for seed in 0..4u64 {
             let truth = Degradation { q_mobile_c: 7000.0 + 150.0 * seed as f64, r_o_ohm: 0.11 + 0.01 * seed as f64 };
-            let ep = simulate(
-                &cfg,
-                &EpisodeSpec {
-                    truth,
-                    soc0: 1.0,
-                    kind: LoadKind::ConstantCurrent,
-                    profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (60.0, Load::CurrentA(2.0))]),
-                    rest_s: 60.0,
-                    ambient_k: cfg.model.params().tb0_k,
-                    interval_s: [9.0, 19.0],
-                    noise_seed: 90 + seed,
-                    cell_error: Default::default(),
-                    request_known: false,
-                    prior: None,
-                },
-            )
-            .unwrap();
+            let spec_k = EpisodeSpec::rest_then(truth, 1.0, Load::CurrentA(2.0), cfg.model.params().tb0_k, 90 + seed);
+            let ep = simulate(&cfg, &spec_k).unwrap();
             let mut samples = ep.samples.clone();
             let last = *samples.last().unwrap();
             let knee_s = (last.voltage_v - 2.5) / (0.4 / 60.0);

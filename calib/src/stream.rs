@@ -2452,30 +2452,16 @@ mod tests {
     /// (sd) under two thirds as much as without the knee's move (0.49 against 0.98 % of the discharge).
     #[test]
     fn a_stream_follows_a_knee_that_moves_with_the_cell_s_warmth() {
-        use bcal_common::battery::{Load, LoadProfile};
+        use bcal_common::battery::Load;
         let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
         let offset_k = |k: usize| 2.0 * ((k as f64 * 0.618_034).fract() - 0.5);
         let knee_s = |k: usize| 150.0 + 60.0 * offset_k(k);
         let (mut readings, mut starts, mut ends, mut offset_s) = (Vec::new(), Vec::new(), Vec::new(), 0.0);
         let n = 18;
         for k in 0..n {
-            let ep = simulate(
-                &cfg,
-                &EpisodeSpec {
-                    truth: Degradation { q_mobile_c: 7200.0 - 10.0 * k as f64, r_o_ohm: 0.12 },
-                    soc0: 1.0,
-                    kind: LoadKind::ConstantCurrent,
-                    profile: LoadProfile::Piecewise(vec![(0.0, Load::CurrentA(0.0)), (60.0, Load::CurrentA(2.0))]),
-                    rest_s: 60.0,
-                    ambient_k: cfg.model.params().tb0_k,
-                    interval_s: [9.0, 19.0],
-                    noise_seed: 60 + k as u64,
-                    cell_error: Default::default(),
-                    request_known: false,
-                    prior: None,
-                },
-            )
-            .unwrap();
+            let truth = Degradation { q_mobile_c: 7200.0 - 10.0 * k as f64, r_o_ohm: 0.12 };
+            let spec = EpisodeSpec::rest_then(truth, 1.0, Load::CurrentA(2.0), cfg.model.params().tb0_k, 60 + k as u64);
+            let ep = simulate(&cfg, &spec).unwrap();
             let t_k = cfg.model.params().tb0_k + offset_k(k);
             let cut = ep.samples.iter().position(|s| s.current_a > 1.0 && s.voltage_v < 3.0).unwrap();
             let reading = |t_s: f64, voltage_v: f64, current_a: f64| Reading {

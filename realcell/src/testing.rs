@@ -1,8 +1,8 @@
 //! What the crate's tests share: a cell record simulated by the simulator's own integrator and sampling.
 
 use crate::record::CellRecord;
-use bcal_common::battery::{Degradation, Load, LoadProfile};
-use bcal_common::measured::scenario::{simulate, EpisodeSpec, LoadKind, Request, Sample, ScenarioConfig};
+use bcal_common::battery::{Degradation, Load};
+use bcal_common::measured::scenario::{simulate, EpisodeSpec, Request, Sample, ScenarioConfig};
 
 /// A 2 A constant-current discharge of the simulated cell `truth` after a minute's rest at its ambient,
 /// from `soc0` of a full cell's charge, sampled every 9-19 s (noise seed `noise_seed`), as the record of
@@ -27,27 +27,8 @@ pub fn simulated_record_under(
     load: Load,
 ) -> CellRecord {
     let ambient_k = cfg.model.params().tb0_k;
-    let (kind, rest) = match load {
-        Load::CurrentA(_) => (LoadKind::ConstantCurrent, Load::CurrentA(0.0)),
-        Load::PowerW(_) => (LoadKind::ConstantPower, Load::PowerW(0.0)),
-    };
-    let ep = simulate(
-        cfg,
-        &EpisodeSpec {
-            truth,
-            soc0,
-            kind,
-            profile: LoadProfile::Piecewise(vec![(0.0, rest), (60.0, load)]),
-            rest_s: 60.0,
-            ambient_k,
-            interval_s: [9.0, 19.0],
-            noise_seed,
-            cell_error: Default::default(),
-            request_known: false,
-            prior: None,
-        },
-    )
-    .expect("the simulator runs its own default cell");
+    let ep = simulate(cfg, &EpisodeSpec::rest_then(truth, soc0, load, ambient_k, noise_seed))
+        .expect("the simulator runs its own default cell");
     let samples: Vec<Sample> = ep.samples.iter().map(|s| Sample { request: Request::Unknown, ..*s }).collect();
     // The load's own current; under a power, the loaded readings' mean (as a record read from data has it).
     let current_a = match load {

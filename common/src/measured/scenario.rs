@@ -373,6 +373,30 @@ pub struct EpisodeSpec {
     pub prior: Option<Degradation>,
 }
 
+impl EpisodeSpec {
+    /// A cycler's discharge: a minute's rest at `ambient_k`, then `load` held (a current, or a power), sampled
+    /// every 9-19 s, the requests unknown, from `soc0` of the charge `truth` holds.
+    pub fn rest_then(truth: Degradation, soc0: f64, load: Load, ambient_k: f64, noise_seed: u64) -> Self {
+        let (kind, rest) = match load {
+            Load::CurrentA(_) => (LoadKind::ConstantCurrent, Load::CurrentA(0.0)),
+            Load::PowerW(_) => (LoadKind::ConstantPower, Load::PowerW(0.0)),
+        };
+        Self {
+            truth,
+            soc0,
+            kind,
+            profile: LoadProfile::Piecewise(vec![(0.0, rest), (60.0, load)]),
+            rest_s: 60.0,
+            ambient_k,
+            interval_s: [9.0, 19.0],
+            noise_seed,
+            cell_error: CellError::default(),
+            request_known: false,
+            prior: None,
+        }
+    }
+}
+
 fn yes() -> bool {
     true
 }
