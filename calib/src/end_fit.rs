@@ -36,6 +36,9 @@ pub const KNEE_WARMTH_SEEN: usize = KNEE_WARMTH_PAIRS + KNEE_WINDOW;
 /// other conditions (an ambient that changed: NASA's B0038-B0044 move 20 K between blocks), K: it neither
 /// teaches nor moves a knee. B0055's discharges lie within 2.1 K of the last three's.
 const KNEE_WARMTH_MAX_K: f64 = 3.0;
+/// A discharge's knee and warmth are read against discharges at its own current only (the first loaded reading's,
+/// within this ratio, as the twins by current take it): a knee at 4 A says nothing of one at 1 A ("B0041").
+const KNEE_WARMTH_CURRENT_RATIO: f64 = 1.2;
 
 /// How a knee moves with the cell's warmth, learned on the cell's own discharges. On a cold cell the tail a
 /// discharge runs below the model's end is long and moves from one discharge to the next with how warm the
@@ -54,12 +57,18 @@ pub struct KneeWarmth {
 }
 
 impl KneeWarmth {
-    /// Learned on `seen` (each ended discharge's temperature at [`KNEE_WARMTH_AT_S`], K, and its knee, C, in
-    /// order; the discharges with both): each discharge's knee move against the median of the
+    /// Learned for a discharge at `current_a` on `seen` (each ended discharge's temperature at
+    /// [`KNEE_WARMTH_AT_S`], K, its knee, C, and its current at the load-on, A, in order; the discharges with
+    /// all three), of which those at the same current: each one's knee move against the median of the
     /// [`KNEE_WINDOW`] before it, against its temperature's, least squares over the last
     /// [`KNEE_WARMTH_PAIRS`] (the slope about their means; the move predicted without an intercept, as the
     /// knee's median carries the level). None before [`KNEE_WARMTH_MIN_PAIRS`] pairs.
-    pub fn learn(seen: &[(f64, f64)]) -> Option<Self> {
+    pub fn learn(seen: &[(f64, f64, f64)], current_a: f64) -> Option<Self> {
+        let same = |a: f64| a > 0.0 && current_a > 0.0 && (a / current_a).ln().abs() <= KNEE_WARMTH_CURRENT_RATIO.ln();
+        let seen: Vec<(f64, f64)> = seen.iter().filter(|s| same(s.2)).map(|s| (s.0, s.1)).collect();
+        if seen.len() < KNEE_WINDOW {
+            return None;
+        }
         let median = |v: &mut Vec<f64>| bcal_common::stats::median(v).unwrap_or(0.0);
         let moves: Vec<(f64, f64)> = (KNEE_WINDOW..seen.len())
             .map(|j| {

@@ -614,9 +614,10 @@ pub struct Stream<'a> {
     /// ... and their median, C (0 before any), taken when one is added, not at every prediction.
     knee_c: f64,
     /// The last discharges' temperatures at [`crate::end_fit::KNEE_WARMTH_AT_S`] after their load-on, K, with
-    /// their knees, C (those that had both) ...
-    knee_warmth_seen: VecDeque<(f64, f64)>,
-    /// ... how the knee moves with that temperature, learned on them (as `bcal calibrate` learns it) ...
+    /// their knees, C, and their currents at the load-on, A (those that had all three) ...
+    knee_warmth_seen: VecDeque<(f64, f64, f64)>,
+    /// ... how the knee moves with that temperature at the current discharge's current, learned on them when its
+    /// warmth is read (as `bcal calibrate` learns it) ...
     knee_warmth: Option<crate::end_fit::KneeWarmth>,
     /// ... and the current discharge's temperature then, once it has been read.
     warmth_k: Option<f64>,
@@ -1256,6 +1257,8 @@ impl<'a> Stream<'a> {
             let at_s = on + crate::end_fit::KNEE_WARMTH_AT_S;
             if prev.t_s < at_s && s.t_s >= at_s {
                 self.warmth_k = crate::end_fit::temperature_at_k(&[prev, s], at_s);
+                let seen = self.knee_warmth_seen.make_contiguous();
+                self.knee_warmth = self.load_on_a.and_then(|a| crate::end_fit::KneeWarmth::learn(seen, a));
             }
         }
         self.last_sample = Some(s);
@@ -1757,6 +1760,7 @@ impl<'a> Stream<'a> {
     fn reset_discharge(&mut self) {
         self.short_start = false;
         self.warmth_k = None;
+        self.knee_warmth = None;
         self.start_half_s = 0.0;
         if let Some(noise_v) = bcal_common::measured::noise::voltage_noise_v(&self.samples) {
             if self.noises_v.len() == bcal_common::measured::noise::NOISE_WINDOW {
@@ -1909,12 +1913,11 @@ impl<'a> Stream<'a> {
                 self.knees_c.push_back(f.knee_c);
                 let mut knees: Vec<f64> = self.knees_c.iter().copied().collect();
                 self.knee_c = bcal_common::stats::median(&mut knees).unwrap_or(0.0);
-                if let Some(w) = self.warmth_k {
+                if let (Some(w), Some(a)) = (self.warmth_k, self.load_on_a) {
                     if self.knee_warmth_seen.len() == crate::end_fit::KNEE_WARMTH_SEEN {
                         self.knee_warmth_seen.pop_front();
                     }
-                    self.knee_warmth_seen.push_back((w, f.knee_c));
-                    self.knee_warmth = crate::end_fit::KneeWarmth::learn(self.knee_warmth_seen.make_contiguous());
+                    self.knee_warmth_seen.push_back((w, f.knee_c, a));
                 }
             }
         }

@@ -435,11 +435,18 @@ pub struct KneeSeen {
     pub capacity_c: Option<f64>,
     pub eod_c: Option<f64>,
     pub warmth_k: Option<f64>,
+    /// Its current at the load-on (the first loaded reading's), A.
+    pub current_a: Option<f64>,
 }
 
 impl KneeSeen {
     pub fn of(r: &CellRecord, fit: &(Degradation, ModelExtension), cutoff_v: f64) -> Self {
-        Self { capacity_c: knee_c(r, fit, cutoff_v), eod_c: eod_knee_c(r, fit, cutoff_v), warmth_k: warmth_k(r) }
+        Self {
+            capacity_c: knee_c(r, fit, cutoff_v),
+            eod_c: eod_knee_c(r, fit, cutoff_v),
+            warmth_k: warmth_k(r),
+            current_a: load_on_current_a(r),
+        }
     }
 }
 
@@ -449,6 +456,11 @@ pub fn warmth_k(r: &CellRecord) -> Option<f64> {
     let at_s = r.load_on_s + KNEE_WARMTH_AT_S;
     r.eod_s.filter(|&e| e > at_s)?;
     bcal_calib::end_fit::temperature_at_k(&r.samples, at_s)
+}
+
+/// A record's current at its load-on (its first loaded reading's), A.
+pub fn load_on_current_a(r: &CellRecord) -> Option<f64> {
+    r.samples.iter().find(|s| s.t_s >= r.load_on_s).map(|s| s.current_a)
 }
 
 /// The knees measured along records against their fits, in order, one per record.
@@ -477,14 +489,19 @@ impl Knees {
         }
     }
 
-    /// The knee a discharge after these runs with.
-    pub fn next(&self) -> Knee {
+    /// The knee a discharge after these runs with, whose current at the load-on is `current_a`.
+    pub fn next(&self, current_a: Option<f64>) -> Knee {
         let last = |f: fn(&KneeSeen) -> Option<f64>| {
             let mut v: Vec<f64> = self.seen.iter().rev().filter_map(f).take(KNEE_WINDOW).collect();
             bcal_common::stats::median(&mut v).unwrap_or(0.0)
         };
-        let warm: Vec<(f64, f64)> = self.seen.iter().filter_map(|s| s.warmth_k.zip(s.eod_c)).collect();
-        Knee { capacity_c: last(|s| s.capacity_c), eod_c: last(|s| s.eod_c), eod_warmth: KneeWarmth::learn(&warm) }
+        let warm: Vec<(f64, f64, f64)> =
+            self.seen.iter().filter_map(|s| Some((s.warmth_k?, s.eod_c?, s.current_a?))).collect();
+        Knee {
+            capacity_c: last(|s| s.capacity_c),
+            eod_c: last(|s| s.eod_c),
+            eod_warmth: current_a.and_then(|a| KneeWarmth::learn(&warm, a)),
+        }
     }
 }
 
@@ -501,7 +518,7 @@ pub fn knees_along(
         .iter()
         .zip(fits)
         .map(|(r, d)| {
-            let knee = seen.next();
+            let knee = seen.next(load_on_current_a(r));
             seen.seen.push(KneeSeen::of(r, d, cutoff_v));
             knee
         })
@@ -609,7 +626,8 @@ mod tests {
     /// (its temperatures offset by -1 to 1 K, no pattern; B0055 at 4 C moves about 46 s per K): once eight
     /// pairs have taught the slope, the knee each discharge runs with from 600 s after its load-on is within a
     /// fifth of the error of the last three's median, and the slope within 10 % of the written one. A discharge
-    /// 20 K warmer (an ambient that changed) and a cell whose temperature does not move keep the median.
+    /// 20 K warmer (an ambient that changed) and a cell whose temperature does not move keep the median; one at
+    /// another current learns nothing from these.
     #[test]
     fn a_knee_that_moves_with_the_cell_s_warmth_is_followed_once_learned() {
         use bcal_common::measured::scenario::Sample;
@@ -662,6 +680,10 @@ mod tests {
         let knee = knees_along(&Knees::default(), &other, &vec![fit.clone(); n + 1], 2.5)[n];
         assert!(knee.eod_warmth.is_some());
         assert_eq!(knee.eod_at_warmth(warmth_k(&other[n])), knee.eod_c, "{knee:?}");
+        // A discharge at another current (1 A) learns nothing from knees at 2 A.
+        let mut other = warm.clone();
+        other.push(crate::testing::simulated_record_under(&cfg, truth, 1.0, 99, n as u32 + 1, Load::CurrentA(1.0)));
+        assert_eq!(knees_along(&Knees::default(), &other, &vec![fit.clone(); n + 1], 2.5)[n].eod_warmth, None);
         // The same knees on a cell whose temperature stays put: nothing to learn, the median as it was.
         let still: Vec<CellRecord> = (0..n).map(|k| record(k, 0.0, 150.0 + 60.0 * offset_k(k))).collect();
         for (k, knee) in knees_along(&Knees::default(), &still, &fits, 2.5).iter().enumerate() {
