@@ -36,9 +36,6 @@ pub const KNEE_WARMTH_SEEN: usize = KNEE_WARMTH_PAIRS + KNEE_WINDOW;
 /// other conditions (an ambient that changed: NASA's B0038-B0044 move 20 K between blocks), K: it neither
 /// teaches nor moves a knee. B0055's discharges lie within 2.1 K of the last three's.
 const KNEE_WARMTH_MAX_K: f64 = 3.0;
-/// A discharge's knee and warmth are read against discharges at its own current only (the first loaded reading's,
-/// within this ratio, as the twins by current take it): a knee at 4 A says nothing of one at 1 A ("B0041").
-const KNEE_WARMTH_CURRENT_RATIO: f64 = 1.2;
 
 /// How a knee moves with the cell's warmth, learned on the cell's own discharges. On a cold cell the tail a
 /// discharge runs below the model's end is long and moves from one discharge to the next with how warm the
@@ -64,7 +61,12 @@ impl KneeWarmth {
     /// [`KNEE_WARMTH_PAIRS`] (the slope about their means; the move predicted without an intercept, as the
     /// knee's median carries the level). None before [`KNEE_WARMTH_MIN_PAIRS`] pairs.
     pub fn learn(seen: &[(f64, f64, f64)], current_a: f64) -> Option<Self> {
-        let same = |a: f64| a > 0.0 && current_a > 0.0 && (a / current_a).ln().abs() <= KNEE_WARMTH_CURRENT_RATIO.ln();
+        // At its own current only (the first loaded reading's, not moved by more than the twins' ratio): a knee
+        // at 4 A says nothing of one at 1 A ("B0041").
+        let same = |a: f64| {
+            crate::prior_width::current_move(a, current_a)
+                .is_some_and(|x| x.abs() <= crate::prior_width::MOVED_RATIO.ln())
+        };
         let seen: Vec<(f64, f64)> = seen.iter().filter(|s| same(s.2)).map(|s| (s.0, s.1)).collect();
         if seen.len() < KNEE_WINDOW {
             return None;
