@@ -594,6 +594,9 @@ pub struct Stream<'a> {
     /// ... and of that blend and the previous discharge's fit as delivered, on the discharges scored after
     /// rests of up to a day (the fit carries no recovery), and the blend's weight against the fit.
     previous_blend: BlendRecord,
+    /// The calibrator's signed errors with the knee's whole warmth move and without it, and the share of the
+    /// move it takes per share of the discharge (`bcal calibrate`'s `tune::scale_warmth`).
+    warmth_share: BlendRecord,
     /// The previous discharge's fit, pinned for the whole discharge (its state from the readings), where the
     /// last discharge was fitted ([`Refit`]) ...
     previous_cal: Option<Box<dyn Calibrator + Send + 'a>>,
@@ -689,8 +692,13 @@ const WITH_PREVIOUS: usize = 17;
 /// Index of what the rules deliver: the prior alone where it earned it, else [`WITH_PREVIOUS`] (the learner on
 /// the record learns its errors).
 const RULES: usize = 18;
+/// Index of the calibrator's own predictions with the knee's whole move by the cell's warmth ...
+const METHOD_WHOLE: usize = 19;
+/// ... and without it: their records give the share of the move [`METHOD`] takes
+/// ([`crate::end_fit::warmth_share`]).
+const METHOD_UNMOVED: usize = 20;
 /// How many sources a stream keeps.
-const N_SOURCES: usize = 19;
+const N_SOURCES: usize = 21;
 /// Offsets of a [`Twins`]' sources from its first: its base recentred on its bias ...
 const TWIN_RECENTRED: usize = 0;
 /// ... what the recentring serves (the recentred where it has earned it, else the base) ...
@@ -830,15 +838,16 @@ struct BlendRecord {
 }
 
 impl BlendRecord {
-    /// Adds a discharge's pairs of errors and learns the weights again.
-    fn push(&mut self, pairs: [Option<(f64, f64)>; 3]) {
+    /// Adds a discharge's pairs of errors and learns the weights again (`learn`: [`crate::blend::blend_weight`],
+    /// or another rule on the pairs).
+    fn push(&mut self, pairs: [Option<(f64, f64)>; 3], learn: fn(&[(f64, f64)]) -> Option<f64>) {
         if self.record.len() == crate::blend::BLEND_WINDOW {
             self.record.pop_front();
         }
         self.record.push_back(pairs);
         self.weights = std::array::from_fn(|b| {
             let pairs: Vec<(f64, f64)> = self.record.iter().filter_map(|d| d[b]).collect();
-            crate::blend::blend_weight(&pairs)
+            learn(&pairs)
         });
     }
 }
@@ -987,6 +996,7 @@ impl<'a> Stream<'a> {
             prior_serves: [false; 3],
             prior_blend: BlendRecord::default(),
             previous_blend: BlendRecord::default(),
+            warmth_share: BlendRecord::default(),
             previous_cal: None,
             previous_fit: None,
             voltage_fit: None,
@@ -1302,8 +1312,15 @@ impl<'a> Stream<'a> {
         let method = eod_load.and_then(|l| self.predict_from(self.cal.as_ref(), l));
         let prior_run = eod_load.and_then(|l| self.prior_cal.as_deref().and_then(|p| self.predict_from(p, l)));
         let previous_run = eod_load.and_then(|l| self.previous_cal.as_deref().and_then(|p| self.predict_from(p, l)));
-        let (eod_method_s, eod_prior_s, eod_previous_s) =
-            (method.map(|p| p.eod_s), prior_run.map(|p| p.eod_s), previous_run.map(|p| p.eod_s));
+        // The calibrator's end takes the share of the knee's warmth move its record says it has not read
+        // yet, at the reading's share of the discharge (the whole move until that is learned).
+        let warmth_s = eod_load.map_or(0.0, |l| self.warmth_move_s(l));
+        let whole_s = method.map(|p| p.eod_s);
+        let eod_method_s = whole_s.map(|e| {
+            let b = share_bin(self.eod_track.load_on_s.unwrap_or(r.time_s), r.time_s, e);
+            e + (self.warmth_share.weights[b].unwrap_or(1.0) - 1.0) * warmth_s
+        });
+        let (eod_prior_s, eod_previous_s) = (prior_run.map(|p| p.eod_s), previous_run.map(|p| p.eod_s));
         // The current assumed to the end: the load's, or under a power held constant the mean current the
         // model's run draws (it rises as the voltage falls), else the power at the present voltage.
         let eod_power_w = match eod_load {
@@ -1415,6 +1432,8 @@ impl<'a> Stream<'a> {
         eods[PREVIOUS_TWINS..PREVIOUS_TWINS + 4].copy_from_slice(&previous);
         eods[WITH_PREVIOUS] = with_previous_s;
         eods[RULES] = rules_s;
+        eods[METHOD_WHOLE] = whole_s;
+        eods[METHOD_UNMOVED] = whole_s.map(|e| e - warmth_s);
         self.track_eod(r, eods, dv);
         let on = self.eod_track.load_on_s;
         let (eod_lo_s, eod_hi_s) = match (eod_s, on, bin.and_then(|b| self.sources[SERVED].interval(b))) {
@@ -1865,10 +1884,22 @@ impl<'a> Stream<'a> {
         let pairs = |a: usize, b: usize| {
             std::array::from_fn(|k| last(a, EOD_FRACTIONS_PCT[k]).zip(last(b, EOD_FRACTIONS_PCT[k])))
         };
-        self.prior_blend.push(pairs(DELIVERED, PRIOR_TWINS + TWIN_DELIVERED));
+        self.prior_blend.push(pairs(DELIVERED, PRIOR_TWINS + TWIN_DELIVERED), crate::blend::blend_weight);
         if !self.after_long_rest() {
-            self.previous_blend.push(pairs(BLENDED, PREVIOUS_TWINS + TWIN_DELIVERED));
+            self.previous_blend.push(pairs(BLENDED, PREVIOUS_TWINS + TWIN_DELIVERED), crate::blend::blend_weight);
         }
+        // The calibrator's signed errors with the whole warmth move and without it, % of the discharge.
+        let signed = |src: usize, f: u32| {
+            let o = self.sources[src].scored.back()?.iter().find(|o| o.fraction == f)?;
+            Some(100.0 * (o.value - o.measured) / (end_s - on).max(1.0))
+        };
+        self.warmth_share.push(
+            std::array::from_fn(|k| {
+                let f = EOD_FRACTIONS_PCT[k];
+                signed(METHOD_WHOLE, f).zip(signed(METHOD_UNMOVED, f))
+            }),
+            crate::end_fit::warmth_share,
+        );
         let changes = std::mem::take(&mut self.voltage_changes);
         let moved = Transition { before_a: self.current_before_a, now_a: self.current_now.whole() };
         for twins in &mut self.twins {
@@ -2019,6 +2050,21 @@ impl<'a> Stream<'a> {
         }
     }
 
+    /// The knee's move by the cell's warmth, C: none until the warmth is read and a slope learned.
+    fn knee_warmth_c(&self) -> f64 {
+        self.knee_warmth.zip(self.warmth_k).map_or(0.0, |(w, t)| w.move_c(t))
+    }
+
+    /// What [`Self::knee_warmth_c`] adds to a predicted end under `load`, s.
+    fn warmth_move_s(&self, load: Load) -> f64 {
+        let knee_a = crate::end_fit::knee_current_a(load, self.spec.cutoff_v);
+        if knee_a > 0.0 {
+            self.knee_warmth_c() / knee_a
+        } else {
+            0.0
+        }
+    }
+
     /// [`Self::predict_eod_s`] from the state and estimate of `cal`, under `load` (a current or a power), with
     /// the charge drawn on the way.
     fn predict_from(&self, cal: &(dyn Calibrator + Send + 'a), load: Load) -> Option<EodPrediction> {
@@ -2033,7 +2079,7 @@ impl<'a> Stream<'a> {
         let q = EodQuery { profile: &profile, cutoff_v: self.spec.cutoff_v, dt_s: PREDICT_DT_S, max_s: PREDICT_MAX_S };
         // The model's knee, as the last discharges' end fits measured it: the charge past the model's end,
         // moved with the discharge's warmth once that has been read.
-        let knee_c = self.knee_c + self.knee_warmth.zip(self.warmth_k).map_or(0.0, |(w, t)| w.move_c(t));
+        let knee_c = self.knee_c + self.knee_warmth_c();
         let knee_a = crate::end_fit::knee_current_a(load, self.spec.cutoff_v);
         predict_eod(&model, &x, &dynamics, t_now_s, &q).map(|p| match knee_a > 0.0 {
             true => EodPrediction { eod_s: p.eod_s + knee_c / knee_a, drawn_c: p.drawn_c + knee_c },
@@ -2447,22 +2493,20 @@ mod tests {
         assert_eq!(&learned_on[9..], &[Some(9), Some(9), Some(10)], "{learned_on:?}");
     }
 
-    /// A live stream learns how the knee moves with the cell's warmth as `bcal calibrate` does: simulated 2 A
-    /// discharges (the simulator's own integrator and sampling) cut at the cell's 3.0 V and given a knee to a
-    /// 2.5 V cut-off that lasts 150 s plus 60 s per kelvin the discharge runs warmer (its temperatures offset
-    /// by -1 to 1 K, no pattern). Once eight pairs have taught it, the slope is within 10 % of the written one
-    /// (in the stream's measure of the knee) and the ends predicted at half of the later discharges scatter
-    /// (sd) under two thirds as much as without the knee's move (0.49 against 0.98 % of the discharge).
-    #[test]
-    fn a_stream_follows_a_knee_that_moves_with_the_cell_s_warmth() {
+    /// A cell's life of `n` simulated 2 A discharges (the simulator's own integrator and sampling), each cut at
+    /// the cell's 3.0 V and given a knee to a 2.5 V cut-off that lasts 150 s plus 60 s per kelvin the discharge
+    /// runs warmer (its temperatures offset by -1 to 1 K, no pattern), its qMobile `q_per_k` C per kelvin
+    /// higher too. Returns the readings, each discharge's first reading and (start, measured end) times, s, and
+    /// the knee's length per discharge, s.
+    #[allow(clippy::type_complexity)]
+    fn warm_knee_life(n: usize, q_per_k: f64) -> (Vec<Reading>, Vec<usize>, Vec<(f64, f64)>, Vec<f64>) {
         use bcal_common::battery::Load;
         let cfg = ScenarioConfig { cutoff_v: 2.5, ..ScenarioConfig::default() };
         let offset_k = |k: usize| 2.0 * ((k as f64 * 0.618_034).fract() - 0.5);
-        let knee_s = |k: usize| 150.0 + 60.0 * offset_k(k);
+        let knee_s: Vec<f64> = (0..n).map(|k| 150.0 + 60.0 * offset_k(k)).collect();
         let (mut readings, mut starts, mut ends, mut offset_s) = (Vec::new(), Vec::new(), Vec::new(), 0.0);
-        let n = 18;
-        for k in 0..n {
-            let truth = Degradation { q_mobile_c: 7200.0 - 10.0 * k as f64, r_o_ohm: 0.12 };
+        for (k, &knee_k_s) in knee_s.iter().enumerate() {
+            let truth = Degradation { q_mobile_c: 7200.0 - 10.0 * k as f64 + q_per_k * offset_k(k), r_o_ohm: 0.12 };
             let spec = EpisodeSpec::rest_then(truth, 1.0, Load::CurrentA(2.0), cfg.model.params().tb0_k, 60 + k as u64);
             let ep = simulate(&cfg, &spec).unwrap();
             let t_k = cfg.model.params().tb0_k + offset_k(k);
@@ -2478,11 +2522,22 @@ mod tests {
             let (a, b) = (ep.samples[cut - 1], ep.samples[cut]);
             let at_s = a.t_s + (b.t_s - a.t_s) * (a.voltage_v - 3.0) / (a.voltage_v - b.voltage_v);
             readings.extend(
-                (0..=20).map(|j| reading(at_s + knee_s(k) * j as f64 / 20.0, 3.0 - 0.51 * j as f64 / 20.0, 2.0)),
+                (0..=20).map(|j| reading(at_s + knee_k_s * j as f64 / 20.0, 3.0 - 0.51 * j as f64 / 20.0, 2.0)),
             );
-            ends.push((ep.samples[0].t_s + offset_s, at_s + knee_s(k) * 0.5 / 0.51 + offset_s));
+            ends.push((ep.samples[0].t_s + offset_s, at_s + knee_k_s * 0.5 / 0.51 + offset_s));
             offset_s = readings.last().unwrap().time_s + 3.0 * 3600.0;
         }
+        (readings, starts, ends, knee_s)
+    }
+
+    /// A live stream learns how the knee moves with the cell's warmth as `bcal calibrate` does ([`warm_knee_life`]).
+    /// Once eight pairs have taught it, the slope is within 10 % of the written one
+    /// (in the stream's measure of the knee) and the ends predicted at half of the later discharges scatter
+    /// (sd) under two thirds as much as without the knee's move (0.49 against 0.98 % of the discharge).
+    #[test]
+    fn a_stream_follows_a_knee_that_moves_with_the_cell_s_warmth() {
+        let n = 18;
+        let (readings, starts, ends, knee_s) = warm_knee_life(n, 0.0);
         let mut setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
         setup.spec.tracker.cutoff_v = 2.5;
         let mut stream = Stream::of(&setup, None, None).unwrap();
@@ -2500,7 +2555,7 @@ mod tests {
             if starts.contains(&(i + 1)) || i + 1 == readings.len() {
                 // The stream's knee runs from where the cell passed the model's end voltage (below 3.0 V): a
                 // fixed share of the written one here.
-                shares.push(stream.knees_c.back().expect("a knee") / (2.0 * knee_s(k)));
+                shares.push(stream.knees_c.back().expect("a knee") / (2.0 * knee_s[k]));
             }
         }
         let share = shares.iter().sum::<f64>() / n as f64;
@@ -2515,6 +2570,64 @@ mod tests {
             (3 + 8 + 1..n).map(|k| at_half[k].expect("a prediction at half")).unzip();
         assert!(with.iter().zip(&without).any(|(a, b)| a != b), "the knee moved");
         assert!(sd(&with) < 0.65 * sd(&without), "at half {with:?}; without the move {without:?}");
+    }
+
+    /// The stream's end takes the share of the knee's warmth move its own record asks, per share of the
+    /// discharge, as `bcal calibrate` does (`tune::scale_warmth`, whose test and
+    /// [`crate::end_fit::warmth_share`]'s show the share taking off what the method has read): on a life where
+    /// the warmth that lengthens the knee also shortens the discharge before it (the cell's qMobile 150 C per
+    /// kelvin lower), the calibrator's end is the whole move's until eight moved discharges have ended, then at
+    /// every reading the end without the move plus the learned share of it at the reading's share of the
+    /// discharge, the share at the end being the least-squares one of the scored ends with and without it.
+    #[test]
+    fn a_stream_takes_the_share_of_the_knee_s_warmth_move_its_record_asks() {
+        let n = 21;
+        let (readings, starts, ends, _) = warm_knee_life(n, -150.0);
+        let mut setup = resolve(CalibratorKind::Ukf, None, None, None).unwrap();
+        setup.spec.tracker.cutoff_v = 2.5;
+        let mut stream = Stream::of(&setup, None, None).unwrap();
+        let (mut moved_before, mut checked) = (0, 0);
+        for (i, r) in readings.iter().enumerate() {
+            stream.step(r).unwrap();
+            let k = starts.iter().rposition(|&s| s <= i).unwrap();
+            let last = |src: usize| stream.sources[src].predictions.last().filter(|p| p.0 == r.time_s).map(|p| p.1);
+            let (Some(taken), Some(whole), Some(unmoved)) = (last(METHOD), last(METHOD_WHOLE), last(METHOD_UNMOVED))
+            else {
+                continue;
+            };
+            let on_s = ends[k].0 + 60.0;
+            match stream.warmth_share.weights[share_bin(on_s, r.time_s, whole)] {
+                None => {
+                    assert_eq!(taken, whole, "discharge {k}: the whole move before a share is learned");
+                    moved_before += usize::from(whole != unmoved);
+                }
+                Some(a) => {
+                    let want = unmoved + a * (whole - unmoved);
+                    assert!((taken - want).abs() < 1e-6, "discharge {k} at {}: {taken} against {want}", r.time_s);
+                    checked += usize::from(whole != unmoved);
+                }
+            }
+        }
+        assert!(moved_before > 0 && checked > 100, "moved readings: {moved_before} before, {checked} with a share");
+        // The share at half the discharge, learned on the ten moved discharges the sources still hold.
+        let pairs: Vec<(f64, f64)> = stream.sources[METHOD_WHOLE]
+            .scored
+            .iter()
+            .zip(&stream.sources[METHOD_UNMOVED].scored)
+            .filter_map(|(w, u)| {
+                // Signed, % of the discharge from its load-on (the prediction less its size) to its end.
+                let at = |d: &Vec<Outcome>| {
+                    let o = d.iter().find(|o| o.fraction == 50)?;
+                    Some(100.0 * (o.value - o.measured) / (o.measured - (o.value - o.size)).max(1.0))
+                };
+                Some((at(w)?, at(u)?))
+            })
+            .collect();
+        let moved = pairs.iter().filter(|p| p.0 != p.1).count();
+        assert!(moved >= crate::blend::MIN_BLEND_PAIRS, "{pairs:?}");
+        let want = crate::end_fit::warmth_share(&pairs).expect("learned");
+        let got = stream.warmth_share.weights[1].expect("learned");
+        assert!((got - want).abs() < 1e-9, "{got} against {want}");
     }
 
     /// A cell whose resistance lies above the setting's range (0.33 ohm against its top of 0.25; the blind cold

@@ -1008,6 +1008,14 @@ pub fn calibrate(input: &CalibrateInput, progress: &mut dyn FnMut(&str)) -> Resu
                    entry: &mut serde_json::Value,
                    widenings: &mut serde_json::Map<String, serde_json::Value>,
                    runs: &mut Vec<(&'static str, Vec<CycleRun>)>| {
+        // The knee's warmth move scaled per share to what the calibrator's record says it has not read yet.
+        let (r, warmth_shares) = tune::scale_warmth(&r, &validation, &judged);
+        entry["warmth_share"] = serde_json::json!({"share": weights_json(&warmth_shares),
+            "what": format!("each end of discharge takes this share of the knee's move with the cell's warmth \
+                (`model_knee_c.judged_eod_warmth`), per share of the discharge (10 / 50 / 90 %): the least-squares \
+                share, held to [0, 1], of the calibrator's signed errors with and without the move over the last \
+                {} discharges that ended with a move (none before {}: the whole move; `share`: its median over the \
+                judged discharges and how many)", bcal_calib::blend::BLEND_WINDOW, bcal_calib::blend::MIN_BLEND_PAIRS)});
         let own_score = score(&judged, &r.judged);
         let d = tune::deliver(&r, &companions, &validation, &judged);
         entry["recentred"] = serde_json::json!({"cycles": served_cycles(&judged, &d.recentred),

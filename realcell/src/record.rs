@@ -460,6 +460,7 @@ pub(crate) fn test_discharge(
             estimate: bcal_common::battery::Degradation::default(),
             interval: None,
             eod: eod(s.t_s),
+            eod_warmth_s: 0.0,
             capacity,
         })
         .collect();

@@ -44,6 +44,8 @@ pub struct Step {
     pub interval: Option<Interval>,
     /// Predicted end of discharge, absolute time, s.
     pub eod: Predicted,
+    /// What the knee's move with the cell's warmth added to `eod`, s ([`Knee::eod_at_warmth`]).
+    pub eod_warmth_s: f64,
     /// Predicted capacity at the discharge's current to the cut-off, Ah.
     pub capacity: Predicted,
 }
@@ -241,6 +243,7 @@ pub fn run_cycle_with(
         let knee_a = knee_current_a(assumed, cutoff_v);
         let eod_knee_c = knee.eod_at_warmth(warmth_k.filter(|_| s.t_s >= warmth_at_s));
         let knee_s = if knee_a > 0.0 { eod_knee_c / knee_a } else { 0.0 };
+        let eod_warmth_s = if knee_a > 0.0 { (eod_knee_c - knee.eod_c) / knee_a } else { 0.0 };
         let state = |p: &Degradation| c.state_under(p);
         // End of discharge: the model at the cell's temperature now.
         let now =
@@ -267,6 +270,7 @@ pub fn run_cycle_with(
                 estimate: d,
                 interval: iv,
                 eod: eod.shifted(knee_s),
+                eod_warmth_s,
                 capacity: capacity.shifted(cap_shift),
             });
         }

@@ -297,6 +297,7 @@ mod tests {
                     estimate: Degradation::default(),
                     interval: None,
                     eod: Predicted { value: Some(1050.0), lo: Some(950.0), hi: Some(1150.0) },
+                    eod_warmth_s: 0.0,
                     capacity: Predicted { value: Some(1.2), lo: Some(1.1), hi: Some(1.3) },
                 })
                 .collect(),

@@ -338,6 +338,55 @@ pub fn deliver(own: &Runs, with: &Companions, validation: &[CellRecord], judged:
     }
 }
 
+/// `own` with the knee's move by the cell's warmth ([`Step::eod_warmth_s`]) in each end of discharge scaled, per
+/// share of the discharge, to the share of it the method's record there says it still needs
+/// ([`bcal_calib::end_fit::warmth_share`], on its signed errors with and without the move over the discharges
+/// that ended before each, validation cycles first; the whole move until it is learned), as a live stream
+/// scales it. A reading's share is the one its own predicted end puts it at. Returns the runs and, per share,
+/// the judged discharges' shares of the move.
+pub fn scale_warmth(own: &Runs, validation: &[CellRecord], judged: &[CellRecord]) -> (Runs, Weights) {
+    let unmoved = |runs: &[CycleRun]| -> Vec<CycleRun> {
+        runs.iter()
+            .map(|run| CycleRun {
+                cycle: run.cycle,
+                steps: run
+                    .steps
+                    .iter()
+                    .map(|s| Step { eod: s.eod.shifted(-s.eod_warmth_s), eod_warmth_s: 0.0, ..s.clone() })
+                    .collect(),
+            })
+            .collect()
+    };
+    let without = Runs { validation: unmoved(&own.validation), judged: unmoved(&own.judged) };
+    let (val, jud) = share_learned(
+        &without,
+        own,
+        validation,
+        judged,
+        |r, runs, b| eod_signed_error_pct_at(r, runs, EOD_FRACTIONS_PCT[b]),
+        bcal_calib::end_fit::warmth_share,
+    );
+    let set = |records: &[CellRecord], runs: &[CycleRun], shares: &Weights| {
+        by_share(
+            records,
+            runs,
+            runs,
+            runs,
+            |_| true,
+            |k, bin, s, _| match shares[bin][k] {
+                Some(a) if s.eod_warmth_s != 0.0 => Step {
+                    eod: s.eod.shifted((a - 1.0) * s.eod_warmth_s),
+                    eod_warmth_s: a * s.eod_warmth_s,
+                    ..s.clone()
+                },
+                _ => s.clone(),
+            },
+        )
+    };
+    let runs = Runs { validation: set(validation, &own.validation, &val), judged: set(judged, &own.judged, &jud) };
+    (runs, jud)
+}
+
 /// What [`learn_on_record`] learned, per share of the discharge ([`EOD_FRACTIONS_PCT`], by index): the
 /// judged discharges' weights on the moved capacity and on the moved end.
 pub struct LearnedWeights {
@@ -598,14 +647,27 @@ fn share_weights(
     judged: &[CellRecord],
     err: impl Fn(&[CellRecord], &[CycleRun], usize) -> Vec<f64>,
 ) -> (Weights, Weights) {
+    share_learned(prior, own, validation, judged, err, bcal_calib::blend::blend_weight)
+}
+
+/// [`share_weights`] with what is learned from the (own, other) error pairs of the discharges that ended
+/// before each: `learn`.
+fn share_learned(
+    other: &Runs,
+    own: &Runs,
+    validation: &[CellRecord],
+    judged: &[CellRecord],
+    err: impl Fn(&[CellRecord], &[CycleRun], usize) -> Vec<f64>,
+    learn: fn(&[(f64, f64)]) -> Option<f64>,
+) -> (Weights, Weights) {
     let (mut val, mut jud): (Weights, Weights) = Default::default();
     for b in 0..EOD_FRACTIONS_PCT.len() {
-        let (mut past, later) = error_pairs(own, prior, validation, judged, &err, b);
-        val[b] = (0..past.len()).map(|k| bcal_calib::blend::blend_weight(&past[..k])).collect();
+        let (mut past, later) = error_pairs(own, other, validation, judged, &err, b);
+        val[b] = (0..past.len()).map(|k| learn(&past[..k])).collect();
         jud[b] = later
             .into_iter()
             .map(|pair| {
-                let w = bcal_calib::blend::blend_weight(&past);
+                let w = learn(&past);
                 past.push(pair);
                 w
             })
@@ -749,6 +811,42 @@ mod tests {
                 crate::record::test_discharge(c, 1.0, |_| at(100.0 + e), at(1.0))
             })
             .unzip()
+    }
+
+    /// A method that has read none of the warmth by half a discharge and 70 % of it by 90 % (its end without the
+    /// knee's move errs by minus the move, then by minus 30 % of it): the move is taken whole at half and
+    /// scaled to about 0.3 at 90 % once eight moved discharges have ended, so the ends there err far less than
+    /// with the whole move; a discharge whose knee did not move is left as it is.
+    #[test]
+    fn the_knee_s_warmth_move_is_scaled_to_what_the_method_has_not_read() {
+        use crate::predict::Predicted;
+        let at = |v: f64| Predicted { value: Some(v), lo: Some(v - 5.0), hi: Some(v + 5.0) };
+        // Each discharge's move, s (100 s long, the end measured at 100 s): no pattern, one of them none.
+        let move_s = |c: u32| if c == 25 { 0.0 } else { 8.0 * ((f64::from(c) * 0.618_034).fract() - 0.5) };
+        let needs = |t_s: f64| if t_s < 70.0 { 1.0 } else { 0.3 };
+        let (records, runs): (Vec<CellRecord>, Vec<CycleRun>) = (1..=40)
+            .map(|c| {
+                let (r, mut run) = crate::record::test_discharge(c, 1.0, |t| at(100.0 - needs(t) * move_s(c)), at(1.0));
+                for s in &mut run.steps {
+                    s.eod = s.eod.shifted(move_s(c));
+                    s.eod_warmth_s = move_s(c);
+                }
+                (r, run)
+            })
+            .unzip();
+        let runs = Runs { validation: runs[..10].to_vec(), judged: runs[10..].to_vec() };
+        let (scaled, shares) = scale_warmth(&runs, &records[..10], &records[10..]);
+        // Learned on the validation cycles before the first judged discharge.
+        assert!(shares.iter().all(|s| s.iter().all(Option::is_some)), "{shares:?}");
+        assert!(shares[1].iter().flatten().all(|a| (a - 1.0).abs() < 1e-9), "{:?}", shares[1]);
+        assert!(shares[2].iter().flatten().all(|a| (a - 0.3).abs() < 1e-9), "{:?}", shares[2]);
+        let error_at = |run: &CycleRun, t: usize| run.steps[t].eod.value.unwrap() - 100.0;
+        for (k, (s, r)) in scaled.judged.iter().zip(&runs.judged).enumerate() {
+            let c = 11 + k as u32;
+            assert!(error_at(s, 50).abs() < 1e-9 && error_at(s, 90).abs() < 1e-9, "cycle {c}: {:?}", error_at(s, 90));
+            assert!((error_at(r, 90) - 0.7 * move_s(c)).abs() < 1e-9, "the whole move errs");
+            assert!((s.steps[90].eod_warmth_s - 0.3 * move_s(c)).abs() < 1e-9);
+        }
     }
 
     fn candidate(index: usize, per_cycle_pct: Vec<f64>) -> Candidate {
